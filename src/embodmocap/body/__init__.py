@@ -1,0 +1,1 @@
+"""Body model: SMPL adapter and the generated test model."""

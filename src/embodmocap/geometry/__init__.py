@@ -1,0 +1,1 @@
+"""Geometry: transforms, cameras, alignment. Z-up world, OpenCV cameras, T_a_b names."""

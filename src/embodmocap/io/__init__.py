@@ -1,0 +1,1 @@
+"""Reading and writing: session layout, atomic writes, captures, manifests, formats."""

@@ -1,0 +1,1 @@
+"""Capture readers and writers, one module per phone app format."""

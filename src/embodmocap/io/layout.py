@@ -1,0 +1,211 @@
+"""The one place that knows where every file of a session lives.
+
+No other module builds a session path by hand: stages ask these objects. A session folder looks
+like this (raw captures may also live elsewhere; the manifest names them)::
+
+    SESSION/
+      session.toml                    the manifest (scenes, sequences, body model)
+      body_model.npz                  optional body model file (synthetic sessions write one)
+      captures/                       raw captures as the phone apps wrote them
+        <scene>/                      scene capture
+        <seq>/v1/  <seq>/v2/          the two view captures of a sequence
+      perception/<seq>/<view>/        precomputed perception of a view (synth or user tools)
+        keypoints/NNNNNN_keypoints.json   OpenPose-style per-frame JSON (COCO-17 layout)
+        masks/NNNNNN.png              person masks, 255 = person
+        body_prior.npz                camera-space body prior per frame
+      ground_truth/                   only for synthetic sessions
+      scenes/<scene>/                 stage I outputs
+      sequences/<seq>/                stage II-IV outputs
+      evaluation.json, report.html    evaluation outputs
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+VIEWS: tuple[str, str] = ("v1", "v2")
+
+
+@dataclass(frozen=True)
+class SceneLayout:
+    """Stage I outputs of one scene."""
+
+    root: Path
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def keyframes(self) -> Path:
+        return self.root / "keyframes.json"
+
+    @property
+    def mesh_raw(self) -> Path:
+        return self.root / "mesh_raw.ply"
+
+    @property
+    def mesh_simplified(self) -> Path:
+        return self.root / "mesh_simplified.ply"
+
+    @property
+    def sfm_dir(self) -> Path:
+        return self.root / "sfm"
+
+
+@dataclass(frozen=True)
+class ViewLayout:
+    """Per-view outputs of a sequence (stages II-III)."""
+
+    root: Path
+
+    @property
+    def frame_map(self) -> Path:
+        return self.root / "frame_map.json"
+
+    @property
+    def cameras(self) -> Path:
+        return self.root / "cameras.npz"
+
+    @property
+    def keypoints(self) -> Path:
+        return self.root / "keypoints2d.npz"
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / "masks"
+
+    @property
+    def depth_dir(self) -> Path:
+        return self.root / "depth"
+
+    @property
+    def body_prior(self) -> Path:
+        return self.root / "body_prior.npz"
+
+
+@dataclass(frozen=True)
+class SequenceLayout:
+    """Stage II-IV outputs of one sequence."""
+
+    root: Path
+
+    def view(self, name: str) -> ViewLayout:
+        return ViewLayout(self.root / name)
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def sync(self) -> Path:
+        return self.root / "sync.json"
+
+    @property
+    def smpl_world(self) -> Path:
+        return self.root / "smpl_world.npz"
+
+    @property
+    def keypoints3d(self) -> Path:
+        return self.root / "keypoints3d.npz"
+
+
+@dataclass(frozen=True)
+class PerceptionLayout:
+    """Precomputed perception of one view, in the formats users bring (and synth writes)."""
+
+    root: Path
+
+    @property
+    def keypoints_dir(self) -> Path:
+        return self.root / "keypoints"
+
+    def keypoints_json(self, frame: int) -> Path:
+        return self.keypoints_dir / f"{frame:06d}_keypoints.json"
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / "masks"
+
+    def mask_png(self, frame: int) -> Path:
+        return self.masks_dir / f"{frame:06d}.png"
+
+    @property
+    def body_prior(self) -> Path:
+        return self.root / "body_prior.npz"
+
+
+@dataclass(frozen=True)
+class GroundTruthLayout:
+    """Ground truth written by the synthetic studio (never read by the pipeline stages)."""
+
+    root: Path
+
+    @property
+    def info(self) -> Path:
+        """JSON: seed, preset, sizes, per-scene and per-sequence facts."""
+        return self.root / "ground_truth.json"
+
+    def scene_mesh(self, scene: str) -> Path:
+        """PLY, Z-up metres, scene frame."""
+        return self.root / f"scene_{scene}_mesh.ply"
+
+    def scene_device(self, scene: str) -> Path:
+        """npz: T_scene_vio (4,4), T_scene_cam (T,4,4) true poses of the scene capture."""
+        return self.root / f"scene_{scene}_device.npz"
+
+    def sequence(self, seq: str) -> Path:
+        """npz: world SMPL params, joints, per-view true cameras, T_scene_vio, sync frames."""
+        return self.root / f"seq_{seq}.npz"
+
+
+@dataclass(frozen=True)
+class SessionLayout:
+    """Every path of one session folder."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "session.toml"
+
+    @property
+    def body_model(self) -> Path:
+        return self.root / "body_model.npz"
+
+    @property
+    def captures_dir(self) -> Path:
+        return self.root / "captures"
+
+    def scene_capture(self, scene: str) -> Path:
+        """Default folder of a scene's raw capture (the manifest may name another)."""
+        return self.captures_dir / scene
+
+    def view_capture(self, seq: str, view: str) -> Path:
+        """Default folder of a view's raw capture (the manifest may name another)."""
+        return self.captures_dir / seq / view
+
+    def perception(self, seq: str, view: str) -> PerceptionLayout:
+        return PerceptionLayout(self.root / "perception" / seq / view)
+
+    @property
+    def ground_truth(self) -> GroundTruthLayout:
+        return GroundTruthLayout(self.root / "ground_truth")
+
+    def scene(self, name: str) -> SceneLayout:
+        return SceneLayout(self.root / "scenes" / name)
+
+    def sequence(self, name: str) -> SequenceLayout:
+        return SequenceLayout(self.root / "sequences" / name)
+
+    @property
+    def evaluation(self) -> Path:
+        return self.root / "evaluation.json"
+
+    @property
+    def report_html(self) -> Path:
+        return self.root / "report.html"

@@ -1,0 +1,1 @@
+"""Synthetic dual-iPhone capture studio with ground truth."""
