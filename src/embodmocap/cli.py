@@ -1,0 +1,162 @@
+"""The ``embodmocap`` command: one subcommand per job, generated from config dataclasses by tyro.
+
+Every option's help text is the docstring of its dataclass field. Errors caused by input are shown
+as one line (what, where, what to do); ``--debug`` anywhere on the command line shows the traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Union
+
+import tyro
+
+from embodmocap.errors import EmbodMocapError
+from embodmocap.synth.config import SynthConfig
+
+log = logging.getLogger("embodmocap")
+
+
+@dataclass(frozen=True)
+class Synth:
+    """Write a synthetic dual-iPhone session with ground truth (the built-in test studio)."""
+
+    out: tyro.conf.Positional[Path]
+    """Session folder to create."""
+    config: Annotated[SynthConfig, tyro.conf.arg(name="")] = SynthConfig()
+    """Studio settings."""
+
+    def run(self) -> int:
+        from embodmocap.synth.studio import synthesize
+
+        res = synthesize(self.config, self.out)
+        print(f"synthetic session: {res.root} ({res.frames_rendered} frames in {res.seconds_taken:.1f} s)")
+        return 0
+
+
+@dataclass(frozen=True)
+class Inspect:
+    """Print what a capture or a session holds and list every problem found."""
+
+    path: tyro.conf.Positional[Path]
+    """A capture folder (Stray Scanner, Spectacular AI, Record3D) or a session folder."""
+
+    def run(self) -> int:
+        from embodmocap.io.inspect import inspect_path
+
+        text, problems = inspect_path(self.path)
+        print(text)
+        return 1 if problems else 0
+
+
+@dataclass(frozen=True)
+class Demo:
+    """Run the built-in demo: synthesise a session and inspect it."""
+
+    out: tyro.conf.Positional[Path] = Path("demo_out")
+    """Folder for the demo session (replaced if it holds an earlier demo)."""
+    seconds: float = 6.0
+    """Performance length of the demo sequence, seconds."""
+    seed: int = 0
+    """Random seed of the demo session."""
+
+    def run(self) -> int:
+        import shutil
+
+        from embodmocap.io.inspect import inspect_path
+        from embodmocap.synth.studio import synthesize
+
+        if (self.out / "session.toml").exists() and (self.out / "ground_truth").exists():
+            shutil.rmtree(self.out)  # an earlier demo's output: ours to replace
+        elif self.out.exists() and any(self.out.iterdir()):
+            raise EmbodMocapError(f"{self.out}: folder exists and is not a demo session (choose another OUT)")
+        res = synthesize(SynthConfig(seed=self.seed, seconds=self.seconds, scene_seconds=15.0), self.out)
+        text, problems = inspect_path(self.out)
+        print(text)
+        print(f"\ndemo session written to {res.root} in {res.seconds_taken:.1f} s")
+        return 1 if problems else 0
+
+
+@dataclass(frozen=True)
+class BodyMakeTestModel:
+    """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
+
+    out: tyro.conf.Positional[Path]
+    """Output .npz path."""
+    seed: int = 0
+    """Random seed of the generated model (0 is the one the demo and tests use)."""
+
+    def run(self) -> int:
+        from embodmocap.body.testmodel import make_test_model_cli
+
+        make_test_model_cli(self.out, seed=self.seed)
+        print(f"wrote {self.out}")
+        return 0
+
+
+@dataclass(frozen=True)
+class SessionImport:
+    """Create session.toml from a CSV/XLSX sheet in the paper release's layout."""
+
+    sheet: tyro.conf.Positional[Path]
+    """The .csv or .xlsx sheet (columns scene_folder, seq_name, in_door, v1_start, v2_start, ...)."""
+    session: tyro.conf.Positional[Path]
+    """Session folder (relative scene folders are resolved against it)."""
+    force: bool = False
+    """Overwrite an existing session.toml."""
+
+    def run(self) -> int:
+        from embodmocap.io.sheet_import import import_sheet_cli
+
+        path = import_sheet_cli(self.sheet, self.session, force=self.force)
+        print(f"wrote {path}")
+        return 0
+
+
+#: The subcommands; tyro turns each dataclass (and its field docstrings) into options and help.
+Commands = Union[
+    Annotated[Demo, tyro.conf.subcommand("demo")],
+    Annotated[Synth, tyro.conf.subcommand("synth")],
+    Annotated[Inspect, tyro.conf.subcommand("inspect")],
+    Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
+    Annotated[SessionImport, tyro.conf.subcommand("session:import")],
+]
+
+
+def _setup_logging(debug: bool) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
+    log.addHandler(handler)
+    log.setLevel(logging.DEBUG if debug else logging.INFO)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
+    # "body make-test-model" and "session import" read naturally as two words.
+    if len(argv) >= 2 and argv[0] in ("body", "session"):
+        argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
+    _setup_logging(debug)
+    cmd = tyro.cli(
+        Commands, args=argv, prog="embodmocap",
+        description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
+        config=(tyro.conf.FlagConversionOff,),
+    )
+    try:
+        return int(cmd.run())
+    except EmbodMocapError as err:
+        if debug:
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: run the same command again to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""``embodmocap inspect PATH``: what a capture or a session holds, and every problem found.
+
+Nothing stops at the first problem: each capture, perception folder and the manifest are checked
+and all problems are listed, so a user fixes a session in one pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from embodmocap.errors import EmbodMocapError
+from embodmocap.io.captures import detect_format
+from embodmocap.io.inspect_capture import check_capture, format_report
+from embodmocap.io.layout import SessionLayout
+
+
+def inspect_path(path: str | Path) -> tuple[str, list[str]]:
+    """Return ``(printable text, problems)`` for a capture folder or a session folder."""
+    path = Path(path)
+    if not path.exists():
+        return f"{path}: does not exist", [f"{path}: does not exist"]
+    if (path / "session.toml").is_file():
+        return _inspect_session(path)
+    if detect_format(path) is None:
+        msg = (f"{path}: neither a session (no session.toml) nor a capture folder of a known format "
+               "(Stray Scanner, Spectacular AI, Record3D)")
+        return msg, [msg]
+    report = check_capture(path)
+    return format_report(report), list(report.problems)
+
+
+def _inspect_session(root: Path) -> tuple[str, list[str]]:
+    from embodmocap.io.manifest import load_manifest_unchecked, validate_manifest
+
+    lay = SessionLayout(root)
+    lines = [f"session {root}"]
+    try:
+        manifest = load_manifest_unchecked(lay.manifest)
+    except EmbodMocapError as err:
+        return "\n".join(lines + [f"  manifest: {err}"]), [str(err)]
+    problems = list(validate_manifest(manifest))
+    body = manifest.body_model or "(generated test model)"
+    lines.append(f"  body model: {body}")
+    for name, scene in manifest.scenes.items():
+        lines.append(f"  scene {name} ({'indoor' if scene.indoor else 'outdoor'}):")
+        problems += _add_capture(lines, scene.capture, "    ")
+    for name, seq in manifest.sequences.items():
+        lines.append(f"  sequence {name} (scene {seq.scene}, {len(seq.contacts)} contact markers)")
+        for vname, view in seq.views.items():
+            sync = f", sync frame {view.sync_frame}" if view.sync_frame is not None else ""
+            lines.append(f"    view {vname}{sync}:")
+            problems += _add_capture(lines, view.capture, "      ")
+            for label, folder, pattern in (("keypoints", view.keypoints, "*.json"), ("masks", view.masks, "*.png")):
+                if folder is not None and Path(folder).is_dir():
+                    lines.append(f"      {label}: {sum(1 for _ in Path(folder).glob(pattern))} files in {folder}")
+            if view.body_prior is not None:
+                ok = Path(view.body_prior).is_file()
+                lines.append(f"      body prior: {view.body_prior}{'' if ok else ' (missing)'}")
+    if lay.ground_truth.info.is_file():
+        lines.append(f"  ground truth: {lay.ground_truth.root}")
+    lines.append("")
+    lines.append("problems:" if problems else "no problems found")
+    lines += [f"  - {p}" for p in problems]
+    return "\n".join(lines), problems
+
+
+def _add_capture(lines: list[str], capture: Path, indent: str) -> list[str]:
+    capture = Path(capture)
+    if not capture.exists():
+        lines.append(f"{indent}{capture}: missing")
+        return [f"{capture}: capture folder does not exist"]
+    report = check_capture(capture)
+    lines += [indent + line for line in format_report(report).splitlines()]
+    return list(report.problems)

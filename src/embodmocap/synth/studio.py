@@ -1,0 +1,242 @@
+"""The synthetic dual-iPhone capture studio: a complete session with known answers.
+
+``synthesize(config, out)`` writes, under ``out``, everything a real session would hold (the scene
+capture, the two view captures, precomputed perception in standard formats, ``session.toml``) plus a
+separate ``ground_truth/`` folder. Reading it top to bottom:
+
+1. build a furnished scene (room or yard) with a solid procedural texture;
+2. give the performer a random body shape and a scripted motion that uses the furniture;
+3. one device walks the empty scene: render RGB + LiDAR-like depth, write a capture;
+4. two operators follow the performer; each view has its own VIO world (random yaw/offset + drift)
+   and its own recording start; a laser dot on a wall goes off at one instant (the sync event);
+   render RGB (with the performer), depth, person mask; write each capture and the perception a
+   real detector would give (keypoint JSON, mask PNGs, camera-space body prior);
+5. write the ground truth and the manifest.
+
+Timeline: the motion has frames ``0..M-1`` at ``fps``; the laser goes off at motion frame ``e``
+(during the performer's initial idle). View ``k`` records motion frames ``start_k .. start_k +
+n_k - 1``, so its raw sync frame (the first frame without the dot) is ``e - start_k``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from embodmocap.body.model import load_body_model
+from embodmocap.body.testmodel import write_test_model
+from embodmocap.geometry.transforms import apply_T, invert_T
+from embodmocap.io.atomic import atomic_path, write_json, write_npz
+from embodmocap.io.body_prior import write_body_prior
+from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.manifest import SceneEntry, SequenceEntry, SessionManifest, ViewEntry, write_manifest
+from embodmocap.io.openpose import write_openpose_json
+from embodmocap.synth import lidar, perception, trajectory
+from embodmocap.synth.motion import MotionConfig, script_motion
+from embodmocap.synth.render import Renderer
+from embodmocap.synth.config import SynthConfig
+from embodmocap.synth.scene import build_scene, write_scene_ply
+from embodmocap.types import Intrinsics
+
+log = logging.getLogger(__name__)
+
+#: Version of the ground-truth files this module writes.
+GT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """What ``synthesize`` wrote."""
+
+    root: Path
+    seconds_taken: float
+    frames_rendered: int
+    sync_frames: dict[str, int]
+
+
+def _rng(seed: int, part: int) -> np.random.Generator:
+    """An independent, reproducible generator per part, so changing one part's draws never
+    shifts another part's."""
+    return np.random.default_rng([seed, part])
+
+
+def _capture_writer(cfg: SynthConfig, out: Path):
+    if cfg.format == "strayscanner":
+        from embodmocap.io.captures.strayscanner import StrayScannerWriter
+
+        return StrayScannerWriter(out, cfg.intrinsics(), cfg.fps)
+    from embodmocap.io.captures.spectacular import SpectacularWriter
+
+    return SpectacularWriter(out, cfg.intrinsics(), cfg.fps)
+
+
+def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
+    """Write a complete synthetic session into ``out`` (created; must not hold a session)."""
+    t0 = time.perf_counter()
+    lay = SessionLayout(Path(out))
+    lay.root.mkdir(parents=True, exist_ok=True)
+    K, K_depth = cfg.intrinsics(), cfg.depth_intrinsics()
+
+    # 1. Scene.
+    built = build_scene(cfg.preset, _rng(cfg.seed, 1))
+    renderer = Renderer(built)
+
+    # 2. Performer: shape and motion (scene frame).
+    write_test_model(lay.body_model)
+    body = load_body_model(lay.body_model)
+    brng = _rng(cfg.seed, 2)
+    betas = np.zeros(body.num_betas)
+    betas[:4] = brng.normal(0.0, [0.8, 0.6, 0.5, 0.5])
+    lead_max_s = max(cfg.lead_min_s + 0.6, 1.0)
+    total_s = lead_max_s + cfg.seconds + 0.2
+    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _rng(cfg.seed, 3), MotionConfig())
+    params = script.params
+    M = len(params)
+    out_body = body.from_params(params)
+    verts = out_body.vertices.detach().cpu().numpy()
+    coco = out_body.coco17.detach().cpu().numpy()
+    joints = out_body.joints.detach().cpu().numpy()
+    faces = np.asarray(body.faces)
+
+    # The sync event: inside the performer's initial idle, late enough for every view's lead.
+    idle_end = next((end for name, start, end in script.segments if name == "idle"), int(lead_max_s * cfg.fps))
+    event = int(min(round(lead_max_s * cfg.fps), max(idle_end - 3, round(cfg.lead_min_s * cfg.fps) + 1)))
+    trng = _rng(cfg.seed, 4)
+    starts, ends = {}, {}
+    for v in VIEWS:
+        lead = int(trng.integers(round(cfg.lead_min_s * cfg.fps), event + 1))
+        starts[v] = event - lead
+        ends[v] = M - int(trng.integers(0, round(cfg.tail_max_s * cfg.fps) + 1))
+
+    # 3. Scene capture.
+    frames_rendered = 0
+    scene_T = trajectory.scene_walk(built.spec, cfg.scene_seconds, cfg.fps, _rng(cfg.seed, 5))
+    scene_T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 6))
+    scene_T_vio_cam = trajectory.add_drift(
+        invert_T(scene_T_scene_vio) @ scene_T, cfg.fps, _rng(cfg.seed, 7), trajectory.DriftConfig()
+    )
+    log.info("scene capture: %d frames", len(scene_T))
+    _write_capture(
+        cfg, lay.scene_capture(cfg.scene_name), renderer, scene_T, scene_T_vio_cam, K, K_depth,
+        body_verts=None, faces=faces, laser_on=np.zeros(len(scene_T), bool), rng=_rng(cfg.seed, 8),
+        clock_offset_s=float(_rng(cfg.seed, 9).uniform(100, 1000)),
+    )
+    frames_rendered += len(scene_T)
+
+    # 4. The two views.
+    pelvis = joints[:, 0]
+    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), trajectory.FollowConfig())
+    seq_gt: dict[str, np.ndarray] = {}
+    sync_frames = {}
+    for k, v in enumerate(VIEWS):
+        span = np.arange(starts[v], ends[v])
+        T_scene_cam = T_v[k][span]
+        T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 20 + k))
+        T_vio_cam = trajectory.add_drift(
+            invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
+        )
+        laser_on = span < event
+        log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
+        gt_px, vis, masks_dir = _write_capture(
+            cfg, lay.view_capture(cfg.sequence_name, v), renderer, T_scene_cam, T_vio_cam, K, K_depth,
+            body_verts=verts[span], faces=faces, laser_on=laser_on, rng=_rng(cfg.seed, 40 + k),
+            clock_offset_s=float(_rng(cfg.seed, 50 + k).uniform(100, 1000)),
+            coco_world=coco[span], perception_dir=lay.perception(cfg.sequence_name, v),
+        )
+        frames_rendered += len(span)
+        prng = _rng(cfg.seed, 60 + k)
+        kps = perception.noisy_keypoints(gt_px, vis, prng, perception.KeypointNoiseConfig())
+        perc = lay.perception(cfg.sequence_name, v)
+        for i, kp in enumerate(kps):
+            write_openpose_json(perc.keypoints_json(i), [kp] if kp[:, 2].max() > 0 else [])
+        prior_params = type(params)(params.betas, params.global_orient[span], params.body_pose[span], params.transl[span], params.fps, params.gender)
+        prior = perception.body_prior(prior_params, T_scene_cam, body, prng, perception.PriorNoiseConfig())
+        write_body_prior(perc.body_prior, prior)
+        sync_frames[v] = int(event - starts[v])
+        seq_gt.update({
+            f"{v}_T_scene_vio": T_scene_vio, f"{v}_T_scene_cam": T_scene_cam, f"{v}_T_vio_cam": T_vio_cam,
+            f"{v}_motion_start": np.int64(starts[v]), f"{v}_sync_frame": np.int64(sync_frames[v]),
+            f"{v}_keypoints2d_gt": gt_px, f"{v}_visibility": vis,
+        })
+
+    # 5. Ground truth and manifest.
+    gt = lay.ground_truth
+    write_scene_ply(built, gt.scene_mesh(cfg.scene_name))
+    write_npz(gt.scene_device(cfg.scene_name), T_scene_vio=scene_T_scene_vio, T_scene_cam=scene_T, T_vio_cam=scene_T_vio_cam)
+    write_npz(
+        gt.sequence(cfg.sequence_name), version=np.int64(GT_VERSION),
+        betas=params.betas, global_orient=params.global_orient, body_pose=params.body_pose, transl=params.transl,
+        fps=np.float64(cfg.fps), joints_smpl24=joints, joints_coco17=coco, event_motion_frame=np.int64(event),
+        segments=np.array([f"{n}:{s}:{e}" for n, s, e in script.segments]), **seq_gt,
+    )
+    write_json(gt.info, {
+        "version": GT_VERSION, "config": asdict(cfg), "scene": cfg.scene_name, "sequence": cfg.sequence_name,
+        "sync_frames": sync_frames, "motion_frames": M, "event_motion_frame": event,
+        "view_motion_start": starts, "view_motion_end": ends,
+        "segments": [{"name": n, "start": s, "end": e} for n, s, e in script.segments],
+        "furniture": {n: {"centre_xy": f.centre_xy, "yaw": f.yaw, "size": f.size, "top_z": f.top_z}
+                      for n, f in built.spec.furniture.items()},
+    })
+    manifest = SessionManifest(
+        root=lay.root,
+        scenes={cfg.scene_name: SceneEntry(name=cfg.scene_name, capture=lay.scene_capture(cfg.scene_name), indoor=cfg.preset == "indoor")},
+        sequences={cfg.sequence_name: SequenceEntry(
+            name=cfg.sequence_name, scene=cfg.scene_name,
+            views={v: ViewEntry(
+                capture=lay.view_capture(cfg.sequence_name, v),
+                keypoints=lay.perception(cfg.sequence_name, v).keypoints_dir,
+                masks=lay.perception(cfg.sequence_name, v).masks_dir,
+                body_prior=lay.perception(cfg.sequence_name, v).body_prior,
+            ) for v in VIEWS},
+        )},
+        body_model=lay.body_model,
+    )
+    write_manifest(manifest, lay.manifest)
+    took = time.perf_counter() - t0
+    log.info("synthetic session written to %s in %.1f s (%d frames rendered)", lay.root, took, frames_rendered)
+    return SynthResult(lay.root, took, frames_rendered, sync_frames)
+
+
+def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, body_verts, faces, laser_on, rng,
+                   clock_offset_s, coco_world=None, perception_dir=None):
+    """Render and write one capture; for a view also write masks and return GT keypoints.
+
+    Returns ``(gt_px (T,17,2), visibility (T,17), masks_dir)`` for a view, else ``(None, None, None)``.
+    """
+    n = len(T_scene_cam)
+    writer = _capture_writer(cfg, out)
+    lcfg = lidar.LidarConfig()
+    gt_px = np.zeros((n, 17, 2))
+    vis = np.zeros((n, 17))
+    mrng = np.random.default_rng(rng.integers(1 << 62))
+    try:
+        for i in range(n):
+            body = (body_verts[i], faces) if body_verts is not None else None
+            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth)
+            depth_mm, conf = lidar.simulate_lidar(r.depth_lr_m, rng, lcfg)
+            writer.add_frame(r.rgb, depth_mm, conf, T_vio_cam[i], clock_offset_s + i / cfg.fps)
+            if coco_world is not None:
+                T_cam_scene = invert_T(T_scene_cam[i])
+                pc = apply_T(T_cam_scene, coco_world[i])
+                z = np.maximum(pc[:, 2], 1e-6)
+                gt_px[i] = (K.K[:2, :2] @ (pc[:, :2] / z[:, None]).T).T + K.K[:2, 2]
+                vis[i] = perception.joint_visibility(coco_world[i][None], K.K, T_scene_cam[i][None], r.depth_m[None])[0]
+                mask = perception.noisy_mask(r.person_mask, mrng, perception.MaskNoiseConfig())
+                path = perception_dir.mask_png(i)
+                with atomic_path(path) as tmp:
+                    Image.fromarray(mask.astype(np.uint8) * 255).save(tmp, format="PNG")
+        imu_t, acc, gyr = trajectory.synth_imu(T_vio_cam, cfg.fps, rng)
+        writer.add_imu(imu_t + clock_offset_s, acc, gyr)
+    except BaseException:
+        # Leave no capture that looks complete: the writer drops what it had written.
+        getattr(writer, "abort", writer.close)()
+        raise
+    writer.close()
+    if coco_world is None:
+        return None, None, None
+    return gt_px, vis, perception_dir.masks_dir if perception_dir else None
