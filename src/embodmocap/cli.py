@@ -141,12 +141,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(argv) >= 2 and argv[0] in ("body", "session"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     _setup_logging(debug)
-    cmd = tyro.cli(
-        Commands, args=argv, prog="embodmocap",
-        description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
-        config=(tyro.conf.FlagConversionOff,),
-    )
     try:
+        cmd = tyro.cli(
+            Commands, args=argv, prog="embodmocap",
+            description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
+        )
         return int(cmd.run())
     except EmbodMocapError as err:
         if debug:
