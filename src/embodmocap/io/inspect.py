@@ -30,15 +30,15 @@ def inspect_path(path: str | Path) -> tuple[str, list[str]]:
 
 
 def _inspect_session(root: Path) -> tuple[str, list[str]]:
-    from embodmocap.io.manifest import load_manifest_unchecked, validate_manifest
+    from embodmocap.io.manifest import read_manifest
 
     lay = SessionLayout(root)
     lines = [f"session {root}"]
     try:
-        manifest = load_manifest_unchecked(lay.manifest)
+        manifest, found = read_manifest(lay.manifest)
     except EmbodMocapError as err:
         return "\n".join(lines + [f"  manifest: {err}"]), [str(err)]
-    problems = list(validate_manifest(manifest))
+    problems = [f"{lay.manifest}: {p}" for p in found]
     body = manifest.body_model or "(generated test model)"
     lines.append(f"  body model: {body}")
     for name, scene in manifest.scenes.items():
@@ -68,7 +68,7 @@ def _add_capture(lines: list[str], capture: Path, indent: str) -> list[str]:
     capture = Path(capture)
     if not capture.exists():
         lines.append(f"{indent}{capture}: missing")
-        return [f"{capture}: capture folder does not exist"]
+        return []  # the manifest check already reported it
     report = check_capture(capture)
     lines += [indent + line for line in format_report(report).splitlines()]
     return list(report.problems)
