@@ -24,7 +24,7 @@ log = logging.getLogger("embodmocap")
 class Synth:
     """Write a synthetic dual-iPhone session with ground truth (the built-in test studio)."""
 
-    out: tyro.conf.Positional[Path]
+    out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")]
     """Session folder to create."""
     config: Annotated[SynthConfig, tyro.conf.arg(name="")] = SynthConfig()
     """Studio settings."""
@@ -41,7 +41,7 @@ class Synth:
 class Inspect:
     """Print what a capture or a session holds and list every problem found."""
 
-    path: tyro.conf.Positional[Path]
+    path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="PATH")]
     """A capture folder (Stray Scanner, Spectacular AI, Record3D) or a session folder."""
 
     def run(self) -> int:
@@ -56,7 +56,7 @@ class Inspect:
 class Demo:
     """Run the built-in demo: synthesise a session and inspect it."""
 
-    out: tyro.conf.Positional[Path] = Path("demo_out")
+    out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = Path("demo_out")
     """Folder for the demo session (replaced if it holds an earlier demo)."""
     seconds: float = 6.0
     """Performance length of the demo sequence, seconds."""
@@ -84,7 +84,7 @@ class Demo:
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
-    out: tyro.conf.Positional[Path]
+    out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")]
     """Output .npz path."""
     seed: int = 0
     """Random seed of the generated model (0 is the one the demo and tests use)."""
@@ -101,17 +101,27 @@ class BodyMakeTestModel:
 class SessionImport:
     """Create session.toml from a CSV/XLSX sheet in the paper release's layout."""
 
-    sheet: tyro.conf.Positional[Path]
+    sheet: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SHEET")]
     """The .csv or .xlsx sheet (columns scene_folder, seq_name, in_door, v1_start, v2_start, ...)."""
-    session: tyro.conf.Positional[Path]
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (relative scene folders are resolved against it)."""
     force: bool = False
     """Overwrite an existing session.toml."""
+    capture_pattern: str = "{scene_folder}/{seq_name}/raw{index}"
+    """Where each view's capture lives, relative to the session; placeholders {scene_folder},
+    {scene}, {seq_name}, {view} (v1/v2) and {index} (1/2). The default is the release's layout."""
+    contact_sheet: Path | None = None
+    """For a CSV sheet: a second CSV with the `contact` table (columns scene, contacts)."""
+    check: bool = True
+    """Refuse to write a manifest whose capture folders are missing (--no-check writes it anyway)."""
 
     def run(self) -> int:
         from embodmocap.io.sheet_import import import_sheet_cli
 
-        path = import_sheet_cli(self.sheet, self.session, force=self.force)
+        path = import_sheet_cli(
+            self.sheet, self.session, capture_pattern=self.capture_pattern,
+            contact_sheet=self.contact_sheet, force=self.force, check=self.check,
+        )
         print(f"wrote {path}")
         return 0
 
