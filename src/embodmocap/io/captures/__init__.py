@@ -1,1 +1,72 @@
-"""Capture readers and writers, one module per phone app format."""
+"""Capture readers and writers, one module per phone app format.
+
+:func:`open_capture` detects the format from the files present and returns a
+:class:`~embodmocap.types.Capture` in the package's conventions (Z-up metric world, OpenCV cameras).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from embodmocap.errors import InputError
+from embodmocap.io.captures.common import CaptureScan, depth_to_rgb_scale, read_depth_image
+from embodmocap.io.captures.record3d import is_record3d, read_record3d, scan_record3d, write_record3d
+from embodmocap.io.captures.spectacular import (
+    SpectacularWriter, is_spectacular, read_spectacular, read_transforms_json, scan_spectacular,
+    write_transforms_json,
+)
+from embodmocap.io.captures.strayscanner import StrayScannerWriter, is_strayscanner, read_strayscanner, scan_strayscanner
+from embodmocap.types import Capture
+
+__all__ = [
+    "open_capture", "detect_format", "scan_capture", "read_strayscanner", "read_spectacular", "read_record3d",
+    "StrayScannerWriter", "SpectacularWriter", "write_record3d", "read_transforms_json",
+    "write_transforms_json", "read_depth_image", "depth_to_rgb_scale", "FORMATS",
+]
+
+#: What each format needs, for the error message when nothing matches.
+FORMATS: dict[str, str] = {
+    "strayscanner": "rgb.mp4 + odometry.csv (or depth/)",
+    "spectacular": "data.jsonl + calibration.json (+ data.mov, frames2/, cameras_sai.jsonl)",
+    "record3d": "a .r3d file, or a folder with metadata + rgbd/",
+}
+
+_DETECT = (("spectacular", is_spectacular), ("strayscanner", is_strayscanner), ("record3d", is_record3d))
+_READ = {"strayscanner": read_strayscanner, "spectacular": read_spectacular, "record3d": read_record3d}
+_SCAN = {"strayscanner": scan_strayscanner, "spectacular": scan_spectacular, "record3d": scan_record3d}
+
+
+def detect_format(path: str | Path) -> str | None:
+    """The capture format of ``path`` (``"strayscanner"``, ``"spectacular"``, ``"record3d"``) or None."""
+    path = Path(path)
+    for name, test in _DETECT:
+        if test(path):
+            return name
+    return None
+
+
+def _require_format(path: Path) -> str:
+    fmt = detect_format(path)
+    if fmt is None:
+        what = "does not exist" if not path.exists() else "is not a known capture"
+        expected = "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
+        raise InputError(path, f"{what} (expected one of {expected})",
+                         "point to the folder the phone app exported")
+    return fmt
+
+
+def open_capture(path: str | Path) -> Capture:
+    """Read any supported capture (format detected from its files).
+
+    Raises:
+        InputError: the format is not recognised (the message lists what each format needs), or
+            the reader found a problem.
+    """
+    path = Path(path)
+    return _READ[_require_format(path)](path)
+
+
+def scan_capture(path: str | Path, thorough: bool = True) -> CaptureScan:
+    """Scan any supported capture, collecting every problem (for ``embodmocap inspect``)."""
+    path = Path(path)
+    return _SCAN[_require_format(path)](path, thorough=thorough)

@@ -1,0 +1,262 @@
+"""Record3D exports (iOS app): an export folder or a ``.r3d`` file (a zip of the same files).
+
+Layout (see docs/parts/captures.md)::
+
+    metadata        JSON: K (9 floats, column-major 3x3 at w x h), w, h (RGB size), dw, dh (depth
+                    size), fps, poses ([qx, qy, qz, qw, px, py, pz] per frame), optional
+                    frameTimestamps (s)
+    rgbd/N.jpg      RGB frame N (N = 0, 1, ...; not zero-padded)
+    rgbd/N.depth    LZFSE-compressed float32 depth in metres, dh x dw
+    rgbd/N.conf     LZFSE-compressed uint8 confidence 0/1/2, dh x dw (optional)
+
+Poses are ARKit camera-to-world: Y-up world, ARKit/OpenGL camera axes (x right, y up, z backward),
+as Nerfstudio's Record3D importer also uses them. Converted once here:
+``T_world_cam = gl_to_cv_cam(T_zup_yup @ T_yup_glcam)``. LZFSE needs the ``record3d`` extra.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import re
+import zipfile
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError, require
+from embodmocap.geometry.transforms import T_zup_from_yup, gl_to_cv_cam, invert_T, make_T, matrix_to_quat, quat_to_matrix
+from embodmocap.io.atomic import atomic_path
+from embodmocap.io.captures.common import CaptureScan, LazyFrames, Problem, capture_from_scan, intrinsics_problems, pose_problems
+from embodmocap.types import Capture, CameraTrajectory, Intrinsics
+
+log = logging.getLogger(__name__)
+
+FORMAT = "record3d"
+_RGB_NAME = re.compile(r"^rgbd/(\d+)\.jpg$")
+
+
+class _Store:
+    """Read-only access to the export's files, in a folder or inside a .r3d zip."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._zip: zipfile.ZipFile | None = None
+        if path.is_file():
+            try:
+                self._zip = zipfile.ZipFile(path)
+            except zipfile.BadZipFile as err:
+                raise InputError(path, f"not a valid .r3d (zip) file ({err})", "export the recording again") from err
+            self._names = set(self._zip.namelist())
+        else:
+            self._names = {p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()}
+
+    def where(self, name: str) -> Path:
+        """A path naming the member, for messages (inside the zip: archive path / member)."""
+        return self.path / name
+
+    def exists(self, name: str) -> bool:
+        return name in self._names
+
+    def names(self) -> set[str]:
+        return self._names
+
+    def read(self, name: str) -> bytes:
+        if name not in self._names:
+            raise InputError(self.where(name), "file missing from the export", "export the recording again")
+        try:
+            if self._zip is not None:
+                return self._zip.read(name)
+            return (self.path / name).read_bytes()
+        except (OSError, zipfile.BadZipFile, EOFError) as err:
+            raise InputError(self.where(name), f"unreadable ({err})", "export the recording again") from err
+
+
+def is_record3d(path: Path) -> bool:
+    """True if ``path`` is a ``.r3d`` file or a folder with ``metadata`` and ``rgbd/``."""
+    if path.is_file():
+        return path.suffix.lower() == ".r3d"
+    return path.is_dir() and ((path / "metadata").is_file() or (path / "metadata.json").is_file()) and (path / "rgbd").is_dir()
+
+
+def read_record3d(path: str | Path) -> Capture:
+    """Read a Record3D export folder or ``.r3d`` file into a :class:`Capture`.
+
+    Raises:
+        InputError: on the first problem found, naming the file and what to do.
+    """
+    return capture_from_scan(scan_record3d(path))
+
+
+def _decode_lzfse(data: bytes, dtype, shape: tuple[int, int], where: Path) -> NDArray:
+    lzfse = require("lzfse", "record3d")
+    try:
+        raw = lzfse.decompress(data)
+    except Exception as err:  # noqa: BLE001 - the binding raises its own error type
+        raise InputError(where, f"LZFSE data is corrupt ({err})", "export the recording again") from err
+    arr = np.frombuffer(raw, dtype=dtype)
+    if arr.size != shape[0] * shape[1]:
+        raise InputError(where, f"holds {arr.size} values, expected {shape[1]}x{shape[0]} = {shape[0] * shape[1]}",
+                         "dw/dh in metadata do not match the depth frames")
+    return arr.reshape(shape)
+
+
+def _decode_jpeg(data: bytes, where: Path) -> NDArray[np.uint8]:
+    import cv2
+
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(where, "unreadable JPEG", "export the recording again")
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def scan_record3d(path: str | Path, thorough: bool = False) -> CaptureScan:
+    """Read everything but the frames, collecting every problem instead of stopping."""
+    root = Path(path)
+    if not root.exists():
+        return CaptureScan(root, FORMAT, problems=(Problem(root, "Record3D export not found"),))
+    try:
+        store = _Store(root)
+    except InputError as err:
+        return CaptureScan(root, FORMAT, problems=(Problem(root, err.problem, err.fix),))
+    problems: list[Problem] = []
+    meta_name = "metadata" if store.exists("metadata") else "metadata.json"
+    meta_path = store.where(meta_name)
+    try:
+        meta = json.loads(store.read(meta_name))
+        w, h, dw, dh = (int(meta[k]) for k in ("w", "h", "dw", "dh"))
+        fps = float(meta.get("fps", 30.0))
+        K3 = np.asarray(meta["K"], dtype=np.float64).reshape(3, 3).T  # stored column-major
+        poses = np.asarray(meta.get("poses", []), dtype=np.float64).reshape(-1, 7)
+    except InputError as err:
+        return CaptureScan(root, FORMAT, problems=(Problem(meta_path, err.problem, err.fix),))
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as err:
+        return CaptureScan(root, FORMAT, problems=(Problem(
+            meta_path, f"malformed metadata ({err.__class__.__name__}: {err})",
+            "expected JSON with K, w, h, dw, dh, fps and poses"),))
+
+    numbers = sorted(int(m.group(1)) for n in store.names() if (m := _RGB_NAME.match(n)))
+    num_frames = len(numbers)
+    if num_frames == 0:
+        problems.append(Problem(store.where("rgbd"), "no RGB frames (rgbd/N.jpg)", "export the recording again"))
+    elif numbers != list(range(num_frames)):
+        gap = next(i for i, n in enumerate(numbers) if n != i)
+        problems.append(Problem(store.where(f"rgbd/{gap}.jpg"), "missing frame (frames must be numbered 0..N-1)",
+                                "export the recording again"))
+        num_frames = gap
+
+    rgb_size = (w, h)
+    if num_frames:
+        try:
+            first = _decode_jpeg(store.read("rgbd/0.jpg"), store.where("rgbd/0.jpg"))
+            rgb_size = (first.shape[1], first.shape[0])
+        except InputError as err:
+            problems.append(Problem(err.path, err.problem, err.fix))
+    K = Intrinsics.from_K(K3, w, h)
+    if rgb_size != (w, h):
+        log.info("%s: JPEG frames are %dx%d, metadata says %dx%d; scaling K", root, *rgb_size, w, h)
+        K = K.scaled(*rgb_size)
+    problems += intrinsics_problems(meta_path, K)
+
+    missing = [i for i in range(num_frames) if not store.exists(f"rgbd/{i}.depth")]
+    if missing:
+        problems.append(Problem(store.where(f"rgbd/{missing[0]}.depth"),
+                                f"missing ({len(missing)} of {num_frames} depth frames missing)",
+                                "export the recording again with depth"))
+    for i in [i for i in range(num_frames) if i not in set(missing)][: None if thorough else 1]:
+        try:
+            _decode_lzfse(store.read(f"rgbd/{i}.depth"), np.float32, (dh, dw), store.where(f"rgbd/{i}.depth"))
+        except InputError as err:
+            problems.append(Problem(err.path, err.problem, err.fix))
+
+    T = gl_to_cv_cam(T_zup_from_yup() @ make_T(_safe_quat_to_matrix(poses[:, :4]), poses[:, 4:]))
+    problems += pose_problems(meta_path, T, fps, num_frames)
+    n_pose = min(len(T), num_frames)
+    stamps = np.asarray(meta.get("frameTimestamps", []), dtype=np.float64)
+    timestamps = stamps[:num_frames] if len(stamps) >= num_frames else np.arange(num_frames) / fps
+    trajectory = CameraTrajectory(timestamps[:n_pose], np.arange(n_pose), T[:n_pose])
+    has_conf = num_frames > 0 and store.exists("rgbd/0.conf")
+
+    def make_frames() -> LazyFrames:
+        def depth(i: int) -> NDArray[np.float32]:
+            d = _decode_lzfse(store.read(f"rgbd/{i}.depth"), np.float32, (dh, dw), store.where(f"rgbd/{i}.depth")).copy()
+            d[~np.isfinite(d) | (d < 0)] = 0.0
+            return d
+
+        def conf(i: int) -> NDArray[np.uint8] | None:
+            name = f"rgbd/{i}.conf"
+            return _decode_lzfse(store.read(name), np.uint8, (dh, dw), store.where(name)).copy() if store.exists(name) else None
+
+        return LazyFrames(num_frames, lambda i: _decode_jpeg(store.read(f"rgbd/{i}.jpg"), store.where(f"rgbd/{i}.jpg")),
+                          lambda i: store.where(f"rgbd/{i}.depth"), None, (dw, dh),
+                          read_depth=depth, read_conf=conf if has_conf else None)
+
+    return CaptureScan(
+        path=root, format=FORMAT, num_frames=num_frames, fps=fps, rgb_intrinsics=K, depth_size=(dw, dh),
+        timestamps_s=timestamps, trajectory=trajectory, make_frames=make_frames, problems=tuple(problems),
+    )
+
+
+def _safe_quat_to_matrix(q: NDArray) -> NDArray[np.float64]:
+    """Rotation matrices of quaternions (x, y, z, w); NaN where a quaternion is NaN or zero."""
+    R = np.full(q.shape[:-1] + (3, 3), np.nan)
+    ok = np.all(np.isfinite(q), axis=-1) & (np.linalg.norm(np.nan_to_num(q), axis=-1) > 1e-9)
+    R[ok] = quat_to_matrix(q[ok])
+    return R
+
+
+def write_record3d(out: str | Path, rgb: Iterable[NDArray[np.uint8]], depth_m: Iterable[NDArray[np.float32]],
+                   T_world_cam: NDArray, intrinsics: Intrinsics, fps: float,
+                   confidence: Iterable[NDArray[np.uint8]] | None = None,
+                   timestamps_s: NDArray | None = None, jpeg_quality: int = 95) -> Path:
+    """Write a Record3D export (folder, or a zip when ``out`` ends in ``.r3d``), atomically.
+
+    ``rgb`` (H, W, 3) uint8 frames, ``depth_m`` (h, w) float32 metres, ``T_world_cam`` (N, 4, 4)
+    in the package convention (converted back to ARKit's), ``intrinsics`` at the RGB size.
+    Mainly a test fixture: the app is the real producer of this format.
+    """
+    import cv2
+
+    lzfse = require("lzfse", "record3d")
+    out = Path(out)
+    T = np.asarray(T_world_cam, dtype=np.float64).reshape(-1, 4, 4)
+    T_yup_gl = invert_T(T_zup_from_yup()) @ gl_to_cv_cam(T)
+    poses = np.concatenate([matrix_to_quat(T_yup_gl[:, :3, :3]), T_yup_gl[:, :3, 3]], axis=1)
+    files: dict[str, bytes] = {}
+    dsize = None
+    confs = iter(confidence) if confidence is not None else None
+    for i, (im, d) in enumerate(zip(rgb, depth_m)):
+        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(np.asarray(im)[..., ::-1]),
+                               [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+        assert ok
+        files[f"rgbd/{i}.jpg"] = jpg.tobytes()
+        d = np.ascontiguousarray(d, dtype=np.float32)
+        dsize = (d.shape[1], d.shape[0])
+        files[f"rgbd/{i}.depth"] = lzfse.compress(d.tobytes())
+        if confs is not None:
+            files[f"rgbd/{i}.conf"] = lzfse.compress(np.ascontiguousarray(next(confs), dtype=np.uint8).tobytes())
+    meta = {
+        "w": intrinsics.width, "h": intrinsics.height, "dw": dsize[0] if dsize else 0, "dh": dsize[1] if dsize else 0,
+        "fps": fps, "K": intrinsics.K.T.reshape(-1).tolist(), "poses": poses.tolist(),
+    }
+    if timestamps_s is not None:
+        meta["frameTimestamps"] = np.asarray(timestamps_s, dtype=np.float64).tolist()
+    files["metadata"] = json.dumps(meta).encode()
+    if out.suffix.lower() == ".r3d":
+        with atomic_path(out) as tmp:
+            buf = io.BytesIO()
+            with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+                for name, data in files.items():
+                    z.writestr(name, data)
+            tmp.write_bytes(buf.getvalue())
+    else:
+        from embodmocap.io.atomic import atomic_dir
+
+        with atomic_dir(out) as tmp:
+            (tmp / "rgbd").mkdir()
+            for name, data in files.items():
+                (tmp / name).write_bytes(data)
+    return out
