@@ -1,0 +1,773 @@
+"""The synthetic performer's scripted motion: walking and using the furniture, in the scene frame.
+
+How a motion is made (read :func:`script_motion` top to bottom):
+
+1. **Plan.** A list of pieces, each a few seconds long with a name (``idle``, ``turn``, ``walk``,
+   ``sit_down``, ``sit``, ``stand_up``, ``step_up``, ``stand_on_box``, ``step_down``,
+   ``lean_in``, ``lean_table``, ``lean_out``). Each piece gives, per frame, the planned pelvis
+   position on the floor (x, y), the heading (yaw about +Z) and a few scalar *channels* in
+   [0, 1] (gait amplitude and phase, how far seated, how far leaning, how far each leg is lifted
+   ...). Every piece starts where the previous one ended and eases in and out (quintic
+   smoothstep, zero velocity at the ends), so positions, headings and channels are continuous
+   with continuous velocity: blends happen inside the pieces (0.3-1.5 s long).
+2. **Pose.** Joint angles are sums of per-channel contributions (hip flexion, knee flexion, arm
+   swing ...), turned into SMPL axis-angle ``body_pose`` in one vectorised call. Angles that
+   depend on the body (seat posture, table lean, step height) are calibrated once by posing the
+   actual body model on a small grid of candidate angles.
+3. **Skin and place.** The body is skinned in chunks of frames. While seated or leaning the feet
+   stay where they were when the piece began (the pelvis moves instead, as it does in life).
+   Then each frame is lifted so that no vertex is below a support (floor z = 0; the box, chair
+   and sofa/bed tops for vertices over their footprints) and at least one touches: the lift is
+   ``max over supports of (support height - lowest vertex over it)``. So the stance foot is on
+   the floor while walking, on the box while standing on it, and the buttocks on the seat while
+   sitting.
+
+Conventions: scene frame Z up, metres, floor at z = 0. SMPL's canonical frame is Y up facing +Z
+with its left on +X; ``global_orient`` includes the fixed rotation from that frame to the scene
+(:data:`embodmocap.geometry.transforms.R_ZUP_YUP` then a yaw about +Z). A heading ``yaw`` means
+the body faces ``(cos yaw, sin yaw, 0)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
+from embodmocap.synth.spec import Furniture, SceneSpec
+from embodmocap.types import SmplParams
+
+log = logging.getLogger(__name__)
+
+# SMPL joint ids used below (body_pose holds joints 1..23).
+_L_HIP, _R_HIP, _SPINE1, _L_KNEE, _R_KNEE, _SPINE2, _L_ANKLE, _R_ANKLE, _SPINE3 = 1, 2, 3, 4, 5, 6, 7, 8, 9
+_NECK, _HEAD, _L_SHOULDER, _R_SHOULDER, _L_ELBOW, _R_ELBOW = 12, 15, 16, 17, 18, 19
+
+#: Channels a plan piece may set; missing ones are 0.
+CHANNELS: tuple[str, ...] = (
+    "gait_amp", "gait_phase", "lean",
+    # Seated: how far (0 standing .. 1 seated) and the seated hip/knee angles of this seat.
+    "sit", "sit_hip", "sit_knee",
+    # Stepping onto / off the box places the feet by inverse kinematics: weight of the IK legs,
+    # ankle targets (forward, height above the floor) of each foot and the hip height, all in
+    # metres along the heading relative to the piece's start.
+    "ik", "al_x", "al_z", "ar_x", "ar_z", "hip_x", "hip_z",
+)
+
+#: Furniture whose top the body rests on (a support); the table is only touched by the hands.
+SUPPORTS: tuple[str, ...] = ("box", "chair", "sofa", "bed")
+
+#: Supports that are a slab on legs rather than solid to the floor: only vertices less than this
+#: far below their top are held up by them (feet may go under a chair's seat), metres.
+SLAB_DEPTH: dict[str, float] = {"chair": 0.2}
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """How the performer moves."""
+
+    idle_s: float = 1.5
+    """Standing still at the start (the laser sync event happens then), seconds."""
+    walk_speed_mps: float = 1.15
+    """Cruising walking speed, m/s (step length x cadence: 0.64 m x 1.8 steps/s)."""
+    cadence_steps_per_s: float = 1.8
+    """Steps per second at cruising speed; the gait phase advances with distance walked, so the
+    step length is ``walk_speed_mps / cadence_steps_per_s``."""
+    ease_s: float = 0.5
+    """Time to speed up from standing to cruising speed (and to slow down), seconds."""
+    turn_speed_dps: float = 180.0
+    """Average turning speed when turning on the spot, degrees per second."""
+    min_turn_s: float = 0.4
+    """Shortest turn, seconds (small corrections are not instantaneous)."""
+    sit_transition_s: float = 1.2
+    """Time to sit down and to stand up, seconds."""
+    step_s: float = 2.4
+    """Time to step onto the box and to step off it, seconds."""
+    lean_transition_s: float = 1.0
+    """Time to lean onto the table and to straighten up, seconds."""
+    hold_s: float = 1.5
+    """How long the performer stays seated / on the box / leaning, seconds (shortened when the
+    clip is too short for the first interaction)."""
+    arm_swing_deg: float = 16.0
+    """Arm swing amplitude at cruising speed, degrees (opposite to the legs)."""
+    hip_swing_deg: float = 20.0
+    """Hip flexion/extension amplitude at cruising speed, degrees."""
+    knee_swing_deg: float = 55.0
+    """Peak extra knee flexion in the swing phase at cruising speed, degrees."""
+    interactions: tuple[str, ...] = ("chair", "box", "table", "sofa")
+    """Interactions to perform, as many as fit: the nearest first, then the others in a random
+    order; ``"sofa"`` means whichever of sofa / bed the scene has."""
+    chunk_frames: int = 128
+    """Frames skinned at once (bounds memory: the skinning holds per-vertex transforms)."""
+
+
+@dataclass(frozen=True)
+class MotionScript:
+    """A scripted motion.
+
+    Attributes:
+        params: SMPL parameters in the scene frame (Z up), one row per frame.
+        segments: ``(name, start_frame, end_frame)`` of each planned piece, end exclusive,
+            covering ``0..len(params)`` in order.
+    """
+
+    params: SmplParams
+    segments: list[tuple[str, int, int]] = field(default_factory=list)
+
+    def frames_of(self, *names: str) -> NDArray[np.int64]:
+        """Frame indices inside the segments with any of ``names``."""
+        idx = [np.arange(s, e) for n, s, e in self.segments if n in names]
+        return np.concatenate(idx) if idx else np.zeros(0, np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# public entry
+# --------------------------------------------------------------------------------------------
+
+
+def script_motion(
+    spec: SceneSpec,
+    body,
+    betas: NDArray,
+    seconds: float,
+    fps: float,
+    rng: np.random.Generator,
+    cfg: MotionConfig = MotionConfig(),
+) -> MotionScript:
+    """Script ``seconds`` of the performer's motion in the scene (see the module docstring).
+
+    Args:
+        spec: the scene (furniture, walk area).
+        body: the body model (``forward``, ``pelvis_offset``).
+        betas: (B,) body shape.
+        seconds: length of the motion; the result has ``round(seconds * fps)`` frames.
+        fps: frame rate.
+        rng: random generator (start point, order of interactions, wander targets).
+        cfg: motion settings.
+    """
+    n_frames = max(int(round(seconds * fps)), 1)
+    betas = np.asarray(betas, dtype=np.float64)
+    calib = _calibrate(body, betas, spec)
+    plan = _Planner(spec, cfg, calib, fps, rng)
+    plan.build(n_frames)
+    xy, yaw, ch, lock, on_furniture, segments = plan.arrays(n_frames)
+
+    tilt, euler = _joint_angles(ch, calib, cfg)
+    body_pose = Rotation.from_euler("XYZ", euler.reshape(-1, 3)).as_rotvec().reshape(n_frames, 69)
+    go = _global_orient(yaw, tilt, ch)
+    J0 = np.asarray(body.pelvis_offset(betas), dtype=np.float64).reshape(3)
+    transl = _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec, cfg.chunk_frames)
+    params = SmplParams(betas, go, body_pose, transl, fps=fps)
+    log.info("scripted %d frames: %s", n_frames, ", ".join(f"{n}[{s}:{e}]" for n, s, e in segments))
+    return MotionScript(params, segments)
+
+
+def foot_vertex_ids(body, betas: NDArray | None = None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Vertex ids of the (left, right) feet: rest-pose vertices nearest to an ankle or foot joint
+    and below the ankle."""
+    out = body.forward(np.zeros(body.num_betas) if betas is None else betas, np.zeros((1, 3)), np.zeros((1, 69)))
+    v = out.vertices[0].detach().cpu().numpy().astype(np.float64)
+    j = out.joints[0].detach().cpu().numpy().astype(np.float64)
+    nearest = np.argmin(np.linalg.norm(v[:, None] - j[None], axis=-1), axis=1)
+    below = v[:, 1] < np.minimum(j[7, 1], j[8, 1]) + 0.02
+    left = np.nonzero(np.isin(nearest, (7, 10)) & below)[0]
+    right = np.nonzero(np.isin(nearest, (8, 11)) & below)[0]
+    return left, right
+
+
+def support_height(spec: SceneSpec, points: NDArray) -> NDArray[np.float64]:
+    """(...,) height of the surface under points (..., 3): the top of a support piece of
+    furniture whose footprint holds the point (for a chair, only if the point is not under its
+    seat slab), else the floor (0)."""
+    p = np.asarray(points, dtype=np.float64)
+    h = np.zeros(p.shape[:-1])
+    for f in _supports(spec):
+        under = _in_footprint(f, p[..., :2]) & (p[..., 2] > f.top_z - SLAB_DEPTH.get(f.name, np.inf))
+        h = np.where(under, np.maximum(h, f.top_z), h)
+    return h
+
+
+def foot_contact_frames(
+    spec: SceneSpec, vertices: NDArray, foot_ids: tuple[NDArray, NDArray], tol_m: float = 0.02
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Height of each foot above the surface under it, and which feet are in contact.
+
+    Args:
+        spec: the scene.
+        vertices: (T, V, 3) posed vertices in the scene frame.
+        foot_ids: (left ids, right ids) from :func:`foot_vertex_ids`.
+        tol_m: a foot within this height of its support counts as in contact.
+
+    Returns:
+        ``(gap (T, 2), contact (T, 2))``: per frame and foot (left, right), the smallest height
+        of a foot vertex above the support under it (negative = penetration), and gap <= tol_m.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    gaps = []
+    for ids in foot_ids:
+        fv = v[:, ids]
+        gaps.append(np.min(fv[..., 2] - support_height(spec, fv), axis=1))
+    gap = np.stack(gaps, axis=1)
+    return gap, gap <= tol_m
+
+
+# --------------------------------------------------------------------------------------------
+# easing helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _ease(u: NDArray) -> NDArray:
+    """Quintic smoothstep on [0, 1] (clipped): zero velocity and acceleration at both ends."""
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
+
+
+def _bump(u: NDArray, a: float, b: float) -> NDArray:
+    """0 outside [a, b], rising smoothly to 1 at the middle and back (sin^2: C1 at the ends)."""
+    x = np.clip((u - a) / (b - a), 0.0, 1.0)
+    return np.sin(np.pi * x) ** 2
+
+
+def _wrap(a: NDArray | float) -> NDArray | float:
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _supports(spec: SceneSpec) -> list[Furniture]:
+    return [f for n, f in spec.furniture.items() if n in SUPPORTS and f.name in SUPPORTS]
+
+
+def _in_footprint(f: Furniture, xy: NDArray) -> NDArray[np.bool_]:
+    """(...,) True where points xy (..., 2) are inside the furniture's footprint."""
+    d = xy - np.asarray(f.centre_xy)
+    c, s = np.cos(f.yaw), np.sin(f.yaw)
+    lx, ly = d[..., 0] * c + d[..., 1] * s, -d[..., 0] * s + d[..., 1] * c
+    return (np.abs(lx) < f.size[0] / 2) & (np.abs(ly) < f.size[1] / 2)
+
+
+def _heading(f: Furniture) -> NDArray:
+    return np.array([np.cos(f.yaw), np.sin(f.yaw)])
+
+
+# --------------------------------------------------------------------------------------------
+# calibration: angles that depend on the body and the furniture
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Calib:
+    """Body-dependent angles (radians) and offsets (metres, along the heading)."""
+
+    seats: dict             # seat name -> _Seat
+    lean_a: float
+    lean_g: float
+    lean_reach: float       # leaning: wrists ahead of the ankles
+    thigh: float            # hip to knee
+    shin: float             # knee to ankle
+    ankle_h: float          # ankle above the sole
+    hip_h: float            # hip joint above the sole, standing
+    toe_ahead: float        # toes ahead of the ankle
+
+
+@dataclass(frozen=True)
+class _Seat:
+    """Seated posture fitted to one seat height (angles in radians, offsets in metres)."""
+
+    hip: float
+    knee: float
+    feet_ahead: float       # ankles ahead of the pelvis
+    back: float             # buttocks behind the pelvis
+
+
+def _pose_batch(body, betas, hips, knees, tilts, arm_flex, elbow, lower=np.deg2rad(75.0)):
+    """Pose the body on a batch of symmetric candidate postures; returns (joints, vertices) numpy
+    in the SMPL frame rotated to Z up, facing +X (heading 0)."""
+    n = len(hips)
+    e = np.zeros((n, 23, 3))
+    for hip, knee, ankle in ((_L_HIP, _L_KNEE, _L_ANKLE), (_R_HIP, _R_KNEE, _R_ANKLE)):
+        e[:, hip - 1, 0] = -(hips + tilts)
+        e[:, knee - 1, 0] = knees
+        e[:, ankle - 1, 0] = hips - knees
+    e[:, _L_SHOULDER - 1, 0] = e[:, _R_SHOULDER - 1, 0] = -arm_flex
+    e[:, _L_SHOULDER - 1, 2], e[:, _R_SHOULDER - 1, 2] = -lower, lower
+    e[:, _L_ELBOW - 1, 1], e[:, _R_ELBOW - 1, 1] = -elbow, elbow
+    pose = Rotation.from_euler("XYZ", e.reshape(-1, 3)).as_rotvec().reshape(n, 69)
+    go = _global_orient(np.zeros(n), tilts, {})
+    out = body.forward(betas, go, pose, np.zeros((n, 3)))
+    return out.joints.detach().cpu().numpy().astype(np.float64), out.vertices.detach().cpu().numpy().astype(np.float64)
+
+
+def _calibrate(body, betas: NDArray, spec: SceneSpec) -> _Calib:
+    """Fit the seated and leaning postures to this body and this furniture; measure the legs."""
+    deg = np.deg2rad
+
+    # Seated: a grid of hip and knee angles; per seat keep the one whose feet reach the floor
+    # when the buttocks touch the seat, preferring horizontal thighs (hip 90 deg). Feet a little
+    # short of the floor are better than too long (which would lift the buttocks off the seat).
+    H, K = np.meshgrid(deg(np.arange(70, 101, 5)), deg(np.arange(60, 131, 2)), indexing="ij")
+    H, K = H.ravel(), K.ravel()
+    j, v = _pose_batch(body, betas, H, K, np.zeros_like(H), np.full_like(H, deg(30)), np.full_like(H, deg(50)))
+    pel = j[:, 0]
+    knee_fwd = 0.5 * (j[:, _L_KNEE, 0] + j[:, _R_KNEE, 0]) - pel[:, 0]
+    rel = v - pel[:, None]
+    seat_set = (rel[..., 0] < knee_fwd[:, None] - 0.12) & (rel[..., 2] > -0.35)
+    buttock = -np.where(seat_set, rel[..., 2], np.inf).min(axis=1)          # pelvis above the seat
+    feet = -rel[..., 2].min(axis=1)                                          # pelvis above the soles
+    seats = {}
+    for name, f in spec.furniture.items():
+        if name not in ("chair", "sofa", "bed"):
+            continue
+        excess = feet - (f.top_z + buttock)  # > 0: the feet would push the buttocks up
+        score = np.abs(excess) + 5.0 * np.maximum(excess, 0.0) + 0.3 * np.abs(H - deg(90)) + 0.05 * np.abs(K - deg(90))
+        i = int(np.argmin(score))
+        seats[name] = _Seat(
+            hip=float(H[i]), knee=float(K[i]),
+            feet_ahead=float(0.5 * (j[i, _L_ANKLE, 0] + j[i, _R_ANKLE, 0]) - pel[i, 0]),
+            back=float(-(rel[i, :, 0][seat_set[i]]).min()),
+        )
+
+    # Leaning on the table: torso forward by a (hips flex), arms forward of vertical by g;
+    # wrists about 4 cm above the top, and far enough ahead of the feet for the toes to clear.
+    A, G = np.meshgrid(deg(np.arange(10, 61, 5)), deg(np.arange(0, 41, 5)), indexing="ij")
+    A, G = A.ravel(), G.ravel()
+    j, v = _pose_batch(body, betas, np.zeros_like(A), np.zeros_like(A), A, A + G, np.full_like(A, deg(10)))
+    floor = v[..., 2].min(axis=1)
+    wrist_z = 0.5 * (j[:, 20, 2] + j[:, 21, 2]) - floor
+    reach = 0.5 * (j[:, 20, 0] + j[:, 21, 0]) - 0.5 * (j[:, _L_ANKLE, 0] + j[:, _R_ANKLE, 0])
+    table_top = spec.furniture["table"].top_z if "table" in spec.furniture else 0.75
+    score = np.abs(wrist_z - (table_top + 0.04)) + 0.5 * np.maximum(0.0, 0.35 - reach) + 0.05 * A
+    i = int(np.argmin(score))
+
+    # Leg segment lengths for the stepping IK (rest pose).
+    j, v = _pose_batch(body, betas, np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+    j, v = j[0], v[0]
+    thigh = float(np.linalg.norm(j[_L_HIP] - j[_L_KNEE]))
+    shin = float(np.linalg.norm(j[_L_KNEE] - j[_L_ANKLE]))
+    sole = v[:, 2].min()
+    toe_ahead = float(v[:, 0].max() - j[_L_ANKLE, 0])
+    return _Calib(
+        seats=seats, lean_a=float(A[i]), lean_g=float(G[i]), lean_reach=float(reach[i]),
+        thigh=thigh, shin=shin, ankle_h=float(j[_L_ANKLE, 2] - sole), hip_h=float(j[_L_HIP, 2] - sole),
+        toe_ahead=toe_ahead,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# planning
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Piece:
+    name: str
+    xy: NDArray       # (n, 2) planned pelvis position on the floor
+    yaw: NDArray      # (n,) heading
+    ch: dict          # channel -> (n,)
+    lock: bool = False  # feet stay put (pelvis follows them)
+    on_furniture: bool = False  # part of an interaction: furniture tops hold the body up
+
+
+class _Planner:
+    """Builds the list of pieces; keeps the current pelvis position, heading and gait phase."""
+
+    def __init__(self, spec: SceneSpec, cfg: MotionConfig, calib: _Calib, fps: float, rng: np.random.Generator):
+        self.spec, self.cfg, self.calib, self.fps, self.rng = spec, cfg, calib, fps, rng
+        self.lo = np.asarray(spec.walk_area_min_xy, dtype=np.float64)
+        self.hi = np.asarray(spec.walk_area_max_xy, dtype=np.float64)
+        self.pieces: list[_Piece] = []
+        self.xy = self.lo + rng.uniform(0.25, 0.75, size=2) * (self.hi - self.lo)
+        self.yaw = float(rng.uniform(-np.pi, np.pi))
+        self.phase = 0.0
+        self.on_furniture = False
+
+    # -- bookkeeping ----------------------------------------------------------------------
+
+    @property
+    def frames(self) -> int:
+        return sum(len(p.yaw) for p in self.pieces)
+
+    def _n(self, seconds: float) -> int:
+        return max(int(round(seconds * self.fps)), 1)
+
+    def _u(self, seconds: float) -> NDArray:
+        n = self._n(seconds)
+        return (np.arange(n) + 1.0) / n
+
+    def _add(self, name: str, xy: NDArray, yaw: NDArray, lock: bool = False, **ch: NDArray) -> None:
+        self.pieces.append(_Piece(name, xy, yaw, ch, lock, self.on_furniture))
+        self.xy, self.yaw = xy[-1].copy(), float(yaw[-1])
+
+    # -- primitive pieces -----------------------------------------------------------------
+
+    def idle(self, seconds: float, name: str = "idle") -> None:
+        n = self._n(seconds)
+        self._add(name, np.repeat(self.xy[None], n, 0), np.full(n, self.yaw))
+
+    def turn_to(self, yaw: float, end_xy: NDArray | None = None) -> None:
+        """Turn on the spot to heading ``yaw``, optionally stepping to ``end_xy`` meanwhile."""
+        d = float(_wrap(yaw - self.yaw))
+        if abs(d) < np.deg2rad(2.0) and end_xy is None:
+            return
+        u = self._u(max(self.cfg.min_turn_s, abs(np.rad2deg(d)) / self.cfg.turn_speed_dps))
+        end = self.xy if end_xy is None else np.asarray(end_xy, dtype=np.float64)
+        xy = self.xy + _ease(u)[:, None] * (end - self.xy)
+        self._add("turn", xy, self.yaw + d * _ease(u))
+
+    def walk_to(self, target: NDArray) -> None:
+        """Turn toward ``target``, then walk there in a straight line (ease in and out)."""
+        target = np.asarray(target, dtype=np.float64)
+        delta = target - self.xy
+        L = float(np.linalg.norm(delta))
+        if L < 0.05:
+            return
+        self.turn_to(float(np.arctan2(delta[1], delta[0])))
+        v, b = self.cfg.walk_speed_mps, self.cfg.ease_s
+        D = L / v + b
+        if D < 2 * b:  # too short to reach cruising speed: ease the whole way
+            D = 2 * b
+        t = np.arange(self._n(D) + 1) / self.fps
+        D = t[-1]
+        speed = np.minimum(_ease(t / b), _ease((D - t) / b))
+        s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]))])
+        s = s / s[-1] * L  # distance walked, exactly L at the end
+        vel = np.gradient(s, t)
+        amp = np.clip(vel / v, 0.0, 1.0)[1:]
+        step = v / self.cfg.cadence_steps_per_s
+        phase = self.phase + np.pi * s[1:] / step
+        xy = self.xy + np.outer(s[1:] / L, delta)
+        self._add("walk", xy, np.full(len(xy), self.yaw), gait_amp=amp, gait_phase=phase)
+        self.phase = float(phase[-1])
+
+    def channel_piece(self, name: str, seconds: float, lock: bool, end_xy: NDArray | None = None,
+                      move: tuple[float, float] = (0.0, 1.0), **curves) -> None:
+        """A piece of fixed heading whose channels follow ``curves(u)``; the pelvis moves to
+        ``end_xy`` with an ease over the ``move`` part of the piece."""
+        u = self._u(seconds)
+        start = self.xy.copy()
+        end = start if end_xy is None else np.asarray(end_xy, dtype=np.float64)
+        p = _ease((u - move[0]) / (move[1] - move[0]))
+        xy = start + p[:, None] * (end - start)
+        if "hip_x" in curves:  # the pelvis follows the IK plan along the heading
+            xy = start + np.outer(curves["hip_x"](u), [np.cos(self.yaw), np.sin(self.yaw)])
+        self._add(name, xy, np.full(len(u), self.yaw), lock, **{k: f(u) for k, f in curves.items()})
+
+    # -- interactions ---------------------------------------------------------------------
+
+    def _approach(self, point: NDArray) -> None:
+        """Walk to ``point`` through the walk area (free of furniture): first into it by the
+        shortest way (if outside, e.g. in front of a piece of furniture), then across it to its
+        point nearest to ``point``, then out to ``point``."""
+        for p in (np.clip(self.xy, self.lo, self.hi), np.clip(point, self.lo, self.hi), np.asarray(point, float)):
+            if np.linalg.norm(p - self.xy) > 0.1:
+                self.walk_to(p)
+
+    def sit(self, seat: Furniture, hold: float) -> None:
+        c, cfg = self.calib, self.cfg
+        fwd = _heading(seat)
+        # Pelvis over the seat: the heels clear of the front edge (a sofa is solid down to the
+        # floor), the buttocks clear of the back edge (backrest).
+        st = c.seats[seat.name]
+        local = max(-seat.size[0] / 2 + st.back + 0.06, seat.size[0] / 2 + 0.25 - st.feet_ahead)
+        seat_pelvis = np.asarray(seat.centre_xy) + fwd * local
+        # Standing there with the feet where they will be when seated (the feet stay put). The
+        # walk ends a little further out, so that the toes clear the seat while facing it, and
+        # the turn steps back.
+        stand = seat_pelvis + fwd * st.feet_ahead
+        self._approach(stand + fwd * 0.15)
+        self.turn_to(seat.yaw, stand)
+        self.on_furniture = True
+        T = cfg.sit_transition_s
+        hip, knee = (lambda u: np.full_like(u, st.hip)), (lambda u: np.full_like(u, st.knee))
+        self.channel_piece("sit_down", T, True, sit=_ease, sit_hip=hip, sit_knee=knee)
+        self.channel_piece("sit", hold, True, sit=np.ones_like, sit_hip=hip, sit_knee=knee)
+        self.channel_piece("stand_up", T, True, sit=lambda u: 1.0 - _ease(u), sit_hip=hip, sit_knee=knee)
+        self.on_furniture = False
+        # Walk straight away from the seat first, so that no later turn swings a heel over it.
+        self.walk_to(self.xy + fwd * 0.5)
+
+    def step_on_box(self, box: Furniture, hold: float) -> None:
+        """Step onto the box with the right foot, bring the left foot up, stand, turn round and
+        step down forward. Feet are placed by IK: each lifted foot clears the box edge by 8 cm
+        before it crosses it, so the support under a foot never changes while it is low."""
+        cfg, c = self.cfg, self.calib
+        fwd = _heading(box)
+        centre = np.asarray(box.centre_xy, dtype=np.float64)
+        top, half = box.top_z, box.size[0] / 2
+        gap = c.toe_ahead + 0.12  # ankle to box face at the start: toes 12 cm clear
+        self._approach(centre + fwd * (half + gap))
+        self.turn_to(box.yaw + np.pi)
+        self.on_furniture = True
+        on = gap + 0.12 + 0.5 * max(half - 0.12, 0.0)  # where the feet land, ahead of the start
+        up = self._step_curves(0.0, on, 0.0, top, lead="r")
+        self.channel_piece("step_up", cfg.step_s, False, **up)
+        self.idle(max(hold * 0.5, 0.2), "stand_on_box")
+        self.turn_to(box.yaw)
+        # Now facing the front face; the feet are `edge` behind it.
+        edge = float(np.dot(centre + fwd * half - self.xy, fwd))
+        down = self._step_curves(0.0, edge + 0.3, top, 0.0, lead="r")
+        self.channel_piece("step_down", cfg.step_s, False, **down)
+        self.on_furniture = False
+
+    def _step_curves(self, x0: float, x1: float, z0: float, z1: float, lead: str) -> dict:
+        """IK channel curves u -> value for a two-footed step from (x0, support z0) to (x1, z1):
+        the leading foot moves in the first half, the pelvis shifts over in the middle, the other
+        foot follows. Each foot rises 8 cm above the higher support before moving forward and
+        comes down only after it has arrived."""
+        c = self.calib
+        clear = max(z0, z1) + 0.08
+
+        def foot(a: float, b: float):
+            # up over the first 35 % of [a, b], across over 25-75 %, down over the last 35 %.
+            w = b - a
+            def x(u):
+                return x0 + (x1 - x0) * _ease((u - a - 0.25 * w) / (0.5 * w))
+            def z(u):
+                rise = _ease((u - a) / (0.35 * w)) * (clear - z0) + z0
+                fall = clear + (z1 - clear) * _ease((u - b + 0.35 * w) / (0.35 * w))
+                return c.ankle_h + np.where(u < a + 0.5 * w, rise, fall)
+            return x, z
+
+        lx, lz = foot(0.1, 0.5)
+        tx, tz = foot(0.5, 0.88)
+        hip_x = lambda u: x0 + (x1 - x0) * _ease((u - 0.25) / 0.55)  # noqa: E731
+        hip_z = lambda u: c.hip_h + z0 + (z1 - z0) * _ease((u - 0.3) / 0.45)  # noqa: E731
+        lead_x, lead_z, trail_x, trail_z = ("ar_x", "ar_z", "al_x", "al_z") if lead == "r" else ("al_x", "al_z", "ar_x", "ar_z")
+        # The IK legs blend in and out over the first and last 10 % (the IK knee is never quite
+        # straight, the standing pose around the piece is).
+        ik = lambda u: np.minimum(_ease(u / 0.1), _ease((1.0 - u) / 0.1))  # noqa: E731
+        return {"ik": ik, lead_x: lx, lead_z: lz, trail_x: tx, trail_z: tz, "hip_x": hip_x, "hip_z": hip_z}
+
+    def lean_on_table(self, table: Furniture, hold: float) -> None:
+        c, cfg = self.calib, self.cfg
+        fwd = _heading(table)
+        # Wrists 12 cm inside the front edge; the pelvis starts over the ankles.
+        stand = np.asarray(table.centre_xy) + fwd * (table.size[0] / 2 - 0.12 + c.lean_reach)
+        self._approach(stand)
+        self.turn_to(table.yaw + np.pi)
+        T = cfg.lean_transition_s
+        self.channel_piece("lean_in", T, True, lean=_ease)
+        self.channel_piece("lean_table", hold, True, lean=np.ones_like)
+        self.channel_piece("lean_out", T, True, lean=lambda u: 1.0 - _ease(u))
+
+    def interaction(self, name: str, hold: float) -> bool:
+        f = self.spec.furniture
+        if name == "chair" and "chair" in f:
+            self.sit(f["chair"], hold)
+        elif name == "sofa" and ("sofa" in f or "bed" in f):
+            self.sit(f.get("sofa", f.get("bed")), hold)
+        elif name == "box" and "box" in f:
+            self.step_on_box(f["box"], hold)
+        elif name == "table" and "table" in f:
+            self.lean_on_table(f["table"], hold)
+        else:
+            return False
+        return True
+
+    def wander(self) -> None:
+        target = self.lo + self.rng.uniform(0.1, 0.9, size=2) * (self.hi - self.lo)
+        if np.linalg.norm(target - self.xy) < 0.8:  # a walk worth the name
+            target = self.lo + self.hi - target
+        self._approach(target)
+
+    # -- the whole script -----------------------------------------------------------------
+
+    def build(self, n_frames: int) -> None:
+        cfg = self.cfg
+        self.idle(cfg.idle_s)
+        todo = [n for n in cfg.interactions if n in ("chair", "box", "table", "sofa")]
+        # The nearest interaction first (so even a short clip has one), the rest in random order.
+        if todo:
+            dists = [self._distance_to(n) for n in todo]
+            first = todo.pop(int(np.argmin(dists)))
+            todo = [first] + [todo[i] for i in self.rng.permutation(len(todo))]
+        done = 0
+        for name in todo:
+            if self.frames >= n_frames:
+                break
+            saved = (list(self.pieces), self.xy.copy(), self.yaw, self.phase)
+            if not self.interaction(name, cfg.hold_s):
+                continue
+            if self.frames > n_frames and done > 0:
+                # Does not fit: undo it and spend the time walking instead.
+                self.pieces, self.xy, self.yaw, self.phase = saved
+                break
+            if self.frames > n_frames:
+                # The first interaction must fit: redo it with a short hold if that is enough.
+                over = (self.frames - n_frames) / self.fps
+                self.pieces, self.xy, self.yaw, self.phase = saved
+                self.interaction(name, max(cfg.hold_s - over, 0.2))
+            done += 1
+            if self.frames < n_frames:
+                self.wander()
+        while self.frames < n_frames:
+            before = self.frames
+            self.wander()
+            if self.frames == before:
+                self.idle(1.0)
+
+    def _distance_to(self, name: str) -> float:
+        f = self.spec.furniture
+        key = {"sofa": "sofa" if "sofa" in f else "bed"}.get(name, name)
+        if key not in f:
+            return np.inf
+        return float(np.linalg.norm(np.asarray(f[key].centre_xy) - self.xy))
+
+    def arrays(self, n_frames: int):
+        """Concatenate the pieces and cut to ``n_frames``: xy (T,2), yaw (T,), channels dict,
+        lock: (T,) segment id of a locked piece or -1, on_furniture (T,) bool, segments."""
+        xy = np.concatenate([p.xy for p in self.pieces])[:n_frames]
+        yaw = np.concatenate([p.yaw for p in self.pieces])[:n_frames]
+        ch = {}
+        for name in CHANNELS:
+            ch[name] = np.concatenate([p.ch.get(name, np.zeros(len(p.yaw))) for p in self.pieces])[:n_frames]
+        lock = np.concatenate([np.full(len(p.yaw), i if p.lock else -1) for i, p in enumerate(self.pieces)])[:n_frames]
+        on_furniture = np.concatenate([np.full(len(p.yaw), p.on_furniture) for p in self.pieces])[:n_frames]
+        segments, start = [], 0
+        for p in self.pieces:
+            end = min(start + len(p.yaw), n_frames)
+            if end > start:
+                segments.append((p.name, start, end))
+            start = end
+        # Consecutive locked pieces (sit_down, sit, stand_up) share one anchor: the feet stay
+        # where they were when the first of them began.
+        for i in range(1, len(self.pieces)):
+            if self.pieces[i].lock and self.pieces[i - 1].lock:
+                lock[lock == i] = _first_locked(self.pieces, i)
+        return xy, yaw, ch, lock, on_furniture, segments
+
+
+def _first_locked(pieces: list[_Piece], i: int) -> int:
+    while i > 0 and pieces[i - 1].lock:
+        i -= 1
+    return i
+
+
+# --------------------------------------------------------------------------------------------
+# joint angles
+# --------------------------------------------------------------------------------------------
+
+
+def _joint_angles(ch: dict, c: _Calib, cfg: MotionConfig) -> tuple[NDArray, NDArray]:
+    """Channels -> pelvis tilt (T,) and per-joint XYZ Euler angles (T, 23, 3), radians.
+
+    Sign conventions (SMPL frame, rotations about the joint's x axis): hip flexion is a negative
+    x angle, knee flexion positive, ankle plantar flexion positive; a positive pelvis tilt leans
+    the body forward, so the hips flex by the tilt as well to keep the legs where they were.
+    """
+    deg = np.deg2rad
+    a, ph = ch["gait_amp"], ch["gait_phase"]
+    sit, lean = ch["sit"], ch["lean"]
+    T = len(a)
+    t = np.arange(T)
+
+    # Pelvis tilt: walking lean, leaning on the table, and a forward lean while sitting down or
+    # standing up (sin(pi s) is 0 when standing or seated).
+    tilt = deg(3.0) * a + lean * c.lean_a + deg(25.0) * np.sin(np.pi * sit)
+
+    e = np.zeros((T, 23, 3))
+    ik = ch["ik"]
+    sides = (
+        (_L_HIP, _L_KNEE, _L_ANKLE, ph + np.pi, ch["al_x"], ch["al_z"]),
+        (_R_HIP, _R_KNEE, _R_ANKLE, ph, ch["ar_x"], ch["ar_z"]),
+    )
+    for hip, knee, ankle, phi, ax, az in sides:  # two legs
+        g_hip = a * (deg(5.0) + deg(cfg.hip_swing_deg) * np.sin(phi))
+        g_knee = a * (deg(5.0) + deg(cfg.knee_swing_deg) * ((1.0 + np.cos(phi)) / 2.0) ** 3)
+        ik_hip, ik_knee = _leg_ik(ax - ch["hip_x"], ch["hip_z"] - az, c.thigh, c.shin)
+        flex = g_hip + sit * ch["sit_hip"] + ik * ik_hip
+        knee_f = g_knee + sit * ch["sit_knee"] + ik * ik_knee
+        # Feet stay level for the postures; the gait adds a small ankle roll-off.
+        ankle_x = sit * (ch["sit_hip"] - ch["sit_knee"]) + ik * (ik_hip - ik_knee) + a * deg(8.0) * np.sin(phi - 0.6)
+        e[:, hip - 1, 0] = -(flex + tilt)
+        e[:, knee - 1, 0] = knee_f
+        e[:, ankle - 1, 0] = ankle_x
+
+    # Arms: lowered from the T-pose, swinging against the legs; forward onto the thighs when
+    # seated, forward onto the table when leaning.
+    swing = a * deg(cfg.arm_swing_deg)
+    arm = {
+        _L_SHOULDER: -swing * np.sin(ph + np.pi), _R_SHOULDER: -swing * np.sin(ph),
+    }
+    for sh, el, side in ((_L_SHOULDER, _L_ELBOW, 1.0), (_R_SHOULDER, _R_ELBOW, -1.0)):
+        flex = arm[sh] + sit * deg(30.0) + lean * (c.lean_a + c.lean_g) + deg(20.0) * np.sin(np.pi * sit)
+        e[:, sh - 1, 0] = -flex
+        e[:, sh - 1, 2] = -side * deg(75.0)
+        elbow = deg(15.0) + a * deg(10.0) + sit * deg(35.0) - lean * deg(5.0)
+        e[:, el - 1, 1] = -side * elbow
+
+    # Breathing and a little sway, always on, so that no frame is perfectly still.
+    e[:, _SPINE2 - 1, 0] += deg(1.0) * np.sin(2 * np.pi * t / 110.0)
+    e[:, _NECK - 1, 1] += deg(4.0) * np.sin(2 * np.pi * t / 170.0 + 1.0)
+    e[:, _HEAD - 1, 0] += deg(3.0) * np.sin(2 * np.pi * t / 130.0 + 2.0) - deg(5.0) * lean
+    # Torso counter-rotation against the pelvis while walking.
+    e[:, _SPINE3 - 1, 1] += -a * deg(4.0) * np.sin(ph)
+    return tilt, e
+
+
+def _leg_ik(fwd: NDArray, down: NDArray, thigh: float, shin: float) -> tuple[NDArray, NDArray]:
+    """Two-link leg IK in the sagittal plane: hip and knee flexion (radians, >= 0) that put the
+    ankle ``fwd`` ahead of and ``down`` below the hip joint (an out-of-reach target gives the
+    straight leg pointing at it). The knee bends forward.
+
+    Near full extension the knee angle changes infinitely fast with the reach (it goes like
+    sqrt(L - r)), so the reach is softly saturated at 99 % of the leg length: the knee never
+    locks straight and its speed stays bounded."""
+    L = thigh + shin
+    r0, rmax = 0.9 * L, 0.99 * L
+    r = np.hypot(fwd, down)
+    r = np.where(r > r0, r0 + (rmax - r0) * np.tanh((r - r0) / (rmax - r0)), r)
+    r = np.maximum(r, abs(thigh - shin) + 1e-3)
+    knee = np.pi - np.arccos(np.clip((thigh**2 + shin**2 - r**2) / (2 * thigh * shin), -1.0, 1.0))
+    hip = np.arctan2(fwd, down) + np.arccos(np.clip((thigh**2 + r**2 - shin**2) / (2 * thigh * r), -1.0, 1.0))
+    return hip, knee
+
+
+def _global_orient(yaw: NDArray, tilt: NDArray, ch: dict) -> NDArray:
+    """(T, 3) axis-angle: heading ``yaw`` about +Z, forward tilt, small gait twist."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    twist = ch["gait_amp"] * np.deg2rad(4.0) * np.sin(ch["gait_phase"]) if ch else np.zeros_like(yaw)
+    local = Rotation.from_euler("XY", np.stack([tilt, twist], -1)).as_matrix()
+    R = rot_z(yaw + np.pi / 2) @ R_ZUP_YUP @ local
+    return Rotation.from_matrix(R).as_rotvec()
+
+
+# --------------------------------------------------------------------------------------------
+# skinning and placement
+# --------------------------------------------------------------------------------------------
+
+
+def _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec: SceneSpec, chunk: int) -> NDArray:
+    """SMPL ``transl`` (T, 3): pelvis at the planned xy (feet kept still in locked pieces),
+    lifted onto the supports (see the module docstring). Furniture holds the body up only in
+    interaction frames (``on_furniture``): elsewhere a heel brushing a sofa's front while walking
+    away must not lift the performer onto it."""
+    T = len(go)
+    transl = np.zeros((T, 3))
+    anchors: dict[int, NDArray] = {}
+    supports = [(f.top_z, f, SLAB_DEPTH.get(f.name, np.inf)) for f in _supports(spec)]
+    for s in range(0, T, chunk):
+        sl = slice(s, min(s + chunk, T))
+        base = np.concatenate([xy[sl] - J0[:2], np.full((sl.stop - sl.start, 1), -J0[2])], axis=1)
+        out = body.forward(betas, go[sl], body_pose[sl], base)
+        v = out.vertices.detach().cpu().numpy().astype(np.float64)
+        j = out.joints.detach().cpu().numpy().astype(np.float64)
+        feet = 0.5 * (j[:, _L_ANKLE, :2] + j[:, _R_ANKLE, :2])
+        shift = np.zeros((len(v), 2))
+        for k, seg in enumerate(lock[sl]):
+            if seg < 0:
+                continue
+            anchors.setdefault(int(seg), feet[k])  # first frame of the locked run
+            shift[k] = anchors[int(seg)] - feet[k]
+        v[..., :2] += shift[:, None]
+        lift = -v[..., 2].min(axis=1)  # floor
+        z_floor = v[..., 2] + lift[:, None]
+        for top, f, slab in supports:
+            over = _in_footprint(f, v[..., :2]) & (z_floor > top - slab)
+            low = np.where(over, v[..., 2], np.inf).min(axis=1)
+            active = on_furniture[sl] & np.isfinite(low)
+            lift = np.maximum(lift, np.where(active, top - low, -np.inf))
+        transl[sl] = base + np.concatenate([shift, lift[:, None]], axis=1)
+    return transl
