@@ -33,17 +33,18 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         yield tmp_path
         # mkstemp creates 0600 files; give outputs the usual permissions (0666 minus the umask).
         if tmp_path.exists():
-            os.chmod(tmp_path, 0o666 & ~_umask())
+            os.chmod(tmp_path, default_file_mode())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
 
 
-def _umask() -> int:
+def default_file_mode() -> int:
+    """The mode a plainly created file gets (0666 minus the umask); mkstemp files are 0600."""
     mask = os.umask(0)
     os.umask(mask)
-    return mask
+    return 0o666 & ~mask
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

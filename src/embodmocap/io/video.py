@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
+from embodmocap.io.atomic import default_file_mode
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +250,12 @@ class VideoWriter:
         self._stream.pix_fmt = "yuv420p"
         self._stream.codec_context.time_base = 1 / rate
         if codec in ("libx264", "libx265"):
-            self._stream.options = {"crf": str(int(crf)), "preset": "veryfast"}
+            # Deterministic output matters (the studio promises identical files per seed). With
+            # the lookahead presets (veryfast and slower) the same frames gave different bytes
+            # from run to run on a loaded machine here; ultrafast (no lookahead, no mbtree, one
+            # thread) did not. CRF 18 keeps the quality high; files are just larger.
+            self._stream.options = {"crf": str(int(crf)), "preset": "ultrafast"}
+            self._stream.codec_context.thread_count = 1
         self._count = 0
 
     def write(self, rgb: NDArray[np.uint8]) -> None:
@@ -261,6 +267,9 @@ class VideoWriter:
             raise ValueError(f"{self.path}: frame must be ({self.height}, {self.width}, 3) uint8, "
                              f"got {rgb.shape} {rgb.dtype}")
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
+        # Convert to the encoder's pixel format here, single-threaded: left to the encoder, the
+        # conversion ran on several threads and the same frames gave different bytes between runs.
+        frame = frame.reformat(format=self._stream.pix_fmt, threads=1)
         frame.pts = self._count
         for packet in self._stream.encode(frame):
             self._container.mux(packet)
@@ -274,6 +283,7 @@ class VideoWriter:
             self._container.mux(packet)
         self._container.close()
         self._container = None
+        os.chmod(self._tmp, default_file_mode())
         os.replace(self._tmp, self.path)
 
     def abort(self) -> None:

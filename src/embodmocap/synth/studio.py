@@ -41,6 +41,7 @@ from embodmocap.synth.motion import MotionConfig, script_motion
 from embodmocap.synth.render import Renderer
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.scene import build_scene, write_scene_ply
+from embodmocap.synth.sync_event import aim_at_dot, choose_dot, with_dot
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -84,7 +85,6 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
 
     # 1. Scene.
     built = build_scene(cfg.preset, _rng(cfg.seed, 1))
-    renderer = Renderer(built)
 
     # 2. Performer: shape and motion (scene frame).
     write_test_model(lay.body_model)
@@ -113,6 +113,15 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         starts[v] = event - lead
         ends[v] = M - int(trng.integers(0, round(cfg.tail_max_s * cfg.fps) + 1))
 
+    # The operators' paths, and the laser dot: a wall point both see at the event, filmed until
+    # shortly after it goes off (the cameras then turn back to the performer).
+    pelvis = joints[:, 0]
+    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), trajectory.FollowConfig())
+    dot, normal = choose_dot(built, [T[event] for T in T_v], (verts[event], faces))
+    built = with_dot(built, dot, normal)
+    T_v = tuple(aim_at_dot(T, dot, event, cfg.fps) for T in T_v)
+    renderer = Renderer(built)
+
     # 3. Scene capture.
     frames_rendered = 0
     scene_T = trajectory.scene_walk(built.spec, cfg.scene_seconds, cfg.fps, _rng(cfg.seed, 5))
@@ -129,8 +138,6 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     frames_rendered += len(scene_T)
 
     # 4. The two views.
-    pelvis = joints[:, 0]
-    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), trajectory.FollowConfig())
     seq_gt: dict[str, np.ndarray] = {}
     sync_frames = {}
     for k, v in enumerate(VIEWS):
@@ -177,7 +184,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     write_json(gt.info, {
         "version": GT_VERSION, "config": asdict(cfg), "scene": cfg.scene_name, "sequence": cfg.sequence_name,
         "sync_frames": sync_frames, "motion_frames": M, "event_motion_frame": event,
-        "view_motion_start": starts, "view_motion_end": ends,
+        "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
         "segments": [{"name": n, "start": s, "end": e} for n, s, e in script.segments],
         "furniture": {n: {"centre_xy": f.centre_xy, "yaw": f.yaw, "size": f.size, "top_z": f.top_z}
                       for n, f in built.spec.furniture.items()},
