@@ -126,3 +126,18 @@ def test_same_seed_same_files(session, tmp_path):
     again = tmp_path / "again"
     synthesize(SynthConfig(seed=3, **SMALL), again)
     assert _digest(again) == _digest(session)
+
+
+def test_spectacular_format_session_reads_back(tmp_path):
+    out = tmp_path / "sai"
+    synthesize(SynthConfig(seed=5, format="spectacular", **SMALL), out)
+    lay = SessionLayout(out)
+    gt = np.load(lay.ground_truth.sequence("seq0"))
+    for v in VIEWS:
+        cap = open_capture(lay.view_capture("seq0", v))
+        assert cap.format == "spectacular"
+        np.testing.assert_allclose(cap.trajectory.T_world_cam, gt[f"{v}_T_vio_cam"], atol=1e-4)
+        d = cap.frames.depth_m(0)
+        assert d.shape == (SMALL["depth_height"], SMALL["depth_width"]) and (d > 0).mean() > 0.5
+    text, problems = inspect_path(out)
+    assert problems == [], text
