@@ -1,0 +1,90 @@
+"""Mesh clean-up, simplification, statistics and PLY round trips on hand-built meshes."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports open3d
+
+import numpy as np
+import pytest
+
+from embodmocap.errors import InputError
+from embodmocap.scene.config import SceneConfig
+from embodmocap.scene.mesh import (
+    clean_mesh, face_components, mesh_stats, merge_duplicate_vertices, read_mesh_ply, simplify_mesh, write_mesh_ply,
+)
+
+
+def grid(n: int, size: float = 1.0, origin=(0.0, 0.0, 0.0)):
+    """An n x n-cell square of side ``size`` in the plane z = origin z: (n+1)^2 vertices, 2n^2 faces."""
+    x, y = np.meshgrid(np.linspace(0, size, n + 1), np.linspace(0, size, n + 1), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)]) + origin
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    f = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    return v, f
+
+
+def test_clean_removes_a_floater_and_a_small_piece_and_their_vertices():
+    v0, f0 = grid(40, 2.0)  # 3200 faces: the scene
+    v1, f1 = grid(2, 0.05, (1.0, 1.0, 1.0))  # 8 faces, 5 cm: a floater
+    v2, f2 = grid(6, 0.5, (3.0, 0.0, 0.0))  # 72 faces, 0.5 m: a small but real-sized piece
+    v = np.concatenate([v0, v1, v2])
+    f = np.concatenate([f0, f1 + len(v0), f2 + len(v0) + len(v1)])
+    c = np.tile([0.2, 0.4, 0.6], (len(v), 1))
+    c[: len(v0)] = [0.9, 0.1, 0.1]
+    # 72 faces is above the absolute minimum (50) but below 5 % of the largest (160).
+    cfg = SceneConfig(min_component_fraction=0.05, min_component_triangles=50, floater_max_extent_m=0.1)
+    vc, fc, cc = clean_mesh(v, f, c, cfg)
+    assert len(fc) == len(f0) and len(vc) == len(v0)
+    np.testing.assert_allclose(cc, [[0.9, 0.1, 0.1]] * len(vc))
+    assert vc[:, 2].max() == 0.0
+    # With a looser fraction the 0.5 m piece stays and only the 5 cm floater goes.
+    vc, fc, _ = clean_mesh(v, f, c, SceneConfig(min_component_fraction=0.01, min_component_triangles=0))
+    assert len(fc) == len(f0) + len(f2)
+
+
+def test_duplicated_vertices_do_not_split_components():
+    v, f = grid(4)
+    # Split every face onto its own copy of its vertices (as meshes joined block by block can be).
+    v_split = v[f.reshape(-1)]
+    f_split = np.arange(len(v_split)).reshape(-1, 3)
+    assert face_components(v_split, f_split)[1] == len(f)
+    vm, fm, _ = merge_duplicate_vertices(v_split, f_split)
+    assert len(vm) == len(v) and face_components(vm, fm)[1] == 1
+
+
+def test_simplify_reduces_faces_and_keeps_the_surface():
+    v, f = grid(100, 2.0)  # 2 cm cells
+    c = np.tile([0.5, 0.5, 0.5], (len(v), 1))
+    vs, fs, cs = simplify_mesh(v, f, c, voxel_m=0.1)
+    assert len(fs) < len(f) / 10 and len(fs) > 0
+    assert np.abs(vs[:, 2]).max() < 1e-9
+    assert mesh_stats(vs, fs)["area_m2"] == pytest.approx(4.0, rel=0.1)
+    assert cs.shape == vs.shape
+
+
+def test_mesh_stats_known_answers():
+    v, f = grid(3, 2.0, (1.0, -1.0, 0.5))
+    s = mesh_stats(v, f)
+    assert s["vertices"] == 16 and s["faces"] == 18
+    assert s["area_m2"] == pytest.approx(4.0)
+    np.testing.assert_allclose(s["bounds"], [[1.0, -1.0, 0.5], [3.0, 1.0, 0.5]])
+
+
+def test_ply_round_trip_is_atomic(tmp_path):
+    v, f = grid(5, 1.0)
+    rng = np.random.default_rng(0)
+    c = rng.random((len(v), 3))
+    path = write_mesh_ply(tmp_path / "out" / "mesh.ply", v, f, c)
+    assert [p.name for p in path.parent.iterdir()] == ["mesh.ply"]  # no temporary left behind
+    assert path.read_bytes().startswith(b"ply\nformat binary_little_endian")
+    v2, f2, c2 = read_mesh_ply(path)
+    np.testing.assert_allclose(v2, v, atol=1e-12)
+    np.testing.assert_array_equal(f2, f)
+    np.testing.assert_allclose(c2, np.round(c * 255) / 255, atol=1 / 255 + 1e-9)  # stored as uint8
+    v3, f3, c3 = read_mesh_ply(write_mesh_ply(tmp_path / "plain.ply", v, f))
+    assert len(c3) == 0 and len(f3) == len(f)
+    with pytest.raises(InputError, match="missing.ply: mesh file not found"):
+        read_mesh_ply(tmp_path / "missing.ply")
