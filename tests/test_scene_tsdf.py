@@ -3,9 +3,7 @@ filtering, and a small synthetic capture end to end (key frames -> depth -> fusi
 
 from __future__ import annotations
 
-import os
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before anything imports open3d
 
 from pathlib import Path
 
