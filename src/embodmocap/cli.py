@@ -15,6 +15,7 @@ from typing import Annotated, Union
 import tyro
 
 from embodmocap.errors import EmbodMocapError
+from embodmocap.scene.config import SceneConfig
 from embodmocap.synth.config import SynthConfig
 
 log = logging.getLogger("embodmocap")
@@ -81,6 +82,29 @@ class Demo:
 
 
 @dataclass(frozen=True)
+class Scene:
+    """Stage I: build the metric, Z-up scene mesh and sparse model of a session's scene capture."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    scene: str | None = None
+    """Scene to process; needed only when the session has several."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[SceneConfig, tyro.conf.arg(name="")] = SceneConfig()
+    """Stage settings."""
+
+    def run(self) -> int:
+        from embodmocap.scene.stage import run
+
+        out = run(self.config, self.session, self.scene, force=self.force)
+        print(f"scene {out.name}: {out.layout.root}")
+        for k, v in out.figures.items():
+            print(f"  {k}: {v}")
+        return 0
+
+
+@dataclass(frozen=True)
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
@@ -131,6 +155,7 @@ Commands = Union[
     Annotated[Demo, tyro.conf.subcommand("demo")],
     Annotated[Synth, tyro.conf.subcommand("synth")],
     Annotated[Inspect, tyro.conf.subcommand("inspect")],
+    Annotated[Scene, tyro.conf.subcommand("scene")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
 ]

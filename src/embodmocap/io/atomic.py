@@ -40,11 +40,15 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
             tmp_path.unlink()
 
 
-def default_file_mode() -> int:
-    """The mode a plainly created file gets (0666 minus the umask); mkstemp files are 0600."""
+def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
-    return 0o666 & ~mask
+    return mask
+
+
+def default_file_mode() -> int:
+    """The mode a plainly created file gets (0666 minus the umask); mkstemp files are 0600."""
+    return 0o666 & ~_umask()
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:
@@ -74,6 +78,8 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    # mkdtemp makes the folder 0700; give it the mode a plainly created folder gets.
+    os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
         if path.exists():

@@ -9,8 +9,10 @@ the choice. Defaults follow the EmbodMocap paper and its official release (see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
+
+from embodmocap.scene.sfm import SfmConfig
 
 
 @dataclass(frozen=True)
@@ -90,18 +92,8 @@ class SceneConfig:
     not write a simplified mesh."""
 
     # ------------------------------------------------------------------ sparse model (SfM)
-    sfm_max_keyframes: int = 200
-    """At most this many key frames (evenly spread over the capture) go into the sparse model."""
-    sfm_max_features: int = 4096
-    """SIFT features per image."""
-    sfm_pairs_per_image: int = 20
-    """Each image is matched with at most this many others, chosen by pose (nearest viewing
-    overlap first)."""
-    sfm_min_view_overlap: float = 0.2
-    """Pairs whose view frusta overlap less than this fraction (estimated from the poses and the
-    depth range) are not matched."""
-    sfm_max_view_angle_deg: float = 60.0
-    """Pairs whose viewing directions differ more than this (degrees) are not matched."""
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    """Sparse-model settings (key frames used, SIFT, pair selection from the poses, triangulation)."""
 
     def __post_init__(self) -> None:
         from embodmocap.errors import InputError
@@ -123,8 +115,6 @@ class SceneConfig:
             (0 <= self.min_component_fraction <= 1, "min_component_fraction must be in [0, 1]"),
             (self.min_component_triangles >= 0 and self.floater_max_extent_m >= 0, "clean-up sizes must be >= 0"),
             (self.simplify_voxel_m >= 0, "simplify_voxel_m must be >= 0"),
-            (self.sfm_max_keyframes >= 2 and self.sfm_max_features > 0 and self.sfm_pairs_per_image > 0, "SfM counts must be positive"),
-            (0 <= self.sfm_min_view_overlap <= 1 and 0 < self.sfm_max_view_angle_deg <= 180, "SfM pair limits out of range"),
         ]
         bad = [msg for ok, msg in checks if not ok]
         if bad:
