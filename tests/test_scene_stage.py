@@ -1,0 +1,139 @@
+"""Stage I end to end on a small synthetic session: ground truth, resume, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from embodmocap.errors import InputError
+from embodmocap.evaluate.mesh_metrics import mesh_accuracy
+from embodmocap.geometry.transforms import apply_T
+from embodmocap.io.layout import SessionLayout
+from embodmocap.scene import stage
+from embodmocap.scene.config import SceneConfig
+from embodmocap.scene.mesh import read_mesh_ply
+from embodmocap.scene.sfm import SfmConfig, image_poses, sparse_points
+from embodmocap.synth.config import SynthConfig
+from embodmocap.synth.studio import synthesize
+
+SYNTH = SynthConfig(seed=7, seconds=0.5, scene_seconds=6.0, width=320, height=240, depth_width=128, depth_height=96)
+CFG = SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=30))
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("scene") / "s"
+    synthesize(SYNTH, out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def done(session) -> stage.SceneOutputs:
+    return stage.run(CFG, session)
+
+
+def _gt(session: Path):
+    import trimesh
+
+    lay = SessionLayout(session)
+    gt = trimesh.load(lay.ground_truth.scene_mesh("scene0"), force="mesh")
+    dev = np.load(lay.ground_truth.scene_device("scene0"))
+    return np.asarray(gt.vertices), np.asarray(gt.faces), dev["T_scene_vio"]
+
+
+def test_mesh_and_sparse_model_match_ground_truth(session, done):
+    figs = done.figures
+    for key in ("keyframes", "mesh_vertices", "mesh_faces", "mesh_area_m2", "sfm_points",
+                "sfm_mean_track_length", "sfm_mean_reproj_error_px"):
+        assert key in figs, key
+    gt_v, gt_f, T_scene_vio = _gt(session)
+    v, f, _ = read_mesh_ply(done.layout.mesh_raw)
+    # The stage works in the capture's own VIO world; the true T_scene_vio maps it to the scene.
+    acc = mesh_accuracy(apply_T(T_scene_vio, v), f, gt_v, gt_f, n_samples=20000, seed=0)
+    assert acc < 0.02, f"mesh accuracy {acc:.4f} m"
+    assert done.layout.mesh_simplified.is_file()
+    assert figs["simplified_faces"] < figs["mesh_faces"]
+    xyz, _, _, err = sparse_points(done.layout.sfm_dir)
+    assert len(xyz) > 500 and figs["sfm_mean_reproj_error_px"] < 1.5
+    from embodmocap.evaluate.mesh_metrics import surface_distances
+
+    d = surface_distances(apply_T(T_scene_vio, xyz), gt_v, gt_f)
+    assert np.median(d) < 0.03
+
+
+def test_sparse_model_keeps_the_capture_poses(done):
+    kf = stage.read_keyframes(done.layout)
+    poses = image_poses(done.layout.sfm_dir)
+    by_frame = {int(f): T for f, T in zip(kf["frame_ids"], kf["T_world_cam"])}
+    assert len(poses) >= 10
+    for name, T in poses.items():
+        frame = int(Path(name).stem.split("_")[1])
+        np.testing.assert_allclose(T, by_frame[frame], atol=1e-9)
+
+
+def test_second_run_skips_everything(session, done):
+    again = stage.run(CFG, session)
+    assert set(again.skipped) == {"keyframes", "mesh", "simplify", "sfm"}
+
+
+def test_interrupted_run_resumes_and_config_changes_redo_only_what_depends(session, tmp_path, monkeypatch):
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    shutil.rmtree(work / "scenes", ignore_errors=True)
+
+    def crash(*a, **k):
+        raise KeyboardInterrupt("simulated crash before the sparse model")
+
+    monkeypatch.setattr(stage, "build_sparse_model", crash)
+    with pytest.raises(KeyboardInterrupt):
+        stage.run(CFG, work)
+    lay = SessionLayout(work).scene("scene0")
+    done_steps = json.loads(lay.manifest.read_text())["steps"]
+    assert set(done_steps) == {"keyframes", "mesh", "simplify"}
+    mesh_mtime = lay.mesh_raw.stat().st_mtime_ns
+    monkeypatch.undo()
+
+    resumed = stage.run(CFG, work)
+    assert set(resumed.skipped) == {"keyframes", "mesh", "simplify"}
+    assert lay.mesh_raw.stat().st_mtime_ns == mesh_mtime
+    assert (lay.sfm_dir / "database.db").is_file()
+
+    # Changing a mesh-only option redoes the mesh and what depends on it, not the key frames or SfM.
+    changed = stage.run(replace(CFG, floater_max_extent_m=0.2), work)
+    assert set(changed.skipped) == {"keyframes", "sfm"}
+
+
+def test_no_valid_depth_is_one_clear_error(session, tmp_path):
+    work = tmp_path / "s"
+    shutil.copytree(session, work, ignore=shutil.ignore_patterns("scenes"))
+    for png in (work / "captures" / "scene0" / "depth").glob("*.png"):
+        Image.fromarray(np.zeros((SYNTH.depth_height, SYNTH.depth_width), np.uint16)).save(png)
+    with pytest.raises(InputError) as err:
+        stage.run(CFG, work)
+    msg = str(err.value)
+    assert "no valid depth" in msg and "scene0" in msg and len(msg.splitlines()) == 1
+
+
+def test_too_few_keyframes_is_one_clear_error(session, tmp_path):
+    work = tmp_path / "s"
+    shutil.copytree(session, work, ignore=shutil.ignore_patterns("scenes"))
+    # Freeze the camera: every pose row equal to the first, so motion never makes a key frame.
+    odo = work / "captures" / "scene0" / "odometry.csv"
+    lines = odo.read_text().splitlines()
+    first = lines[1].split(",")
+    frozen = [lines[0]] + [",".join(line.split(",")[:2] + first[2:]) for line in lines[1:]]
+    odo.write_text("\n".join(frozen) + "\n")
+    with pytest.raises(InputError) as err:
+        stage.run(CFG, work)
+    assert "key frame" in str(err.value) and "scene0" in str(err.value)
+
+
+def test_unknown_scene_name(session):
+    with pytest.raises(InputError, match="no scene named"):
+        stage.run(CFG, session, "kitchen")
