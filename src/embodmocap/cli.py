@@ -55,7 +55,7 @@ class Inspect:
 
 @dataclass(frozen=True)
 class Demo:
-    """Run the built-in demo: synthesise a session and inspect it."""
+    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far."""
 
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = Path("demo_out")
     """Folder for the demo session (replaced if it holds an earlier demo)."""
@@ -78,7 +78,15 @@ class Demo:
         text, problems = inspect_path(self.out)
         print(text)
         print(f"\ndemo session written to {res.root} in {res.seconds_taken:.1f} s")
-        return 1 if problems else 0
+        if problems:
+            return 1
+        from embodmocap.scene.stage import run as run_scene
+
+        scene = run_scene(SceneConfig(), self.out)
+        print(f"\nStage I (scene): {scene.layout.root}")
+        for k, v in scene.figures.items():
+            print(f"  {k}: {v}")
+        return 0
 
 
 @dataclass(frozen=True)
