@@ -16,6 +16,7 @@ import tyro
 
 from embodmocap.errors import EmbodMocapError
 from embodmocap.scene.config import SceneConfig
+from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
 
 log = logging.getLogger("embodmocap")
@@ -113,6 +114,29 @@ class Scene:
 
 
 @dataclass(frozen=True)
+class Sequence:
+    """Stage II: sync, slice and observe the performer in both views of a sequence."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to process; needed only when the session has several."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[SequenceConfig, tyro.conf.arg(name="")] = SequenceConfig()
+    """Stage settings."""
+
+    def run(self) -> int:
+        from embodmocap.sequence.stage import run
+
+        out = run(self.config, self.session, self.seq, force=self.force)
+        print(f"sequence {out.name}: {out.layout.root}")
+        for k, v in out.figures.items():
+            print(f"  {k}: {v}")
+        return 0
+
+
+@dataclass(frozen=True)
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
@@ -164,6 +188,7 @@ Commands = Union[
     Annotated[Synth, tyro.conf.subcommand("synth")],
     Annotated[Inspect, tyro.conf.subcommand("inspect")],
     Annotated[Scene, tyro.conf.subcommand("scene")],
+    Annotated[Sequence, tyro.conf.subcommand("sequence")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
 ]

@@ -1,0 +1,68 @@
+"""Settings of Stage II (`embodmocap sequence`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from embodmocap.perception.tracking import TrackingConfig
+from embodmocap.sequence.sync import SyncConfig
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """How Stage II syncs, slices and observes the performer."""
+
+    sync: SyncConfig = field(default_factory=SyncConfig)
+    """Laser-dot detection (frames given in session.toml override it)."""
+    fps: float | None = None
+    """Frame rate of the sliced sequence; None = the lower of the two views' rates."""
+    min_overlap_s: float = 1.0
+    """Shortest common span of the two views after sync, seconds (shorter = error)."""
+
+    keypoints: Literal["precomputed", "vitpose", "mediapipe"] = "precomputed"
+    """2D keypoint backend: the view's keypoint folder from session.toml, a ViTPose model, or MediaPipe."""
+    detector: Literal["precomputed", "rtdetr", "mediapipe"] = "precomputed"
+    """Person boxes for model keypoint backends (precomputed = boxes of the view's keypoint files)."""
+    masks: Literal["precomputed", "sam2", "mediapipe", "none"] = "precomputed"
+    """Person-mask backend (precomputed = the view's mask folder; none = write no masks)."""
+    depth: Literal["lidar", "precomputed", "promptda"] = "lidar"
+    """Depth per frame: the capture's LiDAR depth, the view's depth folder, or Prompt Depth Anything."""
+    body_prior: Literal["precomputed", "none"] = "precomputed"
+    """Camera-space body prior: the view's body_prior file, or none."""
+    detector_model: str = ""
+    """Local folder or cached hub id of the RT-DETR model (detector = rtdetr)."""
+    keypoints_model: str = ""
+    """Local folder or cached hub id of the ViTPose model (keypoints = vitpose)."""
+    masks_model: str = ""
+    """Local folder or cached hub id of the SAM 2 model (masks = sam2)."""
+    depth_model: str = ""
+    """Local folder or cached hub id of the Prompt Depth Anything model (depth = promptda)."""
+    device: str = "cpu"
+    """Device for model backends: cpu or cuda."""
+    batch_size: int = 8
+    """Frames per batch for model backends (and per chunk of the streaming loop)."""
+
+    min_depth_confidence: int = 1
+    """LiDAR depth pixels with lower confidence (0 low, 1 medium, 2 high) are set to 0 (invalid)."""
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    """Linking detections into tracks so the performer keeps one identity."""
+    long_gap_s: float = 2.0
+    """A stretch without the performer longer than this (seconds) is reported as a warning."""
+    min_person_fraction: float = 0.2
+    """Below this fraction of frames with the performer, a view is an error (wrong keypoints?)."""
+
+    def __post_init__(self) -> None:
+        from embodmocap.errors import InputError
+
+        bad = []
+        if self.fps is not None and not 0 < self.fps <= 240:
+            bad.append("fps must be in (0, 240]")
+        if self.batch_size < 1:
+            bad.append("batch_size must be >= 1")
+        if self.min_depth_confidence not in (0, 1, 2):
+            bad.append("min_depth_confidence must be 0, 1 or 2")
+        if not 0 <= self.min_person_fraction <= 1:
+            bad.append("min_person_fraction must be in [0, 1]")
+        if bad:
+            raise InputError(None, "invalid sequence settings: " + "; ".join(bad), "fix the options")
