@@ -55,6 +55,8 @@ _FRAME_RE = re.compile(r"(\d+)(?:_keypoints)?\.json$", re.IGNORECASE)
 
 #: Points below this confidence are ignored when judging a layout or a person's size.
 _CONF_MIN = 0.1
+#: Largest relative midpoint offset accepted when one profile test alone decides the layout.
+_PROFILE_MIDPOINT_TOL = 0.1
 
 
 # --------------------------------------------------------------------------------------------
@@ -166,7 +168,7 @@ def detect_layout(people: Iterable[NDArray], path: str | Path | None = None) -> 
     s25b = _near_score(kp, 1, 0) + _near_score(kp, 2, 0) + _midpoint_score(kp, 17, 5, 6)
     ok = np.isfinite(s25) & np.isfinite(s25b)
     if not ok.any():
-        raise InputError(path, "cannot tell BODY_25 from BODY_25B: no confident person", "pass layout='BODY_25' or 'BODY_25B'")
+        return _profile_layout(kp, path)
     m25, m25b = float(np.median(s25[ok])), float(np.median(s25b[ok]))
     layout = "BODY_25" if m25 < m25b else "BODY_25B"
     log.debug("25-point layout scores: BODY_25 %.3f, BODY_25B %.3f -> %s", m25, m25b, layout)
@@ -324,6 +326,26 @@ def _person_scale(kp: NDArray) -> NDArray:
         ext = np.nanmax(xy, axis=-2) - np.nanmin(xy, axis=-2)
     scale = np.linalg.norm(ext, axis=-1)
     return np.where(ok.sum(-1) >= 2, scale, np.nan)
+
+
+def _profile_layout(kp: NDArray, path: str | Path | None) -> str:
+    """BODY_25 vs BODY_25B from tests a profile view passes (it never shows both eyes).
+
+    In BODY_25 point 8 (mid-hip) lies midway between the hips 9 and 12; in BODY_25B point 17
+    (upper neck) lies midway between the shoulders 5 and 6. The smaller median wins; when only one
+    test has its points, it decides alone if its point is clearly at the midpoint.
+    """
+    scores = {}
+    for name, (mid, a, b) in (("BODY_25", (8, 9, 12)), ("BODY_25B", (17, 5, 6))):
+        d = _midpoint_score(kp, mid, a, b)
+        d = d[np.isfinite(d)]
+        if d.size:
+            scores[name] = float(np.median(d))
+    if len(scores) == 2:
+        return min(scores, key=scores.get)
+    if len(scores) == 1 and next(iter(scores.values())) < _PROFILE_MIDPOINT_TOL:
+        return next(iter(scores))
+    raise InputError(path, "cannot tell BODY_25 from BODY_25B: no confident person", "pass layout='BODY_25' or 'BODY_25B'")
 
 
 def _midpoint_score(kp: NDArray, mid: int, a: int, b: int) -> NDArray:

@@ -51,7 +51,6 @@ _LAYOUT_SAMPLE = 64
 """How many files (spread over the folder) decide a 25-point layout: enough for a robust median,
 cheap enough to stay well under a second."""
 
-_MIDPOINT_TOL = 0.1
 """A point counts as "at the midpoint" within this fraction of the person's size."""
 
 _IMAGE_NUMBER_RE = re.compile(r"(\d+)(?:[_.-](?:mask|depth|seg|person))?$", re.IGNORECASE)
@@ -236,7 +235,7 @@ class PrecomputedKeypoints:
                 paths = list(self._files.values())
                 pick = np.unique(np.linspace(0, len(paths) - 1, min(_LAYOUT_SAMPLE, len(paths))).astype(int))
                 sample = [raw] + [s for s in (read_openpose_raw(paths[i]) for i in pick) if s.size]
-                self.layout = _detect_25_layout(sample, self.source)
+                self.layout = detect_layout(sample, self.source)
             log.info("%s: keypoint layout %s", self.source, self.layout)
         if LAYOUT_SIZE[self.layout] != raw.shape[1]:
             raise InputError(path, f"file has {raw.shape[1]} keypoints per person but the folder's layout "
@@ -273,40 +272,6 @@ class PrecomputedDetector:
             keep = ok.sum(-1) >= max(self.min_keypoints, 2)
             out.append(np.concatenate([boxes[keep], score[keep, None]], axis=1).reshape(-1, 5))
         return out
-
-
-def _detect_25_layout(people: list[NDArray], source: Path) -> str:
-    """BODY_25 or BODY_25B for a folder's sample of (P, 25, 3) arrays.
-
-    :func:`embodmocap.io.openpose.detect_layout` decides from points that include both eyes, which
-    a profile view never shows (two of the four real Pose2Sim cameras). When it cannot decide, fall
-    back to two tests that profile views pass: in BODY_25 point 8 (mid-hip) lies midway between
-    points 9 and 12 (the hips); in BODY_25B point 17 (upper neck) lies midway between points 5 and
-    6 (the shoulders). The smaller median relative distance wins; when only one test has its
-    points, it decides alone if its point is clearly at the midpoint.
-    """
-    try:
-        return detect_layout(people, source)
-    except InputError as err:
-        kp = np.concatenate(people)
-        ok = kp[..., 2] > 0.1
-        xy = np.where(ok[..., None], kp[..., :2], np.nan)
-        with np.errstate(invalid="ignore"):
-            size = np.linalg.norm(np.fmax.reduce(xy, axis=1) - np.fmin.reduce(xy, axis=1), axis=-1)
-
-        def offset(mid: int, a: int, b: int) -> float:
-            d = np.linalg.norm(xy[:, mid] - 0.5 * (xy[:, a] + xy[:, b]), axis=-1) / size
-            d = d[np.isfinite(d)]
-            return float(np.median(d)) if d.size else np.nan
-
-        scores = {"BODY_25": offset(8, 9, 12), "BODY_25B": offset(17, 5, 6)}
-        known = {k: v for k, v in scores.items() if np.isfinite(v)}
-        if len(known) == 2:
-            return min(known, key=known.get)
-        # One test only (its points never seen in the other reading): trust a clear midpoint.
-        if len(known) == 1 and next(iter(known.values())) < _MIDPOINT_TOL:
-            return next(iter(known))
-        raise err
 
 
 def _looks_like_coco(path: Path) -> bool:
