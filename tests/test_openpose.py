@@ -181,3 +181,14 @@ def test_real_body25b_detections():
     wrong, _ = read_keypoint_folder(REAL, np.arange(100), layout="BODY_25")
     b = _anatomy(wrong.data)
     assert b["order"] < 0.5 or b["eyes_near_nose"] < 0.5, b
+
+
+@pytest.mark.parametrize("cam", ["cam03", "cam04"])
+def test_profile_cameras_detect_body25b_without_a_hint(cam):
+    # These real cameras see the subject in profile: one eye is never confident, so the layout
+    # must be told from the neck/hip midpoints.
+    from embodmocap.io.openpose import detect_layout, keypoint_files, read_openpose_raw
+
+    files = keypoint_files(f"/work/shared/data/pose2sim_demo/pose/{cam}_json")
+    people = [read_openpose_raw(p) for p in list(files.values())[::5]]
+    assert detect_layout(people) == "BODY_25B"
