@@ -289,22 +289,35 @@ def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         from embodmocap.perception.mediapipe_backend import MediaPipePose
 
         backend = MediaPipePose()
-    needs_pixels = cfg.masks != "precomputed"
+    def write(t: int, m) -> None:
+        cv2.imwrite(str(tmp / f"{int(t):06d}.png"), np.asarray(m, np.uint8) * 255, _PNG_FAST)
+
     with atomic_dir(vl.masks_dir) as tmp:
-        for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
-            ids = [int(i) for i in fm.raw_frames[idx]]
-            frames = [cap.frames.rgb(i) for i in ids] if needs_pixels else [_Blank(size)] * len(ids)
-            masks = backend.segment(frames, ids, boxes[idx])
-            for t, m in zip(idx, masks):
-                cv2.imwrite(str(tmp / f"{int(t):06d}.png"), np.asarray(m, np.uint8) * 255)
+        if cfg.masks == "precomputed":
+            # No pixels needed: read, threshold and write each frame on a worker thread (OpenCV
+            # releases the GIL, so both cores decode/encode PNGs).
+            _parallel(lambda t: write(t, backend.mask(int(fm.raw_frames[t]), size)), range(len(fm.raw_frames)))
+        else:
+            for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
+                ids = [int(i) for i in fm.raw_frames[idx]]
+                masks = backend.segment([cap.frames.rgb(i) for i in ids], ids, boxes[idx])
+                for t, m in zip(idx, masks):
+                    write(t, m)
     return len(getattr(backend, "missing_frames", []))
 
 
-class _Blank:
-    """A stand-in frame that only tells its size (precomputed masks never look at pixels)."""
+#: PNG writing favours speed (level 1): masks and depth maps are rewritten often and read once.
+_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
-    def __init__(self, size: tuple[int, int]) -> None:
-        self.shape = (size[1], size[0], 3)
+
+def _parallel(fn, items) -> None:
+    """Run ``fn`` on every item with two threads (this machine's cores); errors propagate. Each
+    item's result is written to disk by ``fn`` itself, so memory does not grow with the items."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(2) as pool:
+        for _ in pool.map(fn, items):
+            pass
 
 
 def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
@@ -321,27 +334,29 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         from embodmocap.perception.depth_refine import make_depth_refiner
 
         refiner = make_depth_refiner("promptda", model=cfg.depth_model, device=cfg.device, output="rgb")
-    missing = 0
+    def lidar(i: int) -> np.ndarray:
+        d = cap.frames.depth_m(i)
+        c = cap.frames.confidence(i)
+        if c is not None:
+            d = np.where(c >= cfg.min_depth_confidence, d, 0.0)
+        return np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+
+    def write(t: int, d: np.ndarray) -> bool:
+        mm = np.clip(np.round(np.asarray(d) * 1000.0), 0, 65535).astype(np.uint16)
+        cv2.imwrite(str(tmp / f"{int(t):06d}.png"), mm, _PNG_FAST)
+        return not np.any(mm > 0)
+
+    empty = []
     with atomic_dir(vl.depth_dir) as tmp:
-        for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
-            ids = [int(i) for i in fm.raw_frames[idx]]
-            if cfg.depth == "precomputed":
-                depths = src.read(ids)
-            else:
-                depths = []
-                for i in ids:
-                    d = cap.frames.depth_m(i)
-                    c = cap.frames.confidence(i)
-                    if c is not None:
-                        d = np.where(c >= cfg.min_depth_confidence, d, 0.0)
-                    depths.append(np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0))
-                if refiner is not None:
-                    depths = refiner.refine([cap.frames.rgb(i) for i in ids], depths)
-            for t, d in zip(idx, depths):
-                missing += int(not np.any(d > 0))
-                mm = np.clip(np.round(np.asarray(d) * 1000.0), 0, 65535).astype(np.uint16)
-                cv2.imwrite(str(tmp / f"{int(t):06d}.png"), mm)
-    return missing
+        if refiner is None:
+            read = (lambda i: src.depth(i)) if cfg.depth == "precomputed" else lidar
+            _parallel(lambda t: empty.append(write(t, read(int(fm.raw_frames[t])))), range(len(fm.raw_frames)))
+        else:
+            for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
+                ids = [int(i) for i in fm.raw_frames[idx]]
+                depths = refiner.refine([cap.frames.rgb(i) for i in ids], [lidar(i) for i in ids])
+                empty += [write(t, d) for t, d in zip(idx, depths)]
+    return int(sum(empty))
 
 
 def _body_prior_step(view, fm: FrameMap, vl: ViewLayout) -> int:
