@@ -1,0 +1,536 @@
+"""Automatic laser-dot sync: find the frame where the dot on the wall disappears, in each view.
+
+In a session someone shines a laser pointer on a wall both phones film, then switches it off. The
+first frame of a view *without* the dot is that view's sync (event) frame. The paper has a person
+read it off; here it is found automatically and a person only confirms it on a contact sheet.
+
+How the detector works, reading each frame once, in order, downscaled:
+
+1. **Candidates** (:func:`find_dot_candidates`): pixels whose red excess ``r - max(g, b)`` is high
+   form connected blobs; a blob is kept if its brightest pixel is near saturation, it is small
+   (size limits relative to the image width) and its surroundings (a ring outside the glow) are not
+   red: a red shirt or a red chair is large or has red surroundings, so it does not count.
+2. **Tracks**: candidates are linked across frames (nearest neighbour within a gate that allows
+   camera motion of tens of pixels per frame, with a constant-velocity prediction). A track may
+   miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a moment by the
+   performer's arm and seen again at a consistent position is the same dot, not an event.
+3. **Events**: a track seen for at least ``min_seen_frames`` that then stays gone for
+   ``absent_frames`` frames, whose last position is not at the image border (a dot that leaves the
+   field of view has not been switched off), ends with an event at the frame after its last sighting.
+4. **Confidence**: how red the dot was just before versus how red that spot is just after (clean
+   switch-off), whether the wall around the spot looks the same after (an occluder changes it),
+   and how long the dot was seen. The best-scoring track wins.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Literal, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError
+from embodmocap.io.atomic import atomic_path
+from embodmocap.types import Capture
+
+log = logging.getLogger(__name__)
+
+SYNC_JSON_VERSION = 1
+
+
+# --------------------------------------------------------------------------- config and result
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    """Settings of the laser-dot detector. Pixel values are 0-255 RGB."""
+
+    min_redness: int = 90
+    """Red excess ``r - max(g, b)`` a pixel needs to belong to a dot blob (core and inner glow)."""
+    min_peak_red: int = 200
+    """Red value the brightest pixel of a blob must reach: a laser dot saturates the sensor."""
+    min_peak_redness: int = 140
+    """Red excess the most saturated pixel of a blob must reach (dull red paint stays below)."""
+    max_ring_redness: float = 40.0
+    """Largest mean red excess of the ring around a blob: a dot is red on a not-red background,
+    a speck on a red shirt or red furniture is not."""
+    diameter_frac: tuple[float, float] = (0.003, 0.05)
+    """Smallest and largest blob diameter (``2 sqrt(area / pi)``), as fractions of the analysed
+    image width."""
+    min_seen_frames: int = 5
+    """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
+    absent_frames: int = 8
+    """Frames the dot must stay gone after the event; a dot that comes back within this many
+    frames at a consistent position was only hidden, not switched off."""
+    max_step_frac: float = 0.06
+    """Largest motion of the dot between consecutive frames (camera shake and panning), as a
+    fraction of the image width; the gate grows with the number of frames missed."""
+    border_frac: float = 0.02
+    """A track whose last position is within this fraction of the width from the image border
+    left the field of view; it is not an event."""
+    background_change: float = 50.0
+    """Mean RGB change of the ring around the dot, from the last frame with it to the first
+    without, at which the confidence drops to 0 (something moved in front of the dot)."""
+    min_confidence: float = 0.25
+    """Events scoring below this are not reported (the caller then asks for a manual frame)."""
+    search_s: float = 10.0
+    """Only events in the first this many seconds of a capture are searched (the laser is
+    switched off near the start of a recording)."""
+    max_width: int = 640
+    """Frames wider than this are downscaled (area averaging) to this width before analysis."""
+
+
+@dataclass(frozen=True)
+class SyncEvent:
+    """The sync event of one view.
+
+    Attributes:
+        frame: first raw frame of the capture *without* the dot (0-based video frame index).
+        confidence: in [0, 1]; 1 for manual frames.
+        dot_xy_before: (x, y) full-resolution pixel position of the dot in the last frame it was
+            seen (OpenCV pixel centres), or None (manual frames).
+        frames_seen: frames in which the dot was seen before the event (0 for manual frames).
+        method: ``"auto"`` (detected) or ``"manual"`` (given in the manifest).
+    """
+
+    frame: int
+    confidence: float
+    dot_xy_before: tuple[float, float] | None = None
+    frames_seen: int = 0
+    method: Literal["auto", "manual"] = "auto"
+
+
+@dataclass(frozen=True)
+class DotCandidates:
+    """Dot candidates of one frame, in pixels of the analysed (possibly downscaled) image.
+
+    Attributes:
+        xy: (N, 2) blob centroids (x, y).
+        diameter: (N,) equivalent diameters ``2 sqrt(area / pi)``.
+        peak_redness: (N,) largest red excess ``r - max(g, b)`` inside the blob.
+        ring_rgb: (N, 3) mean RGB of the ring around the blob (outside the glow).
+    """
+
+    xy: NDArray[np.float64]
+    diameter: NDArray[np.float64]
+    peak_redness: NDArray[np.float64]
+    ring_rgb: NDArray[np.float64]
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+# --------------------------------------------------------------------------- per-frame candidates
+
+
+def _box_sums(integral: NDArray, x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> NDArray:
+    """Sums over boxes [x0, x1) x [y0, y1) of an OpenCV integral image (H+1, W+1[, C])."""
+    return integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+
+
+def _ring_geometry(bx, by, bw, bh, W: int, H: int):
+    """Inner (skipped, covers the glow) and outer boxes of the ring around blob bounding boxes."""
+    size = np.maximum(bw, bh)
+    pad = np.ceil(0.8 * size).astype(int) + 1  # the glow reaches about 2.2 dot radii
+    ring = np.maximum(3, size)
+    inner = (np.clip(bx - pad, 0, W), np.clip(by - pad, 0, H),
+             np.clip(bx + bw + pad, 0, W), np.clip(by + bh + pad, 0, H))
+    outer = (np.clip(bx - pad - ring, 0, W), np.clip(by - pad - ring, 0, H),
+             np.clip(bx + bw + pad + ring, 0, W), np.clip(by + bh + pad + ring, 0, H))
+    return inner, outer
+
+
+def _ring_means(integral: NDArray, inner, outer) -> NDArray:
+    """Mean of the integral's channels over outer-minus-inner boxes; (N,) or (N, C)."""
+    area = ((outer[2] - outer[0]) * (outer[3] - outer[1]) - (inner[2] - inner[0]) * (inner[3] - inner[1]))
+    s = _box_sums(integral, *outer) - _box_sums(integral, *inner)
+    area = np.maximum(area, 1).astype(np.float64)
+    return s / (area[:, None] if s.ndim == 2 else area)
+
+
+def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) -> DotCandidates:
+    """Small, saturated red blobs on a not-red background in one (H, W, 3) uint8 RGB image.
+
+    No downscaling here: coordinates and sizes are in pixels of ``rgb``.
+    """
+    import cv2
+    from scipy import ndimage
+
+    img = np.asarray(rgb)
+    H, W = img.shape[:2]
+    r = img[..., 0].astype(np.int16)
+    redness = r - np.maximum(img[..., 1], img[..., 2]).astype(np.int16)
+    mask = (redness >= cfg.min_redness).astype(np.uint8)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+    if n <= 1:
+        return empty
+    area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
+    diam = 2.0 * np.sqrt(area / np.pi)
+    lo, hi = cfg.diameter_frac[0] * W, cfg.diameter_frac[1] * W
+    ids = np.nonzero((diam >= lo) & (diam <= hi))[0] + 1  # label ids of blobs of a plausible size
+    if len(ids) == 0:
+        return empty
+    peak_r = np.asarray(ndimage.maximum(r, labels, ids), dtype=np.float64)
+    peak_red = np.asarray(ndimage.maximum(redness, labels, ids), dtype=np.float64)
+    keep = (peak_r >= cfg.min_peak_red) & (peak_red >= cfg.min_peak_redness)
+    ids, peak_red = ids[keep], peak_red[keep]
+    if len(ids) == 0:
+        return empty
+    st = stats[ids]
+    inner, outer = _ring_geometry(st[:, 0], st[:, 1], st[:, 2], st[:, 3], W, H)
+    # Integral images make every ring mean O(1) whatever the number of blobs.
+    ring_red = _ring_means(cv2.integral(np.clip(redness, 0, 255).astype(np.uint8)), inner, outer)
+    ring_rgb = _ring_means(cv2.integral(img), inner, outer)
+    ok = ring_red <= cfg.max_ring_redness
+    ids = ids[ok]
+    return DotCandidates(cents[ids].astype(np.float64), diam[ids - 1], peak_red[ok], ring_rgb[ok])
+
+
+def _local_redness(rgb: NDArray[np.uint8], xy: NDArray, radius: float) -> float:
+    """Largest red excess within ``radius`` px (a square) of ``xy``; 0 when outside the image."""
+    H, W = rgb.shape[:2]
+    x0, x1 = int(max(0, math.floor(xy[0] - radius))), int(min(W, math.ceil(xy[0] + radius) + 1))
+    y0, y1 = int(max(0, math.floor(xy[1] - radius))), int(min(H, math.ceil(xy[1] + radius) + 1))
+    if x0 >= x1 or y0 >= y1:
+        return 0.0
+    patch = rgb[y0:y1, x0:x1].astype(np.int16)
+    return float(max(0, (patch[..., 0] - np.maximum(patch[..., 1], patch[..., 2])).max()))
+
+
+def _ring_rgb_at(rgb: NDArray[np.uint8], xy: NDArray, diameter: float) -> NDArray:
+    """Mean RGB of the ring a blob of ``diameter`` centred at ``xy`` would have."""
+    import cv2
+
+    H, W = rgb.shape[:2]
+    d = max(1, int(round(diameter)))
+    bx = np.array([int(round(xy[0] - d / 2))])
+    by = np.array([int(round(xy[1] - d / 2))])
+    inner, outer = _ring_geometry(bx, by, np.array([d]), np.array([d]), W, H)
+    x0, y0, x1, y1 = (int(v[0]) for v in outer)
+    if x0 >= x1 or y0 >= y1:
+        return np.full(3, np.nan)
+    # Only the outer box's neighbourhood is needed: integrate that crop, not the whole frame.
+    crop = np.ascontiguousarray(rgb[y0:y1, x0:x1])
+
+    def in_crop(box):
+        return tuple(np.array([v[0] - o]) for v, o in zip(box, (x0, y0, x0, y0)))
+
+    return _ring_means(cv2.integral(crop), in_crop(inner), in_crop(outer))[0]
+
+
+# --------------------------------------------------------------------------- tracking
+
+
+@dataclass
+class _Track:
+    """A dot followed across frames (mutable while the frames are read)."""
+
+    frames: list[int] = field(default_factory=list)
+    xy: list[NDArray] = field(default_factory=list)
+    diameter: list[float] = field(default_factory=list)
+    peak: list[float] = field(default_factory=list)
+    ring: list[NDArray] = field(default_factory=list)
+    after_redness: list[float] = field(default_factory=list)
+    after_ring: NDArray | None = None
+
+    def predict(self, frame: int) -> NDArray:
+        """Constant-velocity prediction of the position at ``frame``."""
+        p = self.xy[-1]
+        if len(self.frames) >= 2:
+            v = (self.xy[-1] - self.xy[-2]) / (self.frames[-1] - self.frames[-2])
+            p = p + v * (frame - self.frames[-1])
+        return p
+
+    def add(self, frame: int, cands: DotCandidates, k: int) -> None:
+        self.frames.append(frame)
+        self.xy.append(cands.xy[k])
+        self.diameter.append(float(cands.diameter[k]))
+        self.peak.append(float(cands.peak_redness[k]))
+        self.ring.append(cands.ring_rgb[k])
+        self.after_redness.clear()  # it was only hidden: what follows its new last sighting counts
+        self.after_ring = None
+
+
+def _greedy_pairs(dist: NDArray, ok: NDArray) -> list[tuple[int, int]]:
+    """Closest-first matching of a (tracks, candidates) distance matrix where ``ok`` allows it."""
+    pairs, used_t, used_c = [], set(), set()
+    for flat in np.argsort(dist, axis=None):
+        ti, ci = (int(v) for v in np.unravel_index(flat, dist.shape))
+        if ok[ti, ci] and ti not in used_t and ci not in used_c:
+            pairs.append((ti, ci))
+            used_t.add(ti)
+            used_c.add(ci)
+    return pairs
+
+
+def _downscale(rgb: NDArray[np.uint8], max_width: int) -> tuple[NDArray[np.uint8], float]:
+    """Area-averaged downscale to at most ``max_width`` wide; returns (image, scale <= 1)."""
+    import cv2
+
+    H, W = rgb.shape[:2]
+    if W <= max_width:
+        return rgb, 1.0
+    s = max_width / W
+    return cv2.resize(rgb, (max_width, max(1, int(round(H * s)))), interpolation=cv2.INTER_AREA), s
+
+
+def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[list[_Track], int, tuple[int, int]]:
+    """Read frames in order and follow every dot candidate.
+
+    Returns ``(tracks, frames read, analysed (W, H))``; tracks are in analysed-image pixels.
+    """
+    active: list[_Track] = []
+    done: list[_Track] = []
+    n_read, size = 0, (0, 0)
+    for f, rgb in enumerate(frames):
+        img, _ = _downscale(np.asarray(rgb), cfg.max_width)
+        H, W = img.shape[:2]
+        size, n_read = (W, H), f + 1
+        step_px = cfg.max_step_frac * W
+        # Tracks unseen for absent_frames frames are finished; the rest may still be matched.
+        still = [t for t in active if f - t.frames[-1] < cfg.absent_frames + 1]
+        done += [t for t in active if f - t.frames[-1] >= cfg.absent_frames + 1]
+        active = still
+        cands = find_dot_candidates(img, cfg)
+        if active and len(cands):
+            pred = np.stack([t.predict(f) for t in active])
+            gap = np.array([f - t.frames[-1] for t in active], dtype=np.float64)
+            dist = np.linalg.norm(pred[:, None, :] - cands.xy[None, :, :], axis=2)
+            pairs = _greedy_pairs(dist, dist <= step_px * gap[:, None])
+        else:
+            pairs = []
+        matched_t = {ti for ti, _ in pairs}
+        for ti, ci in pairs:
+            active[ti].add(f, cands, ci)
+        # Unmatched tracks: measure what their spot looks like now, while this frame is at hand.
+        for ti, t in enumerate(active):
+            if ti in matched_t:
+                continue
+            p = t.predict(f)
+            t.after_redness.append(_local_redness(img, p, max(3.0, t.diameter[-1])))
+            if t.after_ring is None:
+                t.after_ring = _ring_rgb_at(img, p, t.diameter[-1])
+        matched_c = {ci for _, ci in pairs}
+        for ci in range(len(cands)):
+            if ci not in matched_c:
+                t = _Track()
+                t.add(f, cands, ci)
+                active.append(t)
+    return done + active, n_read, size
+
+
+def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_allowed: int) -> float | None:
+    """Confidence that track ``t`` ends with the laser being switched off; None if it cannot."""
+    W, H = size
+    last = t.frames[-1]
+    if len(t.frames) < cfg.min_seen_frames or last + 1 > last_allowed:
+        return None
+    if last + cfg.absent_frames >= n_read or len(t.after_redness) < cfg.absent_frames:
+        return None  # not seen to stay gone (the frames ran out)
+    x, y = t.xy[-1]
+    m = cfg.border_frac * W
+    if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
+        return None  # it left the field of view
+    before = float(np.median(t.peak[-3:]))
+    after = max(t.after_redness[: cfg.absent_frames])
+    contrast = float(np.clip((before - after) / max(before, 1.0), 0.0, 1.0))
+    ring_before = np.mean(t.ring[-2:], axis=0)
+    change = float(np.abs(t.after_ring - ring_before).mean()) if t.after_ring is not None else np.inf
+    background = float(np.clip(1.0 - change / cfg.background_change, 0.0, 1.0)) if np.isfinite(change) else 0.0
+    support = min(1.0, len(t.frames) / (2.0 * cfg.min_seen_frames))
+    return contrast * background * (0.5 + 0.5 * support)
+
+
+def detect_laser_event_in_frames(
+    frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig = SyncConfig(), max_event_frame: int | None = None,
+) -> SyncEvent | None:
+    """Find the laser-dot event in a stream of (H, W, 3) uint8 RGB frames (frame 0 first).
+
+    Args:
+        frames: the frames in order; each is read once.
+        cfg: detector settings.
+        max_event_frame: the event frame must be <= this (None: anywhere with enough frames after).
+
+    Returns:
+        The best event, or None if no track qualifies with confidence >= ``cfg.min_confidence``.
+    """
+    tracks, n_read, size = _track_dots(frames, cfg)
+    if n_read == 0:
+        return None
+    last_allowed = n_read if max_event_frame is None else max_event_frame
+    scored = [(s, t) for t in tracks if (s := _score(t, cfg, size, n_read, last_allowed)) is not None]
+    scored.sort(key=lambda st: -st[0])
+    if not scored or scored[0][0] < cfg.min_confidence:
+        log.info("no laser-dot event: %d dot tracks, best score %s", len(tracks),
+                 f"{scored[0][0]:.2f}" if scored else "none")
+        return None
+    conf, best = scored[0]
+    if len(scored) > 1 and scored[1][0] > 0.8 * conf:
+        log.warning("two laser-dot disappearances score alike (frames %d: %.2f and %d: %.2f); check the contact sheet",
+                    best.frames[-1] + 1, conf, scored[1][1].frames[-1] + 1, scored[1][0])
+    return SyncEvent(frame=best.frames[-1] + 1, confidence=round(conf, 4), dot_xy_before=tuple(best.xy[-1]),
+                     frames_seen=len(best.frames), method="auto")
+
+
+def _search_frames(capture: Capture, cfg: SyncConfig) -> int:
+    """Number of leading frames within ``cfg.search_s`` of the capture's first frame."""
+    ts = np.asarray(capture.timestamps_s)
+    if len(ts) >= capture.num_frames and capture.num_frames > 0:
+        return int(np.count_nonzero(ts[: capture.num_frames] - ts[0] < cfg.search_s))
+    return min(capture.num_frames, int(math.ceil(cfg.search_s * capture.fps)))
+
+
+def detect_laser_event(capture: Capture, cfg: SyncConfig = SyncConfig()) -> SyncEvent | None:
+    """Find the laser-dot event in the first ``cfg.search_s`` seconds of ``capture``.
+
+    Frames are read once, in increasing order (cheap for video captures), and downscaled to at
+    most ``cfg.max_width`` wide. ``dot_xy_before`` is returned in full-resolution pixels.
+    """
+    n_search = _search_frames(capture, cfg)
+    n_read = min(capture.num_frames, n_search + cfg.absent_frames + 1)
+    ev = detect_laser_event_in_frames((capture.frames.rgb(i) for i in range(n_read)), cfg,
+                                      max_event_frame=n_search - 1)
+    if ev is None or ev.dot_xy_before is None:
+        return ev
+    W = capture.rgb_intrinsics.width
+    s = min(1.0, cfg.max_width / W) if W > 0 else 1.0
+    # Back to full-resolution pixels (pixel centres at integers in both images).
+    x, y = ((c + 0.5) / s - 0.5 for c in ev.dot_xy_before)
+    ev = SyncEvent(ev.frame, ev.confidence, (float(x), float(y)), ev.frames_seen, ev.method)
+    log.info("%s: laser dot gone at frame %d (seen %d frames, confidence %.2f)",
+             capture.path, ev.frame, ev.frames_seen, ev.confidence)
+    return ev
+
+
+# --------------------------------------------------------------------------- both views
+
+
+def sync_views(
+    captures: Mapping[str, Capture], manual: Mapping[str, int | None] | None = None,
+    cfg: SyncConfig = SyncConfig(), seq: str = "<seq>",
+) -> dict[str, SyncEvent]:
+    """The sync event of every view: the manifest's frame where given, else detected.
+
+    Args:
+        captures: view name -> capture.
+        manual: view name -> ``sync_frame`` from the manifest (None or missing: detect).
+        cfg: detector settings.
+        seq: sequence name, only used in error messages.
+
+    Raises:
+        InputError: a manual frame outside the capture, or no event found in a view (the message
+            says how to give the frame by hand).
+    """
+    manual = manual or {}
+    events: dict[str, SyncEvent] = {}
+    for view, cap in captures.items():
+        frame = manual.get(view)
+        where = f"[sequences.{seq}.views.{view}] in session.toml"
+        if frame is not None:
+            if not 0 <= int(frame) < cap.num_frames:
+                raise InputError(cap.path, f"sync_frame = {frame} of view {view} is outside the capture's "
+                                 f"{cap.num_frames} frames", f"give a frame in 0..{cap.num_frames - 1} under {where}")
+            events[view] = SyncEvent(int(frame), 1.0, None, 0, "manual")
+            continue
+        ev = detect_laser_event(cap, cfg)
+        if ev is None:
+            raise InputError(
+                cap.path, f"no laser-dot sync event found in the first {cfg.search_s:g} s of view {view}",
+                f"find the first frame without the laser dot in the video and set sync_frame = N under {where}",
+            )
+        events[view] = ev
+    return events
+
+
+def sync_events_to_json(events: Mapping[str, SyncEvent]) -> dict:
+    """JSON-ready dict of the events of a sequence (the stage's ``sync.json``)."""
+    return {"version": SYNC_JSON_VERSION, "views": {
+        v: {"frame": e.frame, "confidence": e.confidence,
+            "dot_xy_before": None if e.dot_xy_before is None else list(e.dot_xy_before),
+            "frames_seen": e.frames_seen, "method": e.method}
+        for v, e in events.items()}}
+
+
+def sync_events_from_json(obj: dict, path: str | Path | None = None) -> dict[str, SyncEvent]:
+    """Inverse of :func:`sync_events_to_json`; ``path`` names the file in errors."""
+    fix = "delete the file to redo the sync"
+    if not isinstance(obj, dict) or obj.get("version") != SYNC_JSON_VERSION or not isinstance(obj.get("views"), dict):
+        raise InputError(path, f"not a version-{SYNC_JSON_VERSION} sync file", fix)
+    out = {}
+    try:
+        for v, d in obj["views"].items():
+            xy = d.get("dot_xy_before")
+            if d["method"] not in ("auto", "manual"):
+                raise ValueError(f"unknown method {d['method']!r}")
+            out[v] = SyncEvent(int(d["frame"]), float(d["confidence"]),
+                               None if xy is None else (float(xy[0]), float(xy[1])),
+                               int(d["frames_seen"]), d["method"])
+    except (KeyError, TypeError, ValueError, IndexError) as err:
+        raise InputError(path, f"malformed sync entry: {err}", fix) from err
+    return out
+
+
+# --------------------------------------------------------------------------- contact sheet
+
+
+def contact_sheet_size(capture: Capture, window: int = 4, tile_width: int = 320) -> tuple[int, int]:
+    """(width, height) in pixels of the sheet :func:`write_contact_sheet` writes."""
+    tw, th = _tile_size(capture, tile_width)
+    return window * tw, 2 * th
+
+
+def _tile_size(capture: Capture, tile_width: int) -> tuple[int, int]:
+    W, H = capture.rgb_intrinsics.width, capture.rgb_intrinsics.height
+    tw = min(W, tile_width)
+    return tw, max(1, int(round(H * tw / W)))
+
+
+def write_contact_sheet(capture: Capture, event: SyncEvent, path: str | Path, window: int = 4,
+                        tile_width: int = 320) -> Path:
+    """Write a PNG of the frames ``event - window .. event + window - 1`` to confirm a sync event.
+
+    Layout: two rows of ``window`` tiles, the frames before the event on top and the event frame
+    first on the bottom row (green border, "EVENT"); each tile is labelled with its raw frame
+    number; the dot's last detected position is circled (yellow) on every tile, so the dot is seen
+    inside the circle on top and gone below. Frames outside the capture are left dark grey. Tiles
+    are ``tile_width`` wide (or the frame width if smaller); the sheet's size is
+    :func:`contact_sheet_size`. Written atomically.
+    """
+    from PIL import Image, ImageDraw, ImageFont
+
+    if window < 1:
+        raise ValueError("window must be >= 1")
+    tw, th = _tile_size(capture, tile_width)
+    W = capture.rgb_intrinsics.width
+    s = tw / W
+    sheet = Image.new("RGB", (window * tw, 2 * th), (40, 40, 40))
+    draw = ImageDraw.Draw(sheet)
+    font = ImageFont.load_default(size=max(10, th // 12))
+    for k, f in enumerate(range(event.frame - window, event.frame + window)):
+        x0, y0 = (k % window) * tw, (k // window) * th
+        if 0 <= f < capture.num_frames:
+            tile = Image.fromarray(capture.frames.rgb(f)).resize((tw, th), Image.Resampling.BILINEAR)
+            sheet.paste(tile, (x0, y0))
+        if event.dot_xy_before is not None:
+            cx, cy = ((c + 0.5) * s - 0.5 for c in event.dot_xy_before)
+            rad = max(6.0, 0.04 * tw)
+            draw.ellipse([x0 + cx - rad, y0 + cy - rad, x0 + cx + rad, y0 + cy + rad], outline=(255, 230, 0), width=2)
+        label = f"#{f}" + ("  EVENT" if f == event.frame else "")
+        box = draw.textbbox((x0 + 4, y0 + 3), label, font=font)
+        draw.rectangle([box[0] - 2, box[1] - 2, box[2] + 2, box[3] + 2], fill=(0, 0, 0))
+        draw.text((x0 + 4, y0 + 3), label, fill=(0, 255, 0) if f == event.frame else (255, 255, 255), font=font)
+        if f == event.frame:
+            draw.rectangle([x0, y0, x0 + tw - 1, y0 + th - 1], outline=(0, 255, 0), width=3)
+    caption = f"{event.method} sync, confidence {event.confidence:.2f}"
+    box = draw.textbbox((4, 2 * th - 4), caption, font=font, anchor="ld")
+    draw.rectangle([box[0] - 2, box[1] - 2, box[2] + 2, box[3] + 2], fill=(0, 0, 0))
+    draw.text((4, 2 * th - 4), caption, fill=(255, 255, 255), font=font, anchor="ld")
+    path = Path(path)
+    with atomic_path(path, suffix=".png") as tmp:
+        sheet.save(tmp, format="PNG")
+    return path
