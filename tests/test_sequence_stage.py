@@ -63,8 +63,22 @@ def test_sync_and_slices_match_ground_truth(session, done):
         good = kp["keypoints"][..., 2] > 0.5
         err = np.linalg.norm(kp["keypoints"][..., :2] - gt[f"{v}_keypoints2d_gt"][raw], axis=-1)[good]
         assert np.median(err) < 4.0
-        assert len(list(vl.masks_dir.glob("*.png"))) == T
-        assert len(list(vl.depth_dir.glob("*.png"))) == T
+        from embodmocap.io.frame_stack import read_depth_m, read_mask
+        from embodmocap.types import PngMasks
+
+        # Masks equal the precomputed PNGs of the same raw frames; depth equals the capture's
+        # LiDAR depth where its confidence passes the filter.
+        src = PngMasks(tuple(SessionLayout(session).perception("seq0", v).mask_png(int(r)) for r in raw))
+        from embodmocap.io.captures import open_capture
+
+        cap = open_capture(SessionLayout(session).view_capture("seq0", v))
+        for t in (0, T // 2, T - 1):
+            np.testing.assert_array_equal(read_mask(vl.masks, t, SYNTH.width), src.mask(t))
+            d = cap.frames.depth_m(int(raw[t]))
+            keep = cap.frames.confidence(int(raw[t])) >= CFG.min_depth_confidence
+            np.testing.assert_allclose(read_depth_m(vl.depth, t), np.where(keep, d, 0), atol=5e-4)
+        assert np.load(vl.masks).shape == (T, SYNTH.height, SYNTH.width // 8)
+        assert np.load(vl.depth).shape == (T, SYNTH.depth_height, SYNTH.depth_width)
         from embodmocap.io.body_prior import read_body_prior
 
         assert len(read_body_prior(vl.body_prior).frame_ids) == T

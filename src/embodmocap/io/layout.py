@@ -73,12 +73,14 @@ class ViewLayout:
         return self.root / "keypoints2d.npz"
 
     @property
-    def masks_dir(self) -> Path:
-        return self.root / "masks"
+    def masks(self) -> Path:
+        """(T, H, ceil(W/8)) uint8 bit-packed person masks (``io.frame_stack``)."""
+        return self.root / "masks.npy"
 
     @property
-    def depth_dir(self) -> Path:
-        return self.root / "depth"
+    def depth(self) -> Path:
+        """(T, h, w) uint16 depth in millimetres (``io.frame_stack``)."""
+        return self.root / "depth.npy"
 
     @property
     def body_prior(self) -> Path:

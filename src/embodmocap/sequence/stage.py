@@ -24,11 +24,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import atomic_dir, write_json, write_npz
+from embodmocap.io.atomic import write_json, write_npz
+from embodmocap.io.frame_stack import depth_mm, pack_mask, write_stack
 from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout, ViewLayout
@@ -137,13 +137,13 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
             if step(f"masks_{v}", fp):
                 t0 = time.perf_counter()
                 missing = _masks_step(cfg, view, cap, fm, vl)
-                sm.record(f"masks_{v}", fp, [vl.masks_dir], time.perf_counter() - t0, {f"{v}_frames_missing_mask": missing})
+                sm.record(f"masks_{v}", fp, [vl.masks], time.perf_counter() - t0, {f"{v}_frames_missing_mask": missing})
         fp = fingerprint("depth", fp_slice, cfg.depth, cfg.depth_model, cfg.min_depth_confidence,
                          path_fingerprint(view.depth) if view.depth else None)
         if step(f"depth_{v}", fp):
             t0 = time.perf_counter()
             missing = _depth_step(cfg, view, cap, fm, vl)
-            sm.record(f"depth_{v}", fp, [vl.depth_dir], time.perf_counter() - t0, {f"{v}_frames_missing_depth": missing})
+            sm.record(f"depth_{v}", fp, [vl.depth], time.perf_counter() - t0, {f"{v}_frames_missing_depth": missing})
         if cfg.body_prior != "none" and view.body_prior is not None:
             fp = fingerprint("body_prior", fp_slice, path_fingerprint(view.body_prior))
             if step(f"body_prior_{v}", fp):
@@ -270,7 +270,7 @@ def _model_backends(cfg: SequenceConfig, view):
 
 
 def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
-    """Person masks of the sliced frames as PNGs named by sequence frame; returns frames missing."""
+    """Person masks of the sliced frames (bit-packed stack, ``io.frame_stack``); returns frames missing."""
     size = (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height)
     kp = np.load(vl.keypoints)
     boxes = kp["boxes"]
@@ -289,25 +289,23 @@ def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         from embodmocap.perception.mediapipe_backend import MediaPipePose
 
         backend = MediaPipePose()
-    def write(t: int, m) -> None:
-        cv2.imwrite(str(tmp / f"{int(t):06d}.png"), np.asarray(m, np.uint8) * 255, _PNG_FAST)
+    T, W, H = len(fm.raw_frames), size[0], size[1]
+    with write_stack(vl.masks, (T, H, (W + 7) // 8), np.uint8) as stack:
 
-    with atomic_dir(vl.masks_dir) as tmp:
+        def write(t: int, m) -> None:
+            stack[t] = pack_mask(m)
+
         if cfg.masks == "precomputed":
-            # No pixels needed: read, threshold and write each frame on a worker thread (OpenCV
-            # releases the GIL, so both cores decode/encode PNGs).
-            _parallel(lambda t: write(t, backend.mask(int(fm.raw_frames[t]), size)), range(len(fm.raw_frames)))
+            # No pixels needed: read and pack each frame on a worker thread (OpenCV releases the
+            # GIL while decoding, so both cores work).
+            _parallel(lambda t: write(t, backend.mask(int(fm.raw_frames[t]), size)), range(T))
         else:
-            for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
+            for idx in _chunks(T, cfg.batch_size):
                 ids = [int(i) for i in fm.raw_frames[idx]]
                 masks = backend.segment([cap.frames.rgb(i) for i in ids], ids, boxes[idx])
                 for t, m in zip(idx, masks):
                     write(t, m)
     return len(getattr(backend, "missing_frames", []))
-
-
-#: PNG writing favours speed (level 1): masks and depth maps are rewritten often and read once.
-_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 
 def _parallel(fn, items) -> None:
@@ -321,7 +319,7 @@ def _parallel(fn, items) -> None:
 
 
 def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
-    """Depth of the sliced frames as uint16 millimetre PNGs named by sequence frame."""
+    """Depth of the sliced frames (uint16 mm stack, ``io.frame_stack``); returns frames with no valid depth."""
     refiner = None
     if cfg.depth == "precomputed":
         if view.depth is None:
@@ -341,22 +339,32 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
             d = np.where(c >= cfg.min_depth_confidence, d, 0.0)
         return np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
 
-    def write(t: int, d: np.ndarray) -> bool:
-        mm = np.clip(np.round(np.asarray(d) * 1000.0), 0, 65535).astype(np.uint16)
-        cv2.imwrite(str(tmp / f"{int(t):06d}.png"), mm, _PNG_FAST)
-        return not np.any(mm > 0)
+    T = len(fm.raw_frames)
+    first = src.depth(int(fm.raw_frames[0])) if cfg.depth == "precomputed" else lidar(int(fm.raw_frames[0]))
+    if refiner is not None:
+        shape = (cap.rgb_intrinsics.height, cap.rgb_intrinsics.width)
+    else:
+        shape = first.shape
+    empty = np.zeros(T, dtype=bool)
+    with write_stack(vl.depth, (T,) + tuple(shape), np.uint16) as stack:
 
-    empty = []
-    with atomic_dir(vl.depth_dir) as tmp:
+        def write(t: int, d: np.ndarray) -> None:
+            if d.shape != stack.shape[1:]:
+                raise InputError(cap.path, f"depth of raw frame {int(fm.raw_frames[t])} is {d.shape[1]}x{d.shape[0]}, "
+                                 f"expected {stack.shape[2]}x{stack.shape[1]}", "all depth maps of a view must share one size")
+            stack[t] = depth_mm(d)
+            empty[t] = not np.any(stack[t])
+
         if refiner is None:
             read = (lambda i: src.depth(i)) if cfg.depth == "precomputed" else lidar
-            _parallel(lambda t: empty.append(write(t, read(int(fm.raw_frames[t])))), range(len(fm.raw_frames)))
+            _parallel(lambda t: write(t, read(int(fm.raw_frames[t]))), range(T))
         else:
-            for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
+            for idx in _chunks(T, cfg.batch_size):
                 ids = [int(i) for i in fm.raw_frames[idx]]
                 depths = refiner.refine([cap.frames.rgb(i) for i in ids], [lidar(i) for i in ids])
-                empty += [write(t, d) for t, d in zip(idx, depths)]
-    return int(sum(empty))
+                for t, d in zip(idx, depths):
+                    write(t, d)
+    return int(empty.sum())
 
 
 def _body_prior_step(view, fm: FrameMap, vl: ViewLayout) -> int:
