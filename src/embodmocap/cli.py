@@ -56,7 +56,7 @@ class Inspect:
 
 @dataclass(frozen=True)
 class Demo:
-    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far."""
+    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far (I, II)."""
 
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = Path("demo_out")
     """Folder for the demo session (replaced if it holds an earlier demo)."""
@@ -83,9 +83,16 @@ class Demo:
             return 1
         from embodmocap.scene.stage import run as run_scene
 
+        from embodmocap.sequence.stage import run as run_sequence
+
         scene = run_scene(SceneConfig(), self.out)
         print(f"\nStage I (scene): {scene.layout.root}")
         for k, v in scene.figures.items():
+            print(f"  {k}: {v}")
+        seq = run_sequence(SequenceConfig(), self.out)
+        print(f"\nStage II (sequence {seq.name}): {seq.layout.root}")
+        print(f"  sync contact sheets: {seq.layout.root / 'sync_v1.png'}, {seq.layout.root / 'sync_v2.png'}")
+        for k, v in seq.figures.items():
             print(f"  {k}: {v}")
         return 0
 
