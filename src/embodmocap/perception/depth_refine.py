@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,7 +51,6 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 _CONSTANT_PROMPT_BUMP_M = 1e-4
 """Added to one pixel of a constant prompt: the model divides by the prompt's (max - min)."""
 
-_HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 
 
 @runtime_checkable
@@ -193,25 +191,9 @@ def resolve_model_dir(model: str | Path) -> Path:
 
     Raises InputError (one line) when it is neither: weights cannot be downloaded here.
     """
-    path = Path(model).expanduser()
-    if path.is_dir():
-        return path
-    if path.exists():
-        raise InputError(path, "is a file, not a model folder",
-                         "pass the folder written by save_pretrained (config.json + model.safetensors)")
-    text = str(model)
-    if _HUB_ID.match(text):
-        hub = require("huggingface_hub", "perception")
-        try:
-            return Path(hub.snapshot_download(text, local_files_only=True))
-        except (OSError, ValueError):
-            pass  # not cached: fall through to the error naming both possibilities
-    raise InputError(
-        text,
-        "no such model folder, and no cached Hugging Face model of that id (weights cannot be downloaded here)",
-        "download the model elsewhere (e.g. huggingface-cli download depth-anything/prompt-depth-anything-vits-hf "
-        "--local-dir DIR), copy DIR here and pass its path",
-    )
+    from embodmocap.perception.hf_backends import resolve_model_folder
+
+    return resolve_model_folder(model, "depth-anything/prompt-depth-anything-vits-hf")
 
 
 def _read_normalisation(model_dir: Path) -> tuple[float, NDArray[np.float32], NDArray[np.float32]]:
