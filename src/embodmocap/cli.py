@@ -16,6 +16,7 @@ import tyro
 
 from embodmocap.errors import EmbodMocapError
 from embodmocap.scene.config import SceneConfig
+from embodmocap.calibrate.stage import CalibrateConfig
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
 
@@ -144,6 +145,32 @@ class Sequence:
 
 
 @dataclass(frozen=True)
+class Calibrate:
+    """Stage III: put both moving views in the scene's world (registration + joint refinement)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to process; needed only when the session has several."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[CalibrateConfig, tyro.conf.arg(name="")] = CalibrateConfig()
+    """Stage settings."""
+
+    def run(self) -> int:
+        from embodmocap.calibrate.stage import run
+
+        out = run(self.config, self.session, self.seq, force=self.force)
+        print(f"sequence {out.name}: calibration in {self.session / 'sequences' / out.name / 'calibration.json'}")
+        for v, view in out.report["views"].items():
+            print(f"  {v}: registered {100 * view['registered_fraction']:.0f}%, refinement moved it "
+                  f"{100 * view['refine_shift_m']:.1f} cm / {view['refine_yaw_deg']:.2f} deg")
+        for w in out.report.get("warnings", []):
+            print(f"  warning: {w}")
+        return 0
+
+
+@dataclass(frozen=True)
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
@@ -196,6 +223,7 @@ Commands = Union[
     Annotated[Inspect, tyro.conf.subcommand("inspect")],
     Annotated[Scene, tyro.conf.subcommand("scene")],
     Annotated[Sequence, tyro.conf.subcommand("sequence")],
+    Annotated[Calibrate, tyro.conf.subcommand("calibrate")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
 ]

@@ -1,0 +1,92 @@
+"""Stage III end to end on a small synthetic session: offsets against ground truth, resume, errors."""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from embodmocap.calibrate import stage
+from embodmocap.calibrate.register import RegisterConfig
+from embodmocap.errors import InputError
+from embodmocap.geometry.transforms import invert_T, rotation_angle
+from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.scene import stage as scene_stage
+from embodmocap.scene.config import SceneConfig
+from embodmocap.scene.sfm import SfmConfig
+from embodmocap.sequence import stage as seq_stage
+from embodmocap.sequence.config import SequenceConfig
+from embodmocap.synth.config import SynthConfig
+from embodmocap.synth.studio import synthesize
+
+CFG = stage.CalibrateConfig(register=RegisterConfig(num_frames=24), chamfer_frames=10)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("calib") / "s"
+    synthesize(SynthConfig(seed=5, seconds=2.0, scene_seconds=10.0), out)
+    scene_stage.run(SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=60)), out)
+    seq_stage.run(SequenceConfig(), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def done(session) -> stage.CalibrateOutputs:
+    return stage.run(CFG, session)
+
+
+def true_offsets(session: Path) -> dict[str, np.ndarray]:
+    """T_world_vio of each view in Stage I's world (the scene capture's VIO world)."""
+    gt = SessionLayout(session).ground_truth
+    scene_vio = np.load(gt.scene_device("scene0"))["T_scene_vio"]
+    seq = np.load(gt.sequence("seq0"))
+    return {v: invert_T(scene_vio) @ seq[f"{v}_T_scene_vio"] for v in VIEWS}
+
+
+def offset_error(T_est: np.ndarray, T_true: np.ndarray, probe: np.ndarray) -> tuple[float, float]:
+    """(translation error at the view's own cameras in m, yaw error in degrees)."""
+    p = np.c_[probe, np.ones(len(probe))]
+    d = (p @ T_est.T)[:, :3] - (p @ T_true.T)[:, :3]
+    return float(np.linalg.norm(d, axis=1).mean()), float(np.degrees(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3])))
+
+
+def test_offsets_match_ground_truth(session, done):
+    truth = true_offsets(session)
+    for v in VIEWS:
+        cams = np.load(SessionLayout(session).sequence("seq0").view(v).cameras)
+        centres = cams["T_world_cam"][:, :3, 3]
+        t_err, yaw_err = offset_error(done.T_world_vio[v], truth[v], centres)
+        # VIO drift alone is about 1 cm over a clip; 2 cm / 0.5 deg is the issue's median target.
+        assert t_err < 0.04 and yaw_err < 0.8, (v, t_err, yaw_err)
+        reg_err = offset_error(np.asarray(done.report["views"][v]["T_world_vio_registration"]), truth[v], centres)
+        assert reg_err[0] < 0.06
+        world = np.load(SessionLayout(session).sequence("seq0").view(v).root / "cameras_world.npz")
+        np.testing.assert_allclose(world["T_world_cam"], done.T_world_vio[v] @ cams["T_world_cam"], atol=1e-9)
+    assert "refine" in done.report and done.report["refine"]["loss_after"] <= done.report["refine"]["loss_before"]
+
+
+def test_second_run_skips_every_step(session, done):
+    again = stage.run(CFG, session)
+    assert set(again.skipped) == {"register_v1", "register_v2", "refine"}
+
+
+def test_missing_stage_outputs_say_which_stage_to_run(session, tmp_path):
+    work = tmp_path / "s"
+    shutil.copytree(session, work, ignore=shutil.ignore_patterns("scenes"))
+    with pytest.raises(InputError, match="embodmocap scene"):
+        stage.run(CFG, work)
+
+
+def test_too_few_registered_frames_names_the_view_and_causes(session, tmp_path):
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    # Demand more inliers than any frame can have: nothing registers.
+    cfg = replace(CFG, register=replace(CFG.register, min_inliers=100000))
+    with pytest.raises(InputError) as err:
+        stage.run(cfg, work)
+    msg = str(err.value)
+    assert "registered" in msg and "v1" in msg and "texture" in msg
