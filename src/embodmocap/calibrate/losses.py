@@ -1,0 +1,549 @@
+"""Stage III refinement losses: cross-view track, view-to-scene Chamfer, reprojection.
+
+Every loss is a pure function of one view's offset parameters acting on the **world side** of
+that view's cameras (as in the paper and the release's ``optim_human_cam.py``)::
+
+    T_world_cam'[t] = D(yaw, t) @ T_world_cam[t],   D = [[Rz(yaw), t], [0, 1]]
+
+where ``T_world_cam`` are the *initially aligned* cameras (after the registration offset), so the
+parameters are the remaining correction and start at zero. Rotating about the world origin couples
+yaw with translation when the cameras are metres away from it, which slows first-order solvers; so
+the parameters rotate about a fixed per-view ``pivot`` (the mean camera centre) instead::
+
+    p' = Rz(yaw) (p - pivot) + pivot + t_pivot
+
+and :func:`world_side_translation` converts ``t_pivot`` into the world-side ``t`` above.
+
+Observations are pre-computed in **camera coordinates** (back-projection with depth does not
+depend on the offsets), so each loss evaluation is a handful of batched matrix products.
+
+Residual blocks and their units:
+
+- track: (N, 3) metres, the world-space difference of two views' back-projections of one point;
+- chamfer: (M,) metres, the point-to-plane distance of a view's background point to its nearest
+  scene point (neighbours found outside autograd with a KD-tree);
+- reprojection: (P, 2) pixels, observed minus projected registered 2D-3D matches.
+
+Each term is ``mean_i rho(|r_i|^2 / c^2)`` with a robust kernel ``rho`` and a robust scale ``c``
+in the term's unit, so the terms are dimensionless and can be summed with plain weights. The same
+blocks feed the Levenberg-Marquardt solver through IRLS weights ``rho'(s)``.
+
+Pixel convention: pixel centres at integer coordinates (COLMAP's are +0.5 from ours).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
+
+#: COCO-17 joints used for cross-view tracks by default: shoulders, elbows, wrists, hips, knees,
+#: ankles. Face points (nose, eyes, ears) are left out: they are surface landmarks seen from the
+#: front only, and a 2D detector guesses them when the head is turned away.
+BODY_JOINTS: tuple[int, ...] = tuple(range(5, 17))
+
+#: Approximate depth of each COCO-17 joint centre behind the body surface seen at its pixel,
+#: metres (index = COCO joint). The depth map at a keypoint pixel gives the surface *in front of*
+#: the joint; both views see different surfaces, so the raw back-projections of one joint differ by
+#: about a limb thickness. Pushing each point this far further along its own viewing ray puts both
+#: near the joint centre, whatever the body's orientation (a per-joint median offset in the world
+#: would only be right while the performer does not turn).
+JOINT_DEPTH_BEHIND_SURFACE_M: tuple[float, ...] = (
+    0.0, 0.0, 0.0, 0.0, 0.0,  # nose, eyes, ears: surface landmarks
+    0.05, 0.05,  # shoulders
+    0.04, 0.04,  # elbows
+    0.03, 0.03,  # wrists
+    0.08, 0.08,  # hips
+    0.05, 0.05,  # knees
+    0.04, 0.04,  # ankles
+)
+
+ROBUST_KINDS = ("l2", "huber", "geman_mcclure")
+
+
+# ---------------------------------------------------------------------------------------------
+# Robust kernels on squared residual norms
+# ---------------------------------------------------------------------------------------------
+
+
+def robust_rho(s: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """Robust cost of squared residual norms ``s`` (any shape), divided by ``scale**2``.
+
+    ``l2``: s/c^2. ``huber``: quadratic up to |r| = c, linear beyond (C1). ``geman_mcclure``:
+    s/(s + c^2), bounded by 1, so gross outliers stop pulling.
+    """
+    c2 = scale * scale
+    if kind == "l2":
+        return s / c2
+    if kind == "huber":
+        # sqrt of a clamped value keeps the unused branch's gradient finite at s = 0.
+        r = torch.sqrt(torch.clamp(s, min=c2))
+        return torch.where(s <= c2, s / c2, (2.0 * scale * r - c2) / c2)
+    if kind == "geman_mcclure":
+        return s / (s + c2)
+    raise ValueError(f"unknown robust kernel {kind!r}; use one of {ROBUST_KINDS}")
+
+
+def irls_weight(s: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """``d robust_rho / d s`` times ``scale**2``: the IRLS weight of each residual (1 for inliers)."""
+    c2 = scale * scale
+    if kind == "l2":
+        return torch.ones_like(s)
+    if kind == "huber":
+        return torch.where(s <= c2, torch.ones_like(s), scale / torch.sqrt(torch.clamp(s, min=c2)))
+    if kind == "geman_mcclure":
+        return c2 * c2 / (s + c2) ** 2
+    raise ValueError(f"unknown robust kernel {kind!r}; use one of {ROBUST_KINDS}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The offset
+# ---------------------------------------------------------------------------------------------
+
+
+def rz_torch(yaw: torch.Tensor) -> torch.Tensor:
+    """(3, 3) rotation about +Z by a scalar tensor ``yaw`` (radians), differentiable."""
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    o, i = torch.zeros_like(yaw), torch.ones_like(yaw)
+    return torch.stack([c, -s, o, s, c, o, o, o, i]).reshape(3, 3)
+
+
+def offset_points(yaw: torch.Tensor, t: torch.Tensor, pivot: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Apply the offset to world points ``p`` (..., 3): ``Rz(yaw) (p - pivot) + pivot + t``."""
+    return (p - pivot) @ rz_torch(yaw).T + pivot + t
+
+
+def world_side_translation(yaw: float, t_pivot: NDArray, pivot: NDArray) -> NDArray:
+    """World-side translation of the offset: ``pivot - Rz pivot + t_pivot`` (3,), metres."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.asarray(pivot) - Rz @ np.asarray(pivot) + np.asarray(t_pivot)
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A view's initially aligned cameras as float64 tensors.
+
+    R: (T, 3, 3) camera-to-world rotations. c: (T, 3) camera centres (world, metres).
+    pivot: (3,) the rotation pivot of this view's offset (mean camera centre).
+    """
+
+    R: torch.Tensor
+    c: torch.Tensor
+    pivot: torch.Tensor
+
+    @staticmethod
+    def from_T(T_world_cam: NDArray) -> "Cameras":
+        """From (T, 4, 4) camera-to-world matrices."""
+        T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64))
+        c = T[:, :3, 3]
+        return Cameras(R=T[:, :3, :3], c=c, pivot=c.mean(dim=0))
+
+
+def cam_to_world(yaw, t, cams: Cameras, frames: torch.Tensor, p_cam: torch.Tensor) -> torch.Tensor:
+    """Camera-space points (N, 3) of frames (N,) -> offset world points (N, 3)."""
+    p_world = torch.einsum("nij,nj->ni", cams.R[frames], p_cam) + cams.c[frames]
+    return offset_points(yaw, t, cams.pivot, p_world)
+
+
+# ---------------------------------------------------------------------------------------------
+# Track loss (cross-view correspondences on the performer)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Pixel correspondences between two views on the performer.
+
+    frames: (N,) int sequence frame of each pair (both views share sequence frames).
+    xy_a, xy_b: (N, 2) float pixel positions (our convention) in view a and view b RGB images.
+    weight: (N,) float in [0, 1], the pair's confidence (min of the two views' confidences).
+    behind_surface_m: (N,) float, how far behind the depth-map surface the point lies along the
+        viewing ray, metres (0 for surface tracks such as a dense tracker's; joint radii for
+        skeleton keypoints).
+    """
+
+    frames: NDArray[np.int64]
+    xy_a: NDArray[np.float64]
+    xy_b: NDArray[np.float64]
+    weight: NDArray[np.float64]
+    behind_surface_m: NDArray[np.float64]
+
+
+class CorrespondenceSource(Protocol):
+    """The pluggable "dense tracker" role: anything that yields cross-view pixel correspondences.
+
+    The default is :class:`KeypointCorrespondences` (matched 2D keypoints); a learned tracker
+    (VGGT, CoTracker ...) implements the same method and returns surface tracks with
+    ``behind_surface_m = 0``.
+    """
+
+    def correspondences(self) -> Correspondences:
+        """The pairs, in RGB pixel coordinates of each view."""
+        ...
+
+
+@dataclass(frozen=True)
+class KeypointCorrespondences:
+    """Matched COCO-17 keypoints of the same performer in both views as correspondences.
+
+    keypoints_a, keypoints_b: (T, 17, 3) (x, y, confidence) per sequence frame, pixels.
+    """
+
+    keypoints_a: NDArray
+    keypoints_b: NDArray
+    min_confidence: float = 0.5
+    """A keypoint takes part only when its confidence in *both* views is above this."""
+    joints: tuple[int, ...] = BODY_JOINTS
+    """COCO-17 joint indices used."""
+    depth_behind_surface_m: tuple[float, ...] = JOINT_DEPTH_BEHIND_SURFACE_M
+    """Per-joint distance from the seen surface to the joint centre along the ray, metres."""
+
+    def correspondences(self) -> Correspondences:
+        ka = np.asarray(self.keypoints_a, dtype=np.float64)
+        kb = np.asarray(self.keypoints_b, dtype=np.float64)
+        n = min(len(ka), len(kb))
+        j = np.asarray(self.joints, dtype=np.int64)
+        ka, kb = ka[:n, j], kb[:n, j]
+        conf = np.minimum(ka[..., 2], kb[..., 2])
+        ok = (conf > self.min_confidence) & np.isfinite(ka).all(-1) & np.isfinite(kb).all(-1)
+        t_idx, j_idx = np.nonzero(ok)
+        behind = np.asarray(self.depth_behind_surface_m, dtype=np.float64)[j]
+        return Correspondences(
+            frames=t_idx.astype(np.int64),
+            xy_a=ka[t_idx, j_idx, :2],
+            xy_b=kb[t_idx, j_idx, :2],
+            weight=conf[t_idx, j_idx],
+            behind_surface_m=behind[j_idx],
+        )
+
+
+def sample_depth(
+    depth_at: Callable[[int], NDArray],
+    frames: NDArray,
+    xy: NDArray,
+    rgb_size: tuple[int, int],
+    window: int = 1,
+) -> NDArray[np.float64]:
+    """Depth (N,) in metres at RGB pixels ``xy`` (N, 2) of ``frames`` (N,); 0 where invalid.
+
+    depth_at(t) -> (h, w) float metres (0 = invalid) of sequence frame t, at depth resolution.
+    rgb_size: (width, height) of the RGB images ``xy`` refers to. The pixel is rescaled to the
+    depth grid (centres at integers in both) and the median of the valid values in a
+    (2 window + 1)^2 neighbourhood is taken, so one missing LiDAR sample does not lose a pair.
+    """
+    frames = np.asarray(frames, dtype=np.int64)
+    xy = np.asarray(xy, dtype=np.float64)
+    out = np.zeros(len(frames))
+    W, H = rgb_size
+    offs = np.arange(-window, window + 1)
+    for t in np.unique(frames):  # one depth read per frame, vectorised over its pixels
+        sel = np.nonzero(frames == t)[0]
+        d = np.asarray(depth_at(int(t)), dtype=np.float64)
+        h, w = d.shape
+        u = np.rint((xy[sel, 0] + 0.5) * w / W - 0.5).astype(np.int64)
+        v = np.rint((xy[sel, 1] + 0.5) * h / H - 0.5).astype(np.int64)
+        uu = np.clip(u[:, None, None] + offs[None, None, :], 0, w - 1)
+        vv = np.clip(v[:, None, None] + offs[None, :, None], 0, h - 1)
+        patch = d[vv, uu].reshape(len(sel), -1)
+        patch = np.where((patch > 0) & np.isfinite(patch), patch, np.nan)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        with warnings.catch_warnings():  # an all-invalid patch is expected, not a problem
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(patch, axis=1)
+        out[sel] = np.where(inside & np.isfinite(med), med, 0.0)
+    return out
+
+
+def backproject(xy: NDArray, depth: NDArray, K: NDArray, behind_surface_m: NDArray | float = 0.0) -> NDArray:
+    """Pixels (N, 2) with z-depth (N,) -> camera points (N, 3), pushed ``behind_surface_m`` along the ray."""
+    xy = np.asarray(xy, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    rays = np.stack([(xy[:, 0] - K[0, 2]) / K[0, 0], (xy[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(xy))], -1)
+    p = rays * np.asarray(depth, dtype=np.float64)[:, None]
+    unit = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return p + unit * np.asarray(behind_surface_m, dtype=np.float64).reshape(-1, 1)
+
+
+@dataclass(frozen=True)
+class TrackPairs:
+    """Cross-view point pairs in each view's camera coordinates (float64 tensors).
+
+    view_a, view_b: the two views' names. frames: (N,) sequence frame (indexes both views'
+    cameras). p_a, p_b: (N, 3) camera-space points, metres. weight: (N,) confidences.
+    """
+
+    view_a: str
+    view_b: str
+    frames: torch.Tensor
+    p_a: torch.Tensor
+    p_b: torch.Tensor
+    weight: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def track_pairs_from_depth(
+    corr: Correspondences,
+    views: tuple[str, str],
+    depth_at: tuple[Callable[[int], NDArray], Callable[[int], NDArray]],
+    K: tuple[NDArray, NDArray],
+    rgb_size: tuple[tuple[int, int], tuple[int, int]],
+    max_depth_m: float = 6.0,
+) -> TrackPairs:
+    """Back-project correspondences with each view's depth; pairs without valid depth in both are dropped.
+
+    ``K`` are the RGB intrinsics (pixels of ``corr``), ``rgb_size`` the (width, height) of each
+    view's RGB images, ``depth_at`` each view's depth reader (see :func:`sample_depth`).
+    """
+    da = sample_depth(depth_at[0], corr.frames, corr.xy_a, rgb_size[0])
+    db = sample_depth(depth_at[1], corr.frames, corr.xy_b, rgb_size[1])
+    ok = (da > 0) & (db > 0) & (da < max_depth_m) & (db < max_depth_m)
+    log.debug("track pairs: %d of %d have valid depth in both views", int(ok.sum()), len(ok))
+    pa = backproject(corr.xy_a[ok], da[ok], K[0], corr.behind_surface_m[ok])
+    pb = backproject(corr.xy_b[ok], db[ok], K[1], corr.behind_surface_m[ok])
+    return make_track_pairs(views, corr.frames[ok], pa, pb, corr.weight[ok])
+
+
+def make_track_pairs(views: tuple[str, str], frames, p_a, p_b, weight=None) -> TrackPairs:
+    """Build :class:`TrackPairs` from numpy arrays (frames (N,), p_a/p_b (N, 3), weight (N,))."""
+    f = torch.as_tensor(np.asarray(frames, dtype=np.int64))
+    w = np.ones(len(f)) if weight is None else np.asarray(weight, dtype=np.float64)
+    as64 = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64).reshape(-1, 3))  # noqa: E731
+    return TrackPairs(views[0], views[1], f, as64(p_a), as64(p_b), torch.as_tensor(w))
+
+
+def track_residuals(params_a, params_b, cams_a: Cameras, cams_b: Cameras, pairs: TrackPairs) -> torch.Tensor:
+    """(N, 3) world-space difference between the two views' points, metres.
+
+    params_*: (yaw scalar tensor, t (3,) tensor) of each view.
+    """
+    qa = cam_to_world(params_a[0], params_a[1], cams_a, pairs.frames, pairs.p_a)
+    qb = cam_to_world(params_b[0], params_b[1], cams_b, pairs.frames, pairs.p_b)
+    return qa - qb
+
+
+def track_loss(params_a, params_b, cams_a, cams_b, pairs: TrackPairs, kind="huber", scale=0.05):
+    """Weighted robust mean of the track residuals; returns (loss, diagnostics dict)."""
+    r = track_residuals(params_a, params_b, cams_a, cams_b, pairs)
+    s = (r * r).sum(-1)
+    loss = (pairs.weight * robust_rho(s, kind, scale)).sum() / pairs.weight.sum().clamp(min=1e-12)
+    return loss, _diagnostics(s, pairs.weight)
+
+
+# ---------------------------------------------------------------------------------------------
+# Chamfer (view background cloud -> scene mesh points)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScenePoints:
+    """Fixed points sampled on the Stage I mesh, with unit normals, and a KD-tree on them.
+
+    points, normals: (S, 3) float64 tensors (world, metres).
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    tree: cKDTree = field(repr=False)
+
+    @staticmethod
+    def from_arrays(points: NDArray, normals: NDArray) -> "ScenePoints":
+        p = np.asarray(points, dtype=np.float64)
+        n = np.asarray(normals, dtype=np.float64)
+        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        return ScenePoints(torch.as_tensor(p), torch.as_tensor(n), cKDTree(p))
+
+    @staticmethod
+    def from_mesh(vertices: NDArray, faces: NDArray, n_points: int = 50000, seed: int = 0) -> "ScenePoints":
+        """Area-weighted uniform samples on a triangle mesh with the faces' normals."""
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        cross = np.cross(b - a, c - a)
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        keep = area > 1e-12
+        if not keep.any():
+            raise ValueError("the scene mesh has no triangle with a non-zero area")
+        rng = np.random.default_rng(seed)
+        idx = rng.choice(np.nonzero(keep)[0], size=n_points, p=area[keep] / area[keep].sum())
+        r1, r2 = rng.random(n_points), rng.random(n_points)
+        s = np.sqrt(r1)  # uniform barycentric sampling
+        pts = (1 - s)[:, None] * a[idx] + (s * (1 - r2))[:, None] * b[idx] + (s * r2)[:, None] * c[idx]
+        return ScenePoints.from_arrays(pts, cross[idx])
+
+
+@dataclass(frozen=True)
+class BackgroundCloud:
+    """A view's background points in its camera coordinates (float64 tensors).
+
+    frames: (M,) sequence frame of each point. p_cam: (M, 3) camera-space points, metres.
+    """
+
+    frames: torch.Tensor
+    p_cam: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def background_cloud(
+    depth_at: Callable[[int], NDArray],
+    mask_at: Callable[[int], NDArray] | None,
+    frames: NDArray,
+    K_depth: NDArray,
+    points_per_frame: int = 500,
+    max_depth_m: float = 5.0,
+    mask_dilate_px: int = 4,
+    seed: int = 0,
+) -> BackgroundCloud:
+    """Back-project the background of some frames' depth maps into camera coordinates.
+
+    depth_at(t) -> (h, w) metres (0 = invalid); mask_at(t) -> (H, W) bool person mask at RGB
+    resolution (or None): it is resized to the depth grid by nearest neighbour and dilated by
+    ``mask_dilate_px`` depth pixels, since depth at the silhouette mixes person and background.
+    ``K_depth``: intrinsics of the depth grid. Far points are dropped (LiDAR noise grows with
+    range). At most ``points_per_frame`` random valid pixels are kept per frame.
+    """
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(seed)
+    Kd = np.asarray(K_depth, dtype=np.float64)
+    all_f, all_p = [], []
+    for t in np.asarray(frames, dtype=np.int64):
+        d = np.asarray(depth_at(int(t)), dtype=np.float64)
+        h, w = d.shape
+        valid = (d > 0) & (d < max_depth_m) & np.isfinite(d)
+        if mask_at is not None:
+            m = np.asarray(mask_at(int(t)), dtype=bool)
+            H, W = m.shape
+            rows = np.clip(((np.arange(h) + 0.5) * H / h).astype(np.int64), 0, H - 1)
+            cols = np.clip(((np.arange(w) + 0.5) * W / w).astype(np.int64), 0, W - 1)
+            m = m[rows][:, cols]
+            if mask_dilate_px > 0 and m.any():
+                m = binary_dilation(m, iterations=mask_dilate_px)
+            valid &= ~m
+        v, u = np.nonzero(valid)
+        if len(u) > points_per_frame:
+            pick = rng.choice(len(u), size=points_per_frame, replace=False)
+            v, u = v[pick], u[pick]
+        xy = np.stack([u, v], -1).astype(np.float64)
+        all_p.append(backproject(xy, d[v, u], Kd))
+        all_f.append(np.full(len(u), t, dtype=np.int64))
+    p = np.concatenate(all_p) if all_p else np.zeros((0, 3))
+    f = np.concatenate(all_f) if all_f else np.zeros(0, dtype=np.int64)
+    return BackgroundCloud(torch.as_tensor(f), torch.as_tensor(p))
+
+
+def nearest_scene(scene: ScenePoints, p_world: torch.Tensor, max_distance_m: float = np.inf) -> torch.Tensor:
+    """(M,) index of the nearest scene point of each world point, -1 where none is within
+    ``max_distance_m``; found outside autograd.
+
+    The bound also keeps the KD-tree fast: a query far from all data (a point on an object the mesh
+    lacks) would otherwise visit much of the tree.
+    """
+    _, idx = scene.tree.query(p_world.detach().cpu().numpy(), distance_upper_bound=max_distance_m, workers=-1)
+    idx = np.asarray(idx, dtype=np.int64)
+    return torch.as_tensor(np.where(idx >= len(scene.tree.data), -1, idx))
+
+
+def chamfer_world_points(params, cams: Cameras, cloud: BackgroundCloud) -> torch.Tensor:
+    """(M, 3) the view's background points in the world under its current offset."""
+    return cam_to_world(params[0], params[1], cams, cloud.frames, cloud.p_cam)
+
+
+def chamfer_residuals(params, cams: Cameras, cloud: BackgroundCloud, scene: ScenePoints, nbr: torch.Tensor) -> torch.Tensor:
+    """(M,) signed point-to-plane distance to each point's scene neighbour ``nbr`` (M,), metres.
+
+    Points without a neighbour (``nbr == -1``) get residual 0; callers weight them out.
+
+    One-directional (view -> scene): a view sees only part of the room, so the scene -> view
+    direction would pull the view's cloud towards parts of the scene it never saw. Point-to-plane
+    rather than point-to-point: the scene samples are ~1-2 cm apart, and sliding along a wall must
+    not cost anything.
+    """
+    p = chamfer_world_points(params, cams, cloud)
+    valid = nbr >= 0
+    j = nbr.clamp(min=0)
+    return torch.where(valid, ((p - scene.points[j]) * scene.normals[j]).sum(-1), torch.zeros_like(p[:, 0]))
+
+
+def chamfer_loss(params, cams, cloud, scene, nbr=None, kind="huber", scale=0.03, max_distance_m=np.inf):
+    """Robust mean point-to-plane distance over points with a neighbour; neighbours re-found
+    (within ``max_distance_m``) when ``nbr`` is None."""
+    if nbr is None:
+        nbr = nearest_scene(scene, chamfer_world_points(params, cams, cloud), max_distance_m)
+    r = chamfer_residuals(params, cams, cloud, scene, nbr)[nbr >= 0]
+    s = r * r
+    return robust_rho(s, kind, scale).mean(), _diagnostics(s, None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reprojection of registered 2D-3D matches
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Matches2D3D:
+    """Registered 2D-3D matches of a view (float64 tensors).
+
+    frames: (P,) sequence frame. xy: (P, 2) observed pixels (our convention: pixel centres at
+    integers; subtract 0.5 from COLMAP's). xyz: (P, 3) scene points (world, metres).
+    """
+
+    frames: torch.Tensor
+    xy: torch.Tensor
+    xyz: torch.Tensor
+
+    @staticmethod
+    def from_arrays(frames, xy, xyz) -> "Matches2D3D":
+        return Matches2D3D(
+            torch.as_tensor(np.asarray(frames, dtype=np.int64)),
+            torch.as_tensor(np.asarray(xy, dtype=np.float64).reshape(-1, 2)),
+            torch.as_tensor(np.asarray(xyz, dtype=np.float64).reshape(-1, 3)),
+        )
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+
+def reproj_residuals(params, cams: Cameras, K: torch.Tensor, m: Matches2D3D) -> torch.Tensor:
+    """(P, 2) observed minus projected pixels under the view's current offset.
+
+    The offset cameras are R' = Rz R and c' = Rz (c - pivot) + pivot + t; a world point X is seen
+    at R'^T (X - c'), which equals R^T (X'' - c) with X'' the point moved by the inverse offset, so
+    the points are moved instead of the (many) cameras.
+    """
+    yaw, t = params
+    Rz = rz_torch(yaw)
+    # inverse offset on the points: X'' = Rz^T (X - pivot - t) + pivot
+    x_back = (m.xyz - cams.pivot - t) @ Rz + cams.pivot
+    p_cam = torch.einsum("nji,nj->ni", cams.R[m.frames], x_back - cams.c[m.frames])
+    z = p_cam[:, 2].clamp(min=1e-6)
+    u = K[0, 0] * p_cam[:, 0] / z + K[0, 2]
+    v = K[1, 1] * p_cam[:, 1] / z + K[1, 2]
+    return m.xy - torch.stack([u, v], -1)
+
+
+def reproj_loss(params, cams, K, m: Matches2D3D, kind="huber", scale=3.0):
+    """Robust mean reprojection error of the registered matches; returns (loss, diagnostics)."""
+    r = reproj_residuals(params, cams, K, m)
+    s = (r * r).sum(-1)
+    return robust_rho(s, kind, scale).mean(), _diagnostics(s, None)
+
+
+def _diagnostics(s: torch.Tensor, weight: torch.Tensor | None) -> dict[str, float]:
+    """RMS and median residual norm (term's unit) and the count."""
+    s = s.detach()
+    if s.numel() == 0:
+        return {"rms": float("nan"), "median": float("nan"), "n": 0}
+    return {"rms": float(s.mean().sqrt()), "median": float(s.median().sqrt()), "n": int(s.numel())}

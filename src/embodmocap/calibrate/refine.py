@@ -1,0 +1,446 @@
+"""Stage III joint refinement of each view's yaw + translation offset.
+
+Parameters: per view ``[yaw, tx, ty, tz]`` (radians, metres), the correction on top of the
+initial (registration) offset, all starting at 0; rotation about the view's mean camera centre
+(see :mod:`embodmocap.calibrate.losses`), reported as the equivalent world-side transform
+``D = [Rz(yaw) | t]`` with ``T_world_cam' = D @ T_world_cam`` and ``T_world_vio' = D @ T_world_vio``.
+
+Objective (the paper's Eq. calib, with robust kernels and each term normalised by its robust
+scale so the weights are unit-free)::
+
+    L = w_track L_track + sum_v w_chamfer L_chamfer,v + sum_v w_reproj L_reproj,v
+
+Two solvers on the same residual blocks:
+
+- ``adam``: Adam with gradient-norm clipping (the paper's choice; the release uses lr 1e-2 for 200
+  iterations). A cosine decay of the learning rate (to ``adam_lr_final``) is added so the last
+  iterations settle instead of dithering at the lr's step size.
+- ``lm``: Levenberg-Marquardt on the 4 V parameters with forward-mode Jacobians of the stacked
+  whitened residual vector; robust kernels through IRLS weights re-computed each iteration, and
+  Chamfer neighbours re-found each iteration (ICP-style).
+
+``both`` runs the two and keeps the lower final loss; both runs are reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from embodmocap.calibrate import losses as L
+
+log = logging.getLogger(__name__)
+
+Solver = Literal["adam", "lm", "both"]
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of the joint refinement."""
+
+    w_track: float = 2.0
+    """Weight of the cross-view track term (the release weights it 2x the per-view terms)."""
+    w_chamfer: float = 1.0
+    """Weight of each view's Chamfer (view -> scene) term."""
+    w_reproj: float = 1.0
+    """Weight of each view's reprojection term."""
+    track_kernel: str = "huber"
+    """Robust kernel of the track term: "l2", "huber" or "geman_mcclure"."""
+    track_scale_m: float = 0.05
+    """Robust scale of the track term, metres (keypoint noise plus joint-vs-surface mismatch)."""
+    chamfer_max_distance_m: float = 0.5
+    """Background points farther than this from every scene sample are left out of the Chamfer
+    term (objects the mesh lacks, mesh holes); the initial offset must be better than this."""
+    chamfer_kernel: str = "huber"
+    """Robust kernel of the Chamfer term."""
+    chamfer_scale_m: float = 0.03
+    """Robust scale of the Chamfer term, metres (LiDAR noise plus mesh error)."""
+    reproj_kernel: str = "huber"
+    """Robust kernel of the reprojection term."""
+    reproj_scale_px: float = 3.0
+    """Robust scale of the reprojection term, pixels."""
+    solver: Solver = "both"
+    """Which solver(s) to run: "adam", "lm" or "both" (keeps the lower final loss)."""
+    adam_lr: float = 1e-2
+    """Adam's initial learning rate (the release's value)."""
+    adam_lr_final: float = 1e-4
+    """Learning rate reached at the last iteration by cosine decay (= adam_lr: constant)."""
+    adam_iterations: int = 200
+    """Adam iterations (the release's value)."""
+    adam_clip_norm: float = 1.0
+    """Gradient-norm clipping of Adam's steps (the paper's clipping); <= 0 disables it."""
+    chamfer_refresh: int = 5
+    """Adam re-finds the Chamfer nearest neighbours every this many iterations."""
+    lm_iterations: int = 30
+    """Maximum Levenberg-Marquardt iterations."""
+    lm_damping: float = 1e-3
+    """Initial LM damping (multiplies diag(J^T J)); divided by 10 on success, times 10 on failure."""
+    lm_step_tol: float = 1e-9
+    """LM stops when the step's largest component is below this (radians / metres)."""
+    max_translation_m: float = 0.5
+    """A translation change larger than this is flagged as diverged, metres."""
+    max_yaw_deg: float = 10.0
+    """A yaw change larger than this is flagged as diverged, degrees."""
+    inlier_ratio: float = 3.0
+    """A residual counts as an inlier when its norm is below this many robust scales."""
+    min_inlier_fraction: float = 0.75
+    """After refinement, a term with fewer inliers than this gets a warning: the terms disagree
+    (one pulls the view away from where another wants it) or that term's data are bad."""
+
+
+@dataclass(frozen=True)
+class ViewData:
+    """One view's input to the refinement.
+
+    T_world_cam: (T, 4, 4) camera-to-world of each sequence frame, already aligned by the initial
+        offset (``T_world_vio_init @ T_vio_cam``).
+    K: (3, 3) RGB intrinsics (pixels of the reprojection matches).
+    background: the view's background cloud in camera coordinates for the Chamfer term, or None.
+    matches: registered 2D-3D matches for the reprojection term, or None.
+    T_world_vio_init: (4, 4) the initial offset, to report the refined ``T_world_vio``.
+    """
+
+    T_world_cam: NDArray
+    K: NDArray
+    background: L.BackgroundCloud | None = None
+    matches: L.Matches2D3D | None = None
+    T_world_vio_init: NDArray = field(default_factory=lambda: np.eye(4))
+
+
+@dataclass(frozen=True)
+class ViewOffset:
+    """The refinement's correction of one view.
+
+    yaw_delta_rad: rotation about +Z of the world-side correction, radians.
+    t_delta_m: (3,) world-side translation of the correction, metres.
+    T_delta: (4, 4) ``[Rz(yaw) | t]``; T_world_vio: (4, 4) ``T_delta @ T_world_vio_init``;
+    T_world_cam: (T, 4, 4) refined cameras ``T_delta @ T_world_cam_init``.
+    """
+
+    yaw_delta_rad: float
+    t_delta_m: NDArray
+    T_delta: NDArray
+    T_world_vio: NDArray
+    T_world_cam: NDArray
+
+
+@dataclass(frozen=True)
+class SolverRun:
+    """One solver's run: final objective, iterations, wall time and its parameters (4 V,)."""
+
+    name: str
+    loss_final: float
+    iterations: int
+    seconds: float
+    x: NDArray
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Refined offsets and the residual report.
+
+    views: per view name, the correction. loss_before/after: the total objective.
+    terms_before/after: each weighted robust term ("track", "chamfer/<view>", "reproj/<view>").
+    stats_before/after: per term, "rms" and "median" residual norm in the term's unit (metres or
+    pixels) and "inliers", the fraction of residuals within ``inlier_ratio`` robust scales.
+    solver: the solver whose result is kept; iterations: its iterations; runs: every run.
+    diverged: the loss did not decrease, is not finite, or the update exceeds the thresholds;
+    message: why (empty if not diverged). warnings: other findings (terms that disagree).
+    """
+
+    views: dict[str, ViewOffset]
+    loss_before: float
+    loss_after: float
+    terms_before: dict[str, float]
+    terms_after: dict[str, float]
+    stats_before: dict[str, dict[str, float]]
+    stats_after: dict[str, dict[str, float]]
+    solver: str
+    iterations: int
+    runs: dict[str, SolverRun]
+    diverged: bool
+    message: str
+    warnings: tuple[str, ...]
+
+
+# ---------------------------------------------------------------------------------------------
+# The problem: residual blocks of all terms as functions of the stacked parameters
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Block:
+    """One term's residuals: r (n, k), confidence weights (n,), kernel, scale, term weight."""
+
+    name: str
+    r: torch.Tensor
+    conf: torch.Tensor
+    kind: str
+    scale: float
+    weight: float
+
+    def loss(self) -> torch.Tensor:
+        s = (self.r * self.r).sum(-1)
+        return self.weight * (self.conf * L.robust_rho(s, self.kind, self.scale)).sum() / self.norm()
+
+    def norm(self) -> torch.Tensor:
+        return self.conf.sum().clamp(min=1e-12)
+
+    def whitened(self, irls: torch.Tensor) -> torch.Tensor:
+        """Residuals e with ||e||^2 = the term's IRLS-linearised loss at fixed ``irls`` (n,)."""
+        w = torch.sqrt(self.weight * self.conf * irls / self.norm()) / self.scale
+        return (self.r * w[:, None]).reshape(-1)
+
+
+class _Problem:
+    def __init__(self, views: dict[str, ViewData], cfg: RefineConfig, scene, tracks) -> None:
+        self.names = list(views)
+        self.cfg = cfg
+        self.scene = scene
+        self.cams = {v: L.Cameras.from_T(d.T_world_cam) for v, d in views.items()}
+        self.K = {v: torch.as_tensor(np.asarray(d.K, dtype=np.float64)) for v, d in views.items()}
+        self.views = views
+        self.tracks = tracks
+        if tracks is not None and not (tracks.view_a in views and tracks.view_b in views):
+            log.info("track pairs of %s/%s skipped: not both views are refined", tracks.view_a, tracks.view_b)
+            self.tracks = None
+        if self.tracks is not None and len(self.tracks) == 0:
+            self.tracks = None
+        if scene is None:
+            self.chamfer_views = []
+        else:
+            self.chamfer_views = [v for v in self.names if views[v].background is not None and len(views[v].background)]
+        self.reproj_views = [v for v in self.names if views[v].matches is not None and len(views[v].matches)]
+        if self.tracks is None and not self.chamfer_views and not self.reproj_views:
+            raise ValueError("nothing to refine on: no track pairs, background clouds or 2D-3D matches")
+
+    def params(self, x: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+        return {v: (x[4 * i], x[4 * i + 1 : 4 * i + 4]) for i, v in enumerate(self.names)}
+
+    def neighbours(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        p = self.params(x.detach())
+        return {
+            v: L.nearest_scene(
+                self.scene,
+                L.chamfer_world_points(p[v], self.cams[v], self.views[v].background),
+                self.cfg.chamfer_max_distance_m,
+            )
+            for v in self.chamfer_views
+        }
+
+    def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor]) -> list[_Block]:
+        cfg, p = self.cfg, self.params(x)
+        out = []
+        if self.tracks is not None:
+            a, b = self.tracks.view_a, self.tracks.view_b
+            r = L.track_residuals(p[a], p[b], self.cams[a], self.cams[b], self.tracks)
+            out.append(_Block("track", r, self.tracks.weight, cfg.track_kernel, cfg.track_scale_m, cfg.w_track))
+        for v in self.chamfer_views:
+            r = L.chamfer_residuals(p[v], self.cams[v], self.views[v].background, self.scene, nbrs[v])[:, None]
+            has_nbr = (nbrs[v] >= 0).to(r.dtype)  # points with no scene sample nearby do not count
+            out.append(_Block(f"chamfer/{v}", r, has_nbr, cfg.chamfer_kernel, cfg.chamfer_scale_m, cfg.w_chamfer))
+        for v in self.reproj_views:
+            r = L.reproj_residuals(p[v], self.cams[v], self.K[v], self.views[v].matches)
+            out.append(_Block(f"reproj/{v}", r, torch.ones(len(r), dtype=r.dtype), cfg.reproj_kernel, cfg.reproj_scale_px, cfg.w_reproj))
+        return out
+
+    def evaluate(self, x: torch.Tensor) -> tuple[float, dict[str, float], dict[str, dict[str, float]]]:
+        """The objective at ``x`` with freshly found neighbours: total, terms, per-term statistics."""
+        with torch.no_grad():
+            blocks = self.blocks(x, self.neighbours(x))
+            terms = {b.name: float(b.loss()) for b in blocks}
+            norms = {b.name: (b.r * b.r).sum(-1).sqrt()[b.conf > 0] for b in blocks}
+            scales = {b.name: b.scale for b in blocks}
+        nan = float("nan")
+        stats = {
+            k: {"rms": nan, "median": nan, "inliers": 0.0}
+            if n.numel() == 0
+            else {
+                "rms": float((n * n).mean().sqrt()),
+                "median": float(n.median()),
+                "inliers": float((n < self.cfg.inlier_ratio * scales[k]).double().mean()),
+            }
+            for k, n in norms.items()
+        }
+        return sum(terms.values()), terms, stats
+
+
+# ---------------------------------------------------------------------------------------------
+# Solvers
+# ---------------------------------------------------------------------------------------------
+
+
+def _adam(prob: _Problem, cfg: RefineConfig) -> SolverRun:
+    t0 = time.perf_counter()
+    x = torch.zeros(4 * len(prob.names), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([x], lr=cfg.adam_lr)
+    n = max(cfg.adam_iterations, 1)
+    nbrs: dict[str, torch.Tensor] = {}
+    for it in range(cfg.adam_iterations):
+        # cosine decay from adam_lr to adam_lr_final
+        frac = it / max(n - 1, 1)
+        lr = cfg.adam_lr_final + 0.5 * (cfg.adam_lr - cfg.adam_lr_final) * (1 + math.cos(math.pi * frac))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        if it % max(cfg.chamfer_refresh, 1) == 0:
+            nbrs = prob.neighbours(x)
+        opt.zero_grad()
+        loss = sum(b.loss() for b in prob.blocks(x, nbrs))
+        loss.backward()
+        if cfg.adam_clip_norm > 0:
+            torch.nn.utils.clip_grad_norm_([x], cfg.adam_clip_norm)
+        opt.step()
+    xf = x.detach().clone()
+    return SolverRun("adam", prob.evaluate(xf)[0], cfg.adam_iterations, time.perf_counter() - t0, xf.numpy())
+
+
+def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
+    t0 = time.perf_counter()
+    x = torch.zeros(4 * len(prob.names), dtype=torch.float64)
+    f = prob.evaluate(x)[0]
+    lam = cfg.lm_damping
+    it = 0
+    for it in range(1, cfg.lm_iterations + 1):
+        nbrs = prob.neighbours(x)
+        with torch.no_grad():
+            irls = [L.irls_weight((b.r * b.r).sum(-1), b.kind, b.scale) for b in prob.blocks(x, nbrs)]
+
+        def resid(xx: torch.Tensor) -> torch.Tensor:
+            return torch.cat([b.whitened(w) for b, w in zip(prob.blocks(xx, nbrs), irls)])
+
+        r = resid(x)
+        J = torch.func.jacfwd(resid)(x)
+        H, g = J.T @ J, J.T @ r
+        # a tiny ridge keeps unobserved directions (e.g. the height with tracks only) solvable
+        ridge = 1e-12 * max(float(H.diagonal().max()), 1e-12)
+        accepted = False
+        while lam < 1e10:
+            A = H + lam * torch.diag(H.diagonal()) + ridge * torch.eye(len(x), dtype=x.dtype)
+            dx = torch.linalg.solve(A, -g)
+            f_new = prob.evaluate(x + dx)[0]
+            if math.isfinite(f_new) and f_new <= f:
+                x, f, lam, accepted = x + dx, f_new, max(lam / 10.0, 1e-12), True
+                break
+            lam *= 10.0
+        if not accepted or float(dx.abs().max()) < cfg.lm_step_tol:
+            break
+    return SolverRun("lm", f, it, time.perf_counter() - t0, x.numpy())
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+
+
+def refine_offsets(
+    views: dict[str, ViewData],
+    cfg: RefineConfig = RefineConfig(),
+    *,
+    scene: L.ScenePoints | None = None,
+    tracks: L.TrackPairs | None = None,
+) -> RefineResult:
+    """Jointly refine every view's yaw + translation offset.
+
+    views: name -> :class:`ViewData` (one view: single-view mode, no track term). scene: points
+    sampled on the Stage I mesh (needed for the Chamfer term). tracks: cross-view pairs between two
+    of ``views`` (ignored if either is missing). Raises ValueError when no term has data.
+    """
+    for v, d in views.items():
+        if np.asarray(d.T_world_cam).ndim != 3 or np.asarray(d.T_world_cam).shape[1:] != (4, 4):
+            raise ValueError(f"view {v}: T_world_cam must be (T, 4, 4)")
+    if cfg.solver not in ("adam", "lm", "both"):
+        raise ValueError(f"unknown solver {cfg.solver!r}: use adam, lm or both")
+    prob = _Problem(views, cfg, scene, tracks)
+    x0 = torch.zeros(4 * len(prob.names), dtype=torch.float64)
+    loss0, terms0, stats0 = prob.evaluate(x0)
+
+    runs: dict[str, SolverRun] = {}
+    if cfg.solver in ("adam", "both"):
+        runs["adam"] = _adam(prob, cfg)
+    if cfg.solver in ("lm", "both"):
+        runs["lm"] = _lm(prob, cfg)
+    finite = [r for r in runs.values() if math.isfinite(r.loss_final)]
+    best = min(finite, key=lambda r: r.loss_final) if finite else next(iter(runs.values()))
+    for r in runs.values():
+        log.info("refine %s: loss %.6g -> %.6g in %d iterations (%.2f s)", r.name, loss0, r.loss_final, r.iterations, r.seconds)
+
+    x = torch.as_tensor(best.x)
+    loss1, terms1, stats1 = prob.evaluate(x)
+    offsets = {v: _view_offset(views[v], prob.cams[v], best.x[4 * i : 4 * i + 4]) for i, v in enumerate(prob.names)}
+    diverged, message = _divergence(loss0, loss1, offsets, cfg)
+    warns = _disagreements(stats1, cfg)
+    if diverged:
+        log.warning("refinement diverged: %s", message)
+    for w in warns:
+        log.warning("refinement: %s", w)
+    return RefineResult(
+        views=offsets,
+        loss_before=loss0,
+        loss_after=loss1,
+        terms_before=terms0,
+        terms_after=terms1,
+        stats_before=stats0,
+        stats_after=stats1,
+        solver=best.name,
+        iterations=best.iterations,
+        runs=runs,
+        diverged=diverged,
+        message=message,
+        warnings=tuple(warns),
+    )
+
+
+def _view_offset(view: ViewData, cams: L.Cameras, x: NDArray) -> ViewOffset:
+    yaw = float(x[0])
+    t = L.world_side_translation(yaw, x[1:4], cams.pivot.numpy())
+    c, s = math.cos(yaw), math.sin(yaw)
+    D = np.eye(4)
+    D[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
+    D[:3, 3] = t
+    return ViewOffset(
+        yaw_delta_rad=yaw,
+        t_delta_m=t,
+        T_delta=D,
+        T_world_vio=D @ np.asarray(view.T_world_vio_init, dtype=np.float64),
+        T_world_cam=D @ np.asarray(view.T_world_cam, dtype=np.float64),
+    )
+
+
+def _divergence(loss0: float, loss1: float, offsets: dict[str, ViewOffset], cfg: RefineConfig) -> tuple[bool, str]:
+    problems = []
+    if not math.isfinite(loss1):
+        problems.append(f"the final loss is not finite ({loss1})")
+    elif loss1 > loss0 * (1 + 1e-9) + 1e-15:
+        problems.append(f"the loss rose from {loss0:.6g} to {loss1:.6g}")
+    for v, o in offsets.items():
+        dt = float(np.linalg.norm(o.t_delta_m))
+        dyaw = math.degrees(abs(o.yaw_delta_rad))
+        if dt > cfg.max_translation_m or dyaw > cfg.max_yaw_deg:
+            problems.append(
+                f"view {v} moved {dt:.3f} m / {dyaw:.2f} deg from registration "
+                f"(limits {cfg.max_translation_m} m / {cfg.max_yaw_deg} deg)"
+            )
+    return bool(problems), "; ".join(problems)
+
+
+def _disagreements(stats: dict[str, dict[str, float]], cfg: RefineConfig) -> list[str]:
+    """Terms with too few inliers after refinement: the data disagree with the others or are bad.
+
+    An inlier fraction rather than the RMS: a few gross outliers (which the robust kernels are
+    there to ignore) must not raise the warning, but a wall the view cannot fit must."""
+    out = []
+    for name, st in stats.items():
+        if not st["inliers"] >= cfg.min_inlier_fraction:
+            out.append(
+                f"{name}: only {100 * st['inliers']:.0f}% of residuals within {cfg.inlier_ratio} robust "
+                f"scales after refinement (median {st['median']:.4g}, RMS {st['rms']:.4g}; "
+                f"expected at least {100 * cfg.min_inlier_fraction:.0f}%)"
+            )
+    return out

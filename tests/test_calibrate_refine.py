@@ -1,0 +1,204 @@
+"""Joint refinement: recovery of known perturbed offsets on a synthetic box room."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from embodmocap.calibrate import losses as L
+from embodmocap.calibrate.refine import RefineConfig, ViewData, refine_offsets
+from embodmocap.geometry.transforms import invert_T, make_T, rot_z
+
+W, H = 640, 480
+K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
+ROOM = (np.array([-3.0, -2.5, 0.0]), np.array([3.2, 2.4, 2.8]))
+
+
+def box_mesh(lo, hi):
+    """Vertices (8, 3) and faces (12, 3) of an axis-aligned box."""
+    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = [[a, b, c] for a, b, c, d in quads] + [[a, c, d] for a, b, c, d in quads]
+    return v, np.array(f)
+
+
+def look_at(c, target):
+    z = (target - c) / np.linalg.norm(target - c)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
+
+
+def trajectory(phase, n=40):
+    s = np.linspace(0, 1, n)
+    ang = phase + 0.8 * s
+    c = np.stack([1.8 * np.cos(ang), 1.6 * np.sin(ang), 1.3 + 0.1 * np.sin(6 * s)], -1)
+    return np.stack([look_at(ci, np.array([0.2, 0.0, 1.0])) for ci in c])
+
+
+def in_view(T_world_cam, pts):
+    """Camera points (N, 3) of world points and which project inside the image."""
+    p = (pts - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]
+    z = np.maximum(p[:, 2], 1e-9)
+    u, v = K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]
+    ok = (p[:, 2] > 0.2) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    return p, np.stack([u, v], -1), ok
+
+
+def offset(yaw_deg, t):
+    return make_T(rot_z(np.radians(yaw_deg)), np.asarray(t, dtype=np.float64))
+
+
+def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=None):
+    """ViewData of perturbed views, the scene, the track pairs and the true corrections."""
+    rng = np.random.default_rng(seed)
+    v, f = box_mesh(*ROOM)
+    scene = L.ScenePoints.from_mesh(v, f, n_points=30000, seed=1)
+    wall_pts = L.ScenePoints.from_mesh(v, f, n_points=60000, seed=2).points.numpy()
+    sfm_pts = L.ScenePoints.from_mesh(v, f, n_points=1500, seed=3).points.numpy()
+    truth = {"v1": offset(1.5, [0.06, -0.08, 0.03]), "v2": offset(-2.0, [-0.09, 0.05, -0.04])}
+    phases = {"v1": 0.0, "v2": math.pi}
+    T_true = {k: trajectory(phases[k]) for k in views}
+    n = len(T_true[views[0]])
+    out = {}
+    for k in views:
+        frames_c, pc, frames_m, xy, xyz = [], [], [], [], []
+        for t in range(0, n, 4):
+            p, _, ok = in_view(T_true[k][t], wall_pts)
+            pick = rng.choice(np.nonzero(ok)[0], 150, replace=False)
+            pc.append(p[pick] + noise * rng.standard_normal((150, 3)))
+            frames_c.append(np.full(150, t))
+        T_m = T_true[k] if reproj_true is None else reproj_true @ T_true[k]
+        for t in range(0, n, 2):
+            _, uv, ok = in_view(T_m[t], sfm_pts)
+            pick = rng.choice(np.nonzero(ok)[0], 25, replace=False)
+            xy.append(uv[pick] + noise * 100 * rng.standard_normal((25, 2)))
+            xyz.append(sfm_pts[pick])
+            frames_m.append(np.full(25, t))
+        xy = np.concatenate(xy)
+        bad = rng.random(len(xy)) < outliers
+        xy[bad] = rng.uniform([0, 0], [W, H], (int(bad.sum()), 2))
+        T_world_vio = invert_T(truth[k])  # the true VIO world is the identity here
+        out[k] = ViewData(
+            T_world_cam=invert_T(truth[k]) @ T_true[k],
+            K=K,
+            background=L.BackgroundCloud(*map(_t, (np.concatenate(frames_c), np.concatenate(pc)))),
+            matches=L.Matches2D3D.from_arrays(np.concatenate(frames_m), xy, np.concatenate(xyz)),
+            T_world_vio_init=T_world_vio,
+        )
+    tracks = None
+    if len(views) == 2:
+        s = np.linspace(0, 1, n)
+        centre = np.stack([0.2 + 0.3 * np.sin(3 * s), 0.3 * np.cos(3 * s), 1.0 + 0 * s], -1)
+        body = rng.normal(0, 0.25, (12, 3))
+        pts = centre[:, None] + body[None]  # (T, 12, 3)
+        frames = np.repeat(np.arange(n), 12)
+        pw = pts.reshape(-1, 3)
+        pa = np.einsum("nji,nj->ni", T_true["v1"][frames, :3, :3], pw - T_true["v1"][frames, :3, 3])
+        pb = np.einsum("nji,nj->ni", T_true["v2"][frames, :3, :3], pw - T_true["v2"][frames, :3, 3])
+        pa += noise * rng.standard_normal(pa.shape)
+        pb += noise * rng.standard_normal(pb.shape)
+        bad = rng.random(len(pa)) < outliers
+        pa[bad] += rng.normal(0, 0.5, (int(bad.sum()), 3))
+        tracks = L.make_track_pairs(("v1", "v2"), frames, pa, pb, np.full(len(frames), 0.9))
+    return out, scene, tracks, {k: truth[k] for k in views}
+
+
+def _t(a):
+    import torch
+
+    return torch.as_tensor(a)
+
+
+def errors(result, truth):
+    """Max translation (m) and yaw (deg) error of the refined corrections over views."""
+    dt = max(np.linalg.norm(result.views[k].T_delta[:3, 3] - truth[k][:3, 3]) for k in truth)
+    dyaw = max(
+        abs(math.degrees(math.atan2(truth[k][1, 0], truth[k][0, 0]) - result.views[k].yaw_delta_rad)) for k in truth
+    )
+    return dt, dyaw
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return make_world()
+
+
+@pytest.mark.parametrize("solver", ["adam", "lm"])
+def test_recovers_perturbed_offsets_clean(clean, solver):
+    views, scene, tracks, truth = clean
+    res = refine_offsets(views, RefineConfig(solver=solver), scene=scene, tracks=tracks)
+    dt, dyaw = errors(res, truth)
+    assert dt < 0.005 and dyaw < 0.05, (dt, dyaw)
+    assert res.solver == solver and not res.diverged and res.warnings == ()
+    assert res.loss_after < 0.01 * res.loss_before
+    assert set(res.terms_after) == {"track", "chamfer/v1", "chamfer/v2", "reproj/v1", "reproj/v2"}
+    for k in truth:  # the refined VIO offset is the identity (true VIO world = scene world here)
+        np.testing.assert_allclose(res.views[k].T_world_vio, np.eye(4), atol=0.01)
+        np.testing.assert_allclose(res.views[k].T_world_cam, res.views[k].T_delta @ views[k].T_world_cam)
+
+
+def test_adam_and_lm_agree_and_both_keeps_the_better(clean):
+    views, scene, tracks, truth = clean
+    res = refine_offsets(views, RefineConfig(solver="both"), scene=scene, tracks=tracks)
+    adam, lm = res.runs["adam"], res.runs["lm"]
+    assert np.max(np.abs(adam.x - lm.x)) < 2e-3
+    assert res.loss_after == pytest.approx(min(adam.loss_final, lm.loss_final), rel=1e-9)
+    assert res.solver == min(res.runs.values(), key=lambda r: r.loss_final).name
+
+
+def test_degrades_gracefully_with_noise_and_outliers():
+    views, scene, tracks, truth = make_world(noise=0.01, outliers=0.1, seed=4)
+    res = refine_offsets(views, RefineConfig(solver="both"), scene=scene, tracks=tracks)
+    dt, dyaw = errors(res, truth)
+    assert dt < 0.015 and dyaw < 0.2, (dt, dyaw)
+    assert not res.diverged and res.warnings == ()
+    # L2 without robust kernels is pulled by the outliers: the robust kernels must help
+    l2 = RefineConfig(solver="lm", track_kernel="l2", chamfer_kernel="l2", reproj_kernel="l2")
+    dt2, _ = errors(refine_offsets(views, l2, scene=scene, tracks=tracks), truth)
+    assert dt < dt2
+
+
+@pytest.mark.parametrize("solver", ["adam", "lm"])
+def test_single_view_mode(solver):
+    views, scene, tracks, truth = make_world(views=("v1",), seed=5)
+    assert tracks is None
+    res = refine_offsets(views, RefineConfig(solver=solver), scene=scene)
+    dt, dyaw = errors(res, truth)
+    assert dt < 0.005 and dyaw < 0.05, (dt, dyaw)
+    assert "track" not in res.terms_after
+
+
+def test_tracks_of_a_missing_view_are_ignored(clean):
+    views, scene, tracks, truth = clean
+    res = refine_offsets({"v1": views["v1"]}, RefineConfig(solver="lm"), scene=scene, tracks=tracks)
+    assert "track" not in res.terms_after
+    assert errors(res, {"v1": truth["v1"]})[0] < 0.005
+
+
+def test_contradictory_terms_are_reported():
+    # registered matches say the camera is 30 cm elsewhere than the depth clouds do
+    views, scene, _, truth = make_world(views=("v1",), seed=6, reproj_true=offset(0.0, [0.3, 0.0, 0.0]))
+    res = refine_offsets(views, RefineConfig(solver="lm"), scene=scene)
+    assert any(w.startswith("chamfer/v1") or w.startswith("reproj/v1") for w in res.warnings), res.warnings
+    tight = refine_offsets(views, RefineConfig(solver="lm", max_translation_m=0.02), scene=scene)
+    assert tight.diverged and "v1 moved" in tight.message
+
+
+def test_loss_that_rises_is_flagged(clean):
+    views, scene, tracks, _ = clean
+    # an absurd Adam step size overshoots and never settles
+    cfg = RefineConfig(solver="adam", adam_lr=3.0, adam_lr_final=3.0, adam_iterations=5, adam_clip_norm=0)
+    res = refine_offsets(views, cfg, scene=scene, tracks=tracks)
+    assert res.diverged and res.message
+
+
+def test_nothing_to_refine_raises():
+    with pytest.raises(ValueError, match="nothing to refine"):
+        refine_offsets({"v1": ViewData(T_world_cam=trajectory(0.0), K=K)})
+    views, _, _, _ = make_world(views=("v1",))
+    with pytest.raises(ValueError, match="solver"):
+        refine_offsets(views, replace(RefineConfig(), solver="sgd"))
