@@ -57,7 +57,7 @@ class Inspect:
 
 @dataclass(frozen=True)
 class Demo:
-    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far (I, II)."""
+    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far (I, II, III)."""
 
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = Path("demo_out")
     """Folder for the demo session (replaced if it holds an earlier demo)."""
@@ -95,6 +95,15 @@ class Demo:
         print(f"  sync contact sheets: {seq.layout.root / 'sync_v1.png'}, {seq.layout.root / 'sync_v2.png'}")
         for k, v in seq.figures.items():
             print(f"  {k}: {v}")
+        from embodmocap.calibrate.stage import run as run_calibrate
+
+        cal = run_calibrate(CalibrateConfig(), self.out)
+        print(f"\nStage III (calibrate {cal.name}): {self.out / 'sequences' / cal.name / 'calibration.json'}")
+        for v, view in cal.report["views"].items():
+            print(f"  {v}: registered {100 * view['registered_fraction']:.0f}% of sampled frames; refinement moved "
+                  f"the view {100 * view['refine_shift_m']:.1f} cm / {view['refine_yaw_deg']:.2f} deg")
+        for w in cal.report.get("warnings", []):
+            print(f"  warning: {w}")
         return 0
 
 
