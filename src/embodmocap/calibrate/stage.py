@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,11 @@ class CalibrateConfig:
     """Joint refinement (losses, weights, solvers)."""
     refine_views: bool = True
     """Run the joint refinement (False = keep the registration-only offsets)."""
+    retry_below_fraction: float = 0.5
+    """A view registering fewer of its sampled frames than this is registered again against
+    ``retry_candidates_factor`` times more candidate key frames."""
+    retry_candidates_factor: int = 3
+    """How many times more candidate key frames the retry matches against."""
     min_registered_fraction: float = 0.1
     """Fewer registered frames than this fraction of those tried is an error for the view."""
     min_registered_frames: int = 5
@@ -116,6 +121,15 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             ts = sample_frames(len(cams["raw_frames"]), cfg.register.num_frames)
             frames, K, _ = load_view_frames(vl, open_capture(entry.views[v].capture), ts)
             reg = register_frames(frames, K, index, cfg.register)
+            if reg.registered_fraction < cfg.retry_below_fraction:
+                # Retrieval can rank the right key frames low (repetitive texture, distant views):
+                # match against more candidates before giving up on the view.
+                wider = replace(cfg.register, num_candidates=cfg.register.num_candidates * cfg.retry_candidates_factor)
+                log.info("%s %s: %.0f%% registered with %d candidates; retrying with %d", entry.name, v,
+                         100 * reg.registered_fraction, cfg.register.num_candidates, wider.num_candidates)
+                retry = register_frames(frames, K, index, wider)
+                if retry.registered_fraction > reg.registered_fraction:
+                    reg = retry
             _save_registration(reg_path, reg)
             sm.record(f"register_{v}", fp, [reg_path], time.perf_counter() - t0, {
                 f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
