@@ -22,8 +22,9 @@ import argparse
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
+
+from _child import run_cli
 
 import numpy as np
 
@@ -39,12 +40,7 @@ def synth(out: Path, seed: int, preset: str, scene_seconds: float) -> None:
 
 def run_stage(session: Path) -> tuple[float, int]:
     """Run the stage from scratch in a child process; (wall seconds, peak RSS in MB)."""
-    code = ("import resource, sys; from embodmocap.cli import main; rc = main(sys.argv[1:]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", code, "scene", str(session), "--force"],
-                          check=True, capture_output=True, text=True)
-    return time.perf_counter() - t0, int(proc.stdout.strip().splitlines()[-1]) // 1024
+    return run_cli("scene", str(session), "--force")
 
 
 def evaluate(session: Path) -> dict:

@@ -15,10 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
-import time
 from pathlib import Path
+
+from _child import run_cli
 
 
 def main() -> None:
@@ -35,13 +34,7 @@ def main() -> None:
         session = args.out / f"seq_{int(sec)}s"
         if not (session / "ground_truth" / "ground_truth.json").is_file():
             synthesize(SynthConfig(seed=args.seed, seconds=sec, scene_seconds=1.0), session)
-        code = ("import resource, sys; from embodmocap.cli import main; rc = main(sys.argv[1:]); "
-                "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
-        t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-c", code, "sequence", str(session), "--force"],
-                              check=True, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        rss = int(proc.stdout.strip().splitlines()[-1]) // 1024
+        wall, rss = run_cli("sequence", str(session), "--force")
         man = json.loads((session / "sequences" / "seq0" / "manifest.json").read_text())
         st = {k: v["seconds"] for k, v in man["steps"].items()}
         T = man["figures"]["frames"]

@@ -12,28 +12,20 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
+
+from _child import run_cli
 
 
 def run_one(out: Path, seed: int, preset: str, seconds: float) -> dict:
     if out.exists():
         shutil.rmtree(out)
-    args = ["synth", str(out), "--seed", str(seed), "--preset", preset, "--seconds", str(seconds)]
-    # The child reports its own peak resident memory (ru_maxrss, KiB on Linux) on its last line.
-    code = ("import resource, sys; from embodmocap.cli import main; rc = main(sys.argv[1:]); "
-            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); sys.exit(rc)")
-    t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", code, *args], check=True, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    peak_kib = int(proc.stdout.strip().splitlines()[-1])
+    wall, peak_mb = run_cli("synth", str(out), "--seed", str(seed), "--preset", preset, "--seconds", str(seconds))
     info = json.loads((out / "ground_truth" / "ground_truth.json").read_text())
     size_mb = sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) / 1e6
     return {
         "seed": seed, "preset": preset, "seconds": seconds, "wall_s": round(wall, 1),
-        "peak_rss_mb": round(peak_kib / 1024),
+        "peak_rss_mb": peak_mb,
         "motion_frames": info["motion_frames"], "size_mb": round(size_mb, 1),
     }
 
