@@ -24,6 +24,7 @@ Backends and their inputs (formats in ``docs/parts/precomputed.md``):
 from __future__ import annotations
 
 import json
+import threading
 import logging
 import os
 import re
@@ -357,6 +358,8 @@ class PrecomputedMasks:
         self._files = _image_files(self.folder, (".png",), "mask")
         self._missing: set[int] = set()
         self._warned_size = False
+        # mask() runs on several threads (segment, Stage II): the warn-once flag needs a lock.
+        self._warn_lock = threading.Lock()
         if not self._files:
             log.warning("%s: no mask PNGs found", self.folder)
 
@@ -389,10 +392,11 @@ class PrecomputedMasks:
         if img is None:
             raise InputError(path, "not a readable PNG image", "re-export the mask")
         if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
-            if not self._warned_size:
+            with self._warn_lock:
+                warn, self._warned_size = not self._warned_size, True
+            if warn:
                 log.warning("%s: masks are %dx%d but frames are %dx%d; resizing (nearest neighbour)",
                             self.folder, img.shape[1], img.shape[0], size[0], size[1])
-                self._warned_size = True
             img = cv2.resize(img, (int(size[0]), int(size[1])), interpolation=cv2.INTER_NEAREST)
         return img > 127
 
