@@ -339,7 +339,25 @@ def _image_files(folder: Path, suffixes: tuple[str, ...], what: str) -> dict[int
     return files
 
 
-class PrecomputedMasks:
+class _PerFrameFiles:
+    """What the per-frame file backends share: ``_files`` (frame -> path) and the frames asked
+    for that had no file (``_missing``)."""
+
+    _files: dict[int, Path]
+    _missing: set[int]
+
+    @property
+    def frames(self) -> NDArray[np.int64]:
+        """(F,) sorted frame numbers that have a file."""
+        return np.array(sorted(self._files), dtype=np.int64)
+
+    @property
+    def missing_frames(self) -> list[int]:
+        """Sorted frames asked for so far that had no file (each counted once)."""
+        return sorted(self._missing)
+
+
+class PrecomputedMasks(_PerFrameFiles):
     """Person masks from PNG files named by raw frame number (> 127 = person).
 
     Implements :class:`~embodmocap.perception.roles.MaskSegmenter` (the boxes are not needed).
@@ -362,16 +380,6 @@ class PrecomputedMasks:
         self._warn_lock = threading.Lock()
         if not self._files:
             log.warning("%s: no mask PNGs found", self.folder)
-
-    @property
-    def frames(self) -> NDArray[np.int64]:
-        """(F,) sorted frame numbers that have a mask file."""
-        return np.array(sorted(self._files), dtype=np.int64)
-
-    @property
-    def missing_frames(self) -> list[int]:
-        """Sorted frames asked for so far that had no mask file (each counted once)."""
-        return sorted(self._missing)
 
     def mask(self, frame: int, size: tuple[int, int] | None = None) -> NDArray[np.bool_]:
         """(H, W) bool mask of raw frame ``frame``.
@@ -410,7 +418,7 @@ class PrecomputedMasks:
         return [self.mask(*job) for job in jobs]
 
 
-class PrecomputedDepth:
+class PrecomputedDepth(_PerFrameFiles):
     """Per-frame depth maps from a folder: uint16 PNG (``value * scale`` metres) or float ``.npy``
     (metres). Non-finite and negative values become 0 (invalid), as everywhere in the package."""
 
@@ -424,16 +432,6 @@ class PrecomputedDepth:
         self._shape: tuple[int, int] | None = None
         if not self._files:
             log.warning("%s: no depth files found", self.folder)
-
-    @property
-    def frames(self) -> NDArray[np.int64]:
-        """(F,) sorted frame numbers that have a depth file."""
-        return np.array(sorted(self._files), dtype=np.int64)
-
-    @property
-    def missing_frames(self) -> list[int]:
-        """Sorted frames asked for so far that had no depth file (each counted once)."""
-        return sorted(self._missing)
 
     def depth(self, frame: int) -> NDArray[np.float32]:
         """(h, w) float32 depth in metres of raw frame ``frame``, 0 = invalid.
