@@ -41,7 +41,7 @@ FRAMES = 16
 def session(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("cal") / "s"
     synthesize(SYNTH, out)
-    scene_stage.run(SceneConfig(voxel_m_indoor=0.03, sfm=SfmConfig(max_images=60)), out)
+    scene_stage.run(SceneConfig(voxel_m_indoor=0.03, sfm=SfmConfig(max_images=60, num_threads=1)), out)
     sequence_stage.run(SequenceConfig(), out)
     return out
 
@@ -170,8 +170,9 @@ def test_pose_candidates_register_as_well(views, registrations, index):
     at_cams = np.linalg.norm(coarse.offset.apply_points(c) - (c @ T_world_vio[:3, :3].T + T_world_vio[:3, 3]), axis=1)
     assert np.mean(at_cams) < 0.05
     yaw_true = np.arctan2(T_world_vio[1, 0], T_world_vio[0, 0])
-    # (16 frames of a 2 s clip: a short baseline; the joint refinement tightens the yaw further)
-    assert abs((coarse.offset.yaw_rad - yaw_true + np.pi) % (2 * np.pi) - np.pi) < np.radians(1.5)
+    # (16 frames of a 2 s clip: the cameras span only about 0.3 m, so 1 cm of registration error
+    # at either end is about 2 degrees of yaw; the joint refinement tightens the yaw further)
+    assert abs((coarse.offset.yaw_rad - yaw_true + np.pi) % (2 * np.pi) - np.pi) < np.radians(2.0)
 
 
 def test_wrong_scene_registers_nothing(views, index):

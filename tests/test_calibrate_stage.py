@@ -29,7 +29,7 @@ CFG = stage.CalibrateConfig(register=RegisterConfig(num_frames=24), chamfer_fram
 def session(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("calib") / "s"
     synthesize(SynthConfig(seed=5, seconds=2.0, scene_seconds=10.0), out)
-    scene_stage.run(SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=60)), out)
+    scene_stage.run(SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=60, num_threads=1)), out)
     seq_stage.run(SequenceConfig(), out)
     return out
 
