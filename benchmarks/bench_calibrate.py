@@ -55,7 +55,7 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
     out = cal.run(cfg, session, force=True)
     wall = time.perf_counter() - t0
     lay = SessionLayout(session)
-    man = json.loads((lay.sequence("seq0").root / "calibrate_manifest.json").read_text())
+    man = json.loads((lay.sequence("seq0").calibrate_manifest).read_text())
     steps = {k: v["seconds"] for k, v in man["steps"].items()}
 
     gt = lay.ground_truth
@@ -65,7 +65,7 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
     row = {"preset": preset, "seed": seed, "wall_s": round(wall, 1), "register_s": round(steps["register_v1"] + steps["register_v2"], 1),
            "refine_s": round(steps["refine"], 1), "solver": out.report.get("refine", {}).get("solver")}
     # Single-view refinement from the same registrations.
-    regs = {v: np.load(lay.sequence("seq0").view(v).root / "registration.npz") for v in VIEWS}
+    regs = {v: np.load(lay.sequence("seq0").view(v).registration) for v in VIEWS}
     mv, mf, _ = read_mesh_ply(lay.scene("scene0").mesh_raw)
     scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
     for v in VIEWS:

@@ -64,7 +64,7 @@ def test_offsets_match_ground_truth(session, done):
         assert t_err < 0.04 and yaw_err < 0.8, (v, t_err, yaw_err)
         reg_err = offset_error(np.asarray(done.report["views"][v]["T_world_vio_registration"]), truth[v], centres)
         assert reg_err[0] < 0.06
-        world = np.load(SessionLayout(session).sequence("seq0").view(v).root / "cameras_world.npz")
+        world = np.load(SessionLayout(session).sequence("seq0").view(v).cameras_world)
         np.testing.assert_allclose(world["T_world_cam"], done.T_world_vio[v] @ cams["T_world_cam"], atol=1e-9)
     assert "refine" in done.report and done.report["refine"]["loss_after"] <= done.report["refine"]["loss_before"]
 

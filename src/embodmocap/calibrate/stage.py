@@ -100,7 +100,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     for v in VIEWS:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
             raise InputError(out.view(v).root, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
-    sm = StageManifest(out.root / "calibrate_manifest.json", "calibrate", cfg)
+    sm = StageManifest(out.calibrate_manifest, "calibrate", cfg)
     skipped: list[str] = []
     upstream = fingerprint(path_fingerprint(scene.sfm_dir / "sparse"), path_fingerprint(scene.mesh_raw),
                            *[path_fingerprint(out.view(v).cameras) for v in VIEWS])
@@ -110,7 +110,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     regs = {}
     for v in VIEWS:
         vl = out.view(v)
-        reg_path = vl.root / "registration.npz"
+        reg_path = vl.registration
         fp = fingerprint("register", upstream, path_fingerprint(vl.masks) if vl.masks.is_file() else None, cfg.register)
         if not force and sm.is_current(f"register_{v}", fp):
             skipped.append(f"register_{v}")
@@ -155,9 +155,9 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                           "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None}
 
     # 3. Joint refinement.
-    fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).root / "registration.npz") for v in VIEWS],
+    fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame)
-    calib_path = out.root / "calibration.json"
+    calib_path = out.calibration
     if not force and sm.is_current("refine", fp_ref):
         skipped.append("refine")
     else:
@@ -168,9 +168,9 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         for v in VIEWS:
             cams = np.load(out.view(v).cameras)
             T = np.asarray(report["views"][v]["T_world_vio"]) @ cams["T_world_cam"]
-            write_npz(out.view(v).root / "cameras_world.npz", version=np.int64(1), K=cams["K"], width=cams["width"],
+            write_npz(out.view(v).cameras_world, version=np.int64(1), K=cams["K"], width=cams["width"],
                       height=cams["height"], T_world_cam=T, raw_frames=cams["raw_frames"])
-            outs.append(out.view(v).root / "cameras_world.npz")
+            outs.append(out.view(v).cameras_world)
         sm.record("refine", fp_ref, outs, time.perf_counter() - t0, {
             f"{v}_{k}": report["views"][v][k] for v in VIEWS for k in ("refine_shift_m", "refine_yaw_deg")})
     report = json.loads(calib_path.read_text())

@@ -56,7 +56,7 @@ class SceneLayout:
 
 @dataclass(frozen=True)
 class ViewLayout:
-    """Per-view outputs of a sequence (stages II-III)."""
+    """Per-view outputs of a sequence (stages II-IV)."""
 
     root: Path
 
@@ -86,6 +86,22 @@ class ViewLayout:
     def body_prior(self) -> Path:
         return self.root / "body_prior.npz"
 
+    @property
+    def registration(self) -> Path:
+        """Stage III: the sampled frames registered into the scene model."""
+        return self.root / "registration.npz"
+
+    @property
+    def cameras_world(self) -> Path:
+        """Stage III: per-frame cameras in the scene's world."""
+        return self.root / "cameras_world.npz"
+
+    @property
+    def cameras_final(self) -> Path:
+        """Stage IV: per-frame cameras in the scene's world after the optional contact alignment
+        (equal to ``cameras_world`` without it); what exports, the viewer and the renderer use."""
+        return self.root / "cameras_final.npz"
+
 
 @dataclass(frozen=True)
 class SequenceLayout:
@@ -105,12 +121,44 @@ class SequenceLayout:
         return self.root / "sync.json"
 
     @property
+    def calibrate_manifest(self) -> Path:
+        """Stage III's stage manifest."""
+        return self.root / "calibrate_manifest.json"
+
+    @property
+    def calibration(self) -> Path:
+        """Stage III: view offsets and the residual report."""
+        return self.root / "calibration.json"
+
+    @property
+    def motion_manifest(self) -> Path:
+        """Stage IV's stage manifest (final loss terms, per-view reprojection error)."""
+        return self.root / "motion_manifest.json"
+
+    @property
     def smpl_world(self) -> Path:
+        """Stage IV: world SMPL motion, AMASS-like npz."""
         return self.root / "smpl_world.npz"
 
     @property
     def keypoints3d(self) -> Path:
+        """Stage IV: triangulated COCO-17 keypoints in the scene's world."""
         return self.root / "keypoints3d.npz"
+
+    @property
+    def joints_world(self) -> Path:
+        """Stage IV: the fitted body's joints in the scene's world."""
+        return self.root / "joints_world.npz"
+
+    @property
+    def exports_dir(self) -> Path:
+        """``embodmocap export`` writes here (one file or folder per format)."""
+        return self.root / "export"
+
+    @property
+    def renders_dir(self) -> Path:
+        """``embodmocap render`` writes its MP4s here."""
+        return self.root / "render"
 
 
 @dataclass(frozen=True)
