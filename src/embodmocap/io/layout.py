@@ -136,6 +136,12 @@ class SequenceLayout:
         return self.root / "motion_manifest.json"
 
     @property
+    def smpl_fit(self) -> Path:
+        """Stage IV: the SMPLify result before the optional contact alignment (same format as
+        ``smpl_world``)."""
+        return self.root / "smpl_fit.npz"
+
+    @property
     def smpl_world(self) -> Path:
         """Stage IV: world SMPL motion, AMASS-like npz."""
         return self.root / "smpl_world.npz"

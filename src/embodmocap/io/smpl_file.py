@@ -1,0 +1,78 @@
+"""World SMPL motion files (``smpl_world.npz``, ``smpl_fit.npz``): AMASS-like npz, version 1.
+
+Keys (see docs/formats.md, "Stage IV outputs"):
+
+    version          () int64, 1
+    poses            (T, 72) float64 axis-angle: global_orient then joints 1..23, world frame
+    trans            (T, 3) float64 SMPL ``transl``, metres (not the pelvis position)
+    betas            (B,) float64 shape, one set for the sequence
+    gender           () str
+    mocap_framerate  () float64 frames per second
+    frames           (T,) int64 sequence frame of each row
+
+AMASS's own files use the same key names (``poses``, ``trans``, ``betas``, ``gender``,
+``mocap_framerate``), so tools that read AMASS SMPL motion read these.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError
+from embodmocap.io.atomic import write_npz
+from embodmocap.types import SmplParams
+
+SMPL_FILE_VERSION = 1
+_KEYS = ("poses", "trans", "betas", "gender", "mocap_framerate", "frames")
+
+
+def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None) -> Path:
+    """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1."""
+    T = len(params)
+    frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
+    if frames.shape != (T,):
+        raise ValueError(f"frames must be ({T},), got {frames.shape}")
+    write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
+              betas=np.asarray(params.betas), gender=np.array(params.gender),
+              mocap_framerate=np.float64(params.fps), frames=frames)
+    return Path(path)
+
+
+def read_smpl_npz(path: str | Path) -> tuple[SmplParams, NDArray[np.int64]]:
+    """Read a world SMPL motion file.
+
+    Returns:
+        (params, frames (T,) sequence frames).
+
+    Raises:
+        InputError: missing or unreadable file, missing keys, wrong shapes, non-finite values.
+    """
+    path = Path(path)
+    fix = "re-run `embodmocap motion` to write it again"
+    if not path.is_file():
+        raise InputError(path, "SMPL motion file not found", "run `embodmocap motion SESSION --seq NAME` first")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as err:  # zip or npy errors of a damaged file
+        raise InputError(path, f"not a readable npz file ({err})", fix) from err
+    missing = [k for k in _KEYS if k not in data]
+    if missing:
+        raise InputError(path, f"not an SMPL motion file: keys {missing} missing",
+                         "expected poses (T,72), trans (T,3), betas (B,), gender, mocap_framerate, frames (T,)")
+    if int(data.get("version", SMPL_FILE_VERSION)) != SMPL_FILE_VERSION:
+        raise InputError(path, f"version {int(data['version'])}, this reader knows {SMPL_FILE_VERSION}", fix)
+    poses, trans, betas = data["poses"], data["trans"], data["betas"]
+    T = len(poses)
+    if poses.shape != (T, 72) or trans.shape != (T, 3) or betas.ndim != 1 or data["frames"].shape != (T,):
+        raise InputError(path, f"shapes poses {poses.shape}, trans {trans.shape}, betas {betas.shape}, "
+                         f"frames {data['frames'].shape} do not match the SMPL layout",
+                         "expected poses (T,72), trans (T,3), betas (B,), frames (T,)")
+    if not (np.isfinite(poses).all() and np.isfinite(trans).all() and np.isfinite(betas).all()):
+        raise InputError(path, "non-finite values in the motion", fix)
+    params = SmplParams(betas, poses[:, :3], poses[:, 3:], trans, fps=float(data["mocap_framerate"]),
+                        gender=str(data["gender"]))
+    return params, data["frames"].astype(np.int64)
