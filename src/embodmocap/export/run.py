@@ -1,0 +1,126 @@
+"""``embodmocap export``: read a sequence's Stage IV outputs and write one export format.
+
+Reads, through :class:`SessionLayout` only: ``sequences/<seq>/smpl_world.npz`` (every format),
+``joints_world.npz`` (csv), the scene mesh of the sequence's scene (glb, mimickit), the session
+manifest (which scene, which body model). Writes under ``sequences/<seq>/export/`` unless ``out``
+is given:
+
+=========  ==========================  ===================================================
+format     default output              contents
+=========  ==========================  ===================================================
+amass      ``<seq>_amass.npz``         AMASS-style SMPL params, Z up (:mod:`.amass`)
+bvh        ``<seq>.bvh``               SMPL skeleton, Y up (:mod:`.bvh`)
+glb        ``<seq>.glb``               scene + skinned animated body, Y up (:mod:`.gltf`)
+mimickit   ``mimickit/`` (a folder)    motion pkl, skeleton json, scene OBJ + height map
+csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.csv_joints`)
+=========  ==========================  ===================================================
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from embodmocap.errors import InputError
+from embodmocap.export.amass import read_amass, write_amass
+from embodmocap.export.bvh import write_bvh
+from embodmocap.export.csv_joints import write_joints_csv
+from embodmocap.export.gltf import write_glb
+from embodmocap.export.mimickit import write_mimickit
+from embodmocap.io.layout import SessionLayout
+
+log = logging.getLogger(__name__)
+
+#: The export formats, in the order the CLI lists them.
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv")
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """Options of the exports (defaults suit most users)."""
+
+    amass_hands: bool = False
+    """AMASS: write the (T, 156) SMPL+H pose layout with zero hands instead of SMPL's (T, 72)."""
+    bvh_units: Literal["cm", "m"] = "cm"
+    """BVH: length unit of offsets and root positions (most BVH tools expect centimetres)."""
+    mimickit_loop: Literal["clamp", "wrap"] = "clamp"
+    """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
+    heightmap_cell_m: float = 0.05
+    """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""
+
+
+def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
+    if not path.is_file():
+        hint = {
+            "motion": f"run `embodmocap motion {session} --seq {seq}` first",
+            "scene": f"run `embodmocap scene {session}` first",
+        }[stage]
+        raise InputError(path, "missing file needed for the export", hint)
+    return path
+
+
+def _default_out(layout: SessionLayout, seq: str, to: str) -> Path:
+    names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv"}
+    return layout.sequence(seq).exports_dir / names[to]
+
+
+def _scene_mesh(layout: SessionLayout, manifest, seq: str, prefer_simplified: bool) -> tuple:
+    from embodmocap.scene.mesh import read_mesh_ply
+
+    scene = layout.scene(manifest.sequences[seq].scene)
+    if prefer_simplified and scene.mesh_simplified.is_file():
+        return read_mesh_ply(scene.mesh_simplified)
+    return read_mesh_ply(_need(scene.mesh_raw, seq, layout.root, "scene"))
+
+
+def _read_joints(path: Path, T: int) -> np.ndarray:
+    try:
+        with np.load(path) as z:
+            joints = np.asarray(z["joints"], dtype=np.float64)
+    except (OSError, KeyError, ValueError) as err:
+        raise InputError(path, f"not a readable joints file ({err})", "run the motion stage again") from err
+    if joints.shape != (T, 24, 3):
+        raise InputError(path, f"joints {joints.shape} do not match the {T} frames of smpl_world.npz", "run the motion stage again")
+    return joints
+
+
+def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | None = None, *,
+                    config: ExportConfig = ExportConfig()) -> Path:
+    """Export sequence ``seq`` of ``session`` to format ``to`` (one of :data:`FORMATS`).
+
+    Returns the path written (a folder for ``mimickit``). Raises :class:`InputError` when a needed
+    Stage IV (or Stage I) file is missing, naming the file and the command to run.
+    """
+    if to not in FORMATS:
+        raise InputError(None, f"unknown export format {to!r}", f"choose one of {', '.join(FORMATS)}")
+    layout = SessionLayout(Path(session))
+    seq_layout = layout.sequence(seq)
+    params, frames = read_amass(_need(seq_layout.smpl_world, seq, layout.root, "motion"))
+    out = Path(out) if out is not None else _default_out(layout, seq, to)
+    log.info("exporting %s of %s (%d frames) as %s -> %s", seq, layout.root, len(params), to, out)
+
+    if to == "amass":
+        return write_amass(out, params, frames=frames, hands=config.amass_hands)
+    if to == "csv":
+        joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
+        return write_joints_csv(out, joints, params.fps, frames)
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.manifest import load_manifest
+
+    manifest = load_manifest(layout.manifest)
+    if seq not in manifest.sequences:
+        raise InputError(layout.manifest, f"no sequence {seq!r} in the manifest", f"use one of {sorted(manifest.sequences)}")
+    model = load_body_model(manifest.body_model)
+    if to == "bvh":
+        return write_bvh(out, params, model, units=config.bvh_units, frames=frames)
+    if to == "glb":
+        return write_glb(out, params, model, _scene_mesh(layout, manifest, seq, prefer_simplified=False), frames=frames)
+    # mimickit: a physics asset wants the lighter mesh when stage I wrote one.
+    scene = _scene_mesh(layout, manifest, seq, prefer_simplified=True)
+    return write_mimickit(out, params, model, scene, name=seq, loop_mode=config.mimickit_loop,
+                          cell_m=config.heightmap_cell_m, frames=frames)
