@@ -22,44 +22,7 @@ from embodmocap.io.video import VideoReader
 from embodmocap.synth.config import SynthConfig
 from embodmocap.types import PngMasks, SmplParams
 
-SYNTH = SynthConfig(seconds=1.0, scene_seconds=1.0, fps=10, width=320, height=240, depth_width=64, depth_height=48)
-
-
-def make_stage4_session(root: Path, cfg: SynthConfig = SYNTH) -> dict:
-    """Synthesize a tiny session into ``root`` and write its Stage IV outputs from the ground truth.
-
-    Sequence frames are the motion frames both views recorded. Returns facts the tests check against:
-    ``start`` (view -> motion frame of the view's raw frame 0), ``motion`` (first motion frame of
-    the sequence), ``T`` (frames), ``K``.
-    """
-    from embodmocap.synth.studio import synthesize
-
-    synthesize(cfg, root)
-    lay = SessionLayout(root)
-    gt = np.load(lay.ground_truth.sequence(cfg.sequence_name))
-    info = json.loads(lay.ground_truth.info.read_text())
-    start = {v: int(info["view_motion_start"][v]) for v in VIEWS}
-    end = {v: int(info["view_motion_end"][v]) for v in VIEWS}
-    m = np.arange(max(start.values()), min(end.values()))
-    out = lay.sequence(cfg.sequence_name)
-    params = SmplParams(gt["betas"], gt["global_orient"][m], gt["body_pose"][m], gt["transl"][m], fps=cfg.fps)
-    write_smpl_npz(out.smpl_world, params)
-    write_npz(out.joints_world, version=np.int64(1), joints=gt["joints_smpl24"][m], coco17=gt["joints_coco17"][m])
-    points = gt["joints_coco17"][m].copy()
-    points[0, :5] = np.nan  # a frame whose face points were not triangulated
-    T = len(m)
-    write_npz(out.keypoints3d, version=np.int64(1), points=points, conf=np.full((T, 17), 0.9),
-              reproj_err_px=np.ones((T, 17, 2)), filled=np.zeros((T, 17), bool))
-    K = cfg.intrinsics()
-    for v in VIEWS:
-        raw = m - start[v]
-        write_npz(out.view(v).cameras_final, version=np.int64(1), K=K.K, width=np.int64(K.width),
-                  height=np.int64(K.height), T_world_cam=gt[f"{v}_T_scene_cam"][raw], raw_frames=raw.astype(np.int64))
-    scene = lay.scene(cfg.scene_name)
-    scene.root.mkdir(parents=True, exist_ok=True)
-    shutil.copy(lay.ground_truth.scene_mesh(cfg.scene_name), scene.mesh_simplified)
-    shutil.copy(lay.ground_truth.scene_mesh(cfg.scene_name), scene.mesh_raw)
-    return {"start": start, "motion": int(m[0]), "T": T, "K": K}
+from stage4_session import SYNTH, make_stage4_session  # noqa: E402  (tests/ helper module)
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from test_render import SYNTH, make_stage4_session
+from stage4_session import SYNTH, make_stage4_session
 
 viser = pytest.importorskip("viser", reason="the viewer extra is not installed: pip install 'embodmocap[viewer]'")
 

@@ -265,3 +265,12 @@ class SessionLayout:
     @property
     def report_html(self) -> Path:
         return self.root / "report.html"
+
+    @property
+    def report_md(self) -> Path:
+        """Markdown twin of the report; its pictures are in ``report_assets``."""
+        return self.root / "report.md"
+
+    @property
+    def report_assets(self) -> Path:
+        return self.root / "report_assets"

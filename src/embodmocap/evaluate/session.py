@@ -1,0 +1,253 @@
+"""``embodmocap evaluate``: quality metrics of every sequence, and errors against ground truth.
+
+Always (no ground truth needed), per sequence, from the final outputs of Stage IV:
+``mask_iou_pct`` (rendered SMPL silhouette vs the person mask), ``reproj_err_px`` (SMPL COCO-17
+joints vs the 2D keypoints), ``depth_err_m2`` (rendered SMPL depth vs sensor depth on the person,
+mean squared) and ``jitter`` (of the world joints). Rendering is done on ``frames_per_view``
+frames spread evenly over the sequence.
+
+With ``SESSION/ground_truth/`` (synthetic sessions): ``w_mpjpe_mm`` / ``wa_mpjpe_mm`` (100-frame
+chunks, plus ``_c500`` and ``_c1000``), ``pa_mpjpe_mm``, ``rte_pct``, per view
+``view_translation_err_cm``, ``view_yaw_err_deg`` and ``sync_err_frames``; for the scene
+``mesh_accuracy_cm`` and ``mesh_completeness_pct`` (5 cm). Everything is compared in Stage I's
+world (the scene capture's VIO world): the truth is moved there with the scene capture's true
+``T_scene_vio``.
+
+Definitions of every metric: :mod:`embodmocap.evaluate.metrics` and docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError
+from embodmocap.evaluate import metrics as M
+from embodmocap.geometry.transforms import invert_T
+from embodmocap.io.atomic import write_json
+from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.manifest import load_manifest
+
+log = logging.getLogger(__name__)
+
+EVALUATION_VERSION = 1
+CHUNKS = (100, 500, 1000)
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """What ``embodmocap evaluate`` computes."""
+
+    frames_per_view: int = 30
+    """Frames per view rendered for mask IoU and depth error (evenly spread)."""
+    mesh_samples: int = 100_000
+    """Surface samples for the scene mesh accuracy / completeness."""
+    completeness_threshold_m: float = 0.05
+    """A true surface sample closer than this to the reconstruction counts as complete."""
+
+
+@dataclass(frozen=True)
+class SequenceTruth:
+    """Ground truth of one sequence in Stage I's world, indexed by sequence frame.
+
+    Attributes:
+        joints: (T, 24, 3) SMPL joints, metres.
+        T_world_vio: view -> (4, 4) the view's VIO world in Stage I's world.
+        T_world_cam: view -> (T, 4, 4) true cameras.
+        sync_frame: view -> true raw frame of the sync event.
+        valid: (T,) bool sequence frames inside the scripted motion.
+    """
+
+    joints: NDArray[np.float64]
+    T_world_vio: dict[str, NDArray[np.float64]]
+    T_world_cam: dict[str, NDArray[np.float64]]
+    sync_frame: dict[str, int]
+    valid: NDArray[np.bool_]
+
+
+def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
+    """The synthetic truth of ``seq`` moved into Stage I's world and indexed by sequence frame."""
+    gt = lay.ground_truth
+    T_world_scene = invert_T(np.load(gt.scene_device(scene))["T_scene_vio"])
+    g = np.load(gt.sequence(seq))
+    raw = np.load(lay.sequence(seq).view(VIEWS[0]).cameras)["raw_frames"].astype(np.int64)
+    motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
+    M_frames = len(g["joints_smpl24"])
+    valid = (motion >= 0) & (motion < M_frames)
+    j = g["joints_smpl24"][np.clip(motion, 0, M_frames - 1)]
+    joints = j @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
+    cams, vio = {}, {}
+    for v in VIEWS:
+        raw_v = np.load(lay.sequence(seq).view(v).cameras)["raw_frames"].astype(np.int64)
+        cams[v] = T_world_scene @ g[f"{v}_T_scene_cam"][raw_v]
+        vio[v] = T_world_scene @ g[f"{v}_T_scene_vio"]
+    return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in VIEWS}, valid)
+
+
+def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
+    """Evaluate every fitted sequence (and the scenes) of ``session``; writes ``evaluation.json``.
+
+    Sequences without Stage IV outputs are listed with ``"missing"`` naming the stage to run.
+    """
+    lay = SessionLayout(Path(session))
+    manifest = load_manifest(lay.manifest)
+    has_gt = lay.ground_truth.info.is_file()
+    result: dict = {"version": EVALUATION_VERSION, "session": str(lay.root), "ground_truth": has_gt,
+                    "scene": {}, "sequences": {}}
+    for name in manifest.scenes:
+        if has_gt and lay.scene(name).mesh_raw.is_file() and lay.scene(name).keyframes.is_file():
+            result["scene"][name] = scene_errors(lay, name, cfg)
+    for name, entry in manifest.sequences.items():
+        sl = lay.sequence(name)
+        if not sl.smpl_world.is_file():
+            result["sequences"][name] = {"missing": f"no fitted motion: run `embodmocap run {lay.root}` first"}
+            continue
+        log.info("evaluating %s", name)
+        metrics = sequence_quality(lay, name, manifest.body_model, cfg)
+        if has_gt:
+            metrics.update(sequence_errors(lay, entry.scene, name, manifest.body_model))
+        result["sequences"][name] = metrics
+    write_json(lay.evaluation, result)
+    return result
+
+
+def _fitted(lay: SessionLayout, seq: str, body_model_path):
+    """(model, params, frames, body output in float64) of the final Stage IV motion."""
+    import torch
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.smpl_file import read_smpl_npz
+
+    model = load_body_model(body_model_path)
+    params, frames = read_smpl_npz(lay.sequence(seq).smpl_world)
+    with torch.no_grad():
+        body = model.from_params(params, dtype=torch.float64)
+    return model, params, frames, body
+
+
+def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
+    """The paper's quality metrics of one fitted sequence (no ground truth needed)."""
+    from embodmocap.geometry.raycast import depth_map
+    from embodmocap.io.frame_stack import read_depth_m, read_mask
+    from embodmocap.types import Intrinsics
+
+    model, params, frames, body = _fitted(lay, seq, body_model_path)
+    verts = body.vertices.numpy()
+    coco = body.coco17.numpy()
+    out: dict = {"frames": int(len(frames)), "fps": float(params.fps),
+                 "jitter": round(float(M.jitter(body.joints.numpy(), params.fps)), 4)}
+    ious, reps, derrs = [], [], []
+    for v in VIEWS:
+        vl = lay.sequence(seq).view(v)
+        cams = np.load(vl.cameras_final)
+        K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
+        T_wc = cams["T_world_cam"]
+        kp = np.load(vl.keypoints)["keypoints"]
+        n = min(len(kp), len(coco), len(T_wc))
+        proj = _project(K, T_wc[:n], coco[:n])
+        reps.append(M.reproj_err_px(proj, kp[:n]))
+        sample = np.unique(np.linspace(0, n - 1, min(cfg.frames_per_view, n)).astype(np.int64))
+        pred_masks, true_masks, d_pred, d_true, d_mask = [], [], [], [], []
+        has_masks, has_depth = vl.masks.is_file(), vl.depth.is_file()
+        Kd = Intrinsics.from_K(np.load(vl.cameras)["K_depth"], int(np.load(vl.cameras)["depth_width"]),
+                               int(np.load(vl.cameras)["depth_height"])) if has_depth else None
+        for t in sample:
+            if has_masks:
+                pred_masks.append(np.isfinite(depth_map(verts[t], model.faces, K, T_wc[t])))
+                true_masks.append(read_mask(vl.masks, int(t), K.width))
+            if has_depth:
+                dp = depth_map(verts[t], model.faces, Kd, T_wc[t])
+                ds = read_depth_m(vl.depth, int(t))
+                if ds.shape != dp.shape:  # refined depth at another size: compare at the sensor's
+                    continue
+                d_pred.append(dp)
+                d_true.append(ds)
+                d_mask.append(np.isfinite(dp) & (ds > 0))
+        if pred_masks:
+            iou = M.mask_iou_pct(np.stack(pred_masks), np.stack(true_masks))
+            ious.append(iou)
+            out[f"{v}_mask_iou_pct"] = round(float(iou), 2)
+        if d_pred:
+            de = M.depth_err_m2(np.stack(d_pred), np.stack(d_true), np.stack(d_mask))
+            derrs.append(de)
+            out[f"{v}_depth_err_m2"] = round(float(de), 5)
+        out[f"{v}_reproj_err_px"] = round(float(reps[-1]), 3)
+    out["reproj_err_px"] = round(float(np.mean(reps)), 3)
+    if ious:
+        out["mask_iou_pct"] = round(float(np.mean(ious)), 2)
+    if derrs:
+        out["depth_err_m2"] = round(float(np.mean(derrs)), 5)
+    return out
+
+
+def _project(K, T_world_cam: NDArray, points: NDArray) -> NDArray:
+    """(T, J, 2) pixels of world points (T, J, 3) seen by per-frame cameras (T, 4, 4)."""
+    R = T_world_cam[:, :3, :3]
+    c = T_world_cam[:, None, :3, 3]
+    cam = np.einsum("tba,tjb->tja", R, points - c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.stack([K.fx * cam[..., 0] / cam[..., 2] + K.cx, K.fy * cam[..., 1] / cam[..., 2] + K.cy], axis=-1)
+
+
+def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=None) -> dict:
+    """Errors of one fitted sequence against the synthetic truth (Stage I's world)."""
+    _, params, frames, body = _fitted(lay, seq, body_model_path)
+    truth = sequence_truth(lay, scene, seq)
+    ok = truth.valid[frames]
+    pred, gt = body.joints.numpy()[ok], truth.joints[frames][ok]
+    out: dict = {}
+    for c in CHUNKS:
+        suffix = "" if c == 100 else f"_c{c}"
+        out[f"w_mpjpe_mm{suffix}"] = round(float(M.w_mpjpe(pred, gt, chunk=c)), 2)
+        out[f"wa_mpjpe_mm{suffix}"] = round(float(M.wa_mpjpe(pred, gt, chunk=c)), 2)
+    out["pa_mpjpe_mm"] = round(float(M.pa_mpjpe(pred, gt)), 2)
+    out["rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
+    calib = json.loads(lay.sequence(seq).calibration.read_text()) if lay.sequence(seq).calibration.is_file() else None
+    sync = json.loads(lay.sequence(seq).sync.read_text())["views"] if lay.sequence(seq).sync.is_file() else {}
+    mm = lay.sequence(seq).motion_manifest
+    motion_fig = json.loads(mm.read_text()).get("figures", {}) if mm.is_file() else {}
+    T_align = np.asarray(motion_fig.get("T_align", np.eye(4).tolist()))
+    for v in VIEWS:
+        if calib is not None:
+            T_est = T_align @ np.asarray(calib["views"][v]["T_world_vio"])
+            centres = np.load(lay.sequence(seq).view(v).cameras)["T_world_cam"][:, :3, 3]
+            cm, deg = M.view_offset_err(T_est, truth.T_world_vio[v], centres)
+            out[f"{v}_view_translation_err_cm"] = round(float(cm), 3)
+            out[f"{v}_view_yaw_err_deg"] = round(float(deg), 4)
+        if v in sync:
+            out[f"{v}_sync_err_frames"] = int(M.sync_err_frames(sync[v]["frame"], truth.sync_frame[v]))
+    return out
+
+
+def scene_errors(lay: SessionLayout, scene: str, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
+    """Accuracy and completeness of the Stage I mesh against the true scene surface."""
+    import trimesh
+
+    from embodmocap.evaluate.mesh_metrics import scene_mesh_metrics
+    from embodmocap.geometry.transforms import apply_T
+    from embodmocap.io.captures import open_capture
+    from embodmocap.scene.config import SceneConfig
+    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.scene.stage import read_keyframes
+
+    gt = lay.ground_truth
+    true_mesh = trimesh.load(gt.scene_mesh(scene), force="mesh")
+    dev = np.load(gt.scene_device(scene))
+    info = json.loads(gt.info.read_text())
+    indoor = info.get("config", {}).get("preset", "indoor") == "indoor"
+    kf = read_keyframes(lay.scene(scene))
+    cap = open_capture(lay.scene_capture(scene))
+    v, f, _ = read_mesh_ply(lay.scene(scene).mesh_raw)
+    if len(f) == 0:
+        raise InputError(lay.scene(scene).mesh_raw, "the scene mesh has no triangles", "re-run the scene stage")
+    m = scene_mesh_metrics(apply_T(dev["T_scene_vio"], v), f, np.asarray(true_mesh.vertices), np.asarray(true_mesh.faces),
+                           dev["T_scene_cam"][kf["frame_ids"]], cap.depth_intrinsics,
+                           SceneConfig().depth_trunc_m(indoor), threshold=cfg.completeness_threshold_m,
+                           n_samples=cfg.mesh_samples)
+    return {"mesh_accuracy_cm": round(100 * m["accuracy_m"], 3),
+            "mesh_completeness_pct": round(100 * m["completeness"], 2)}
