@@ -10,15 +10,22 @@ import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Union
+from typing import Annotated, Literal, Union
 
 import tyro
 
 from embodmocap.errors import EmbodMocapError
 from embodmocap.scene.config import SceneConfig
 from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.evaluate.report import ReportConfig
+from embodmocap.evaluate.session import EvaluateConfig
+from embodmocap.export.run import ExportConfig
+from embodmocap.motion.stage import MotionConfig
+from embodmocap.pipeline import PipelineConfig
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
+from embodmocap.viz.render import RenderConfig
+from embodmocap.viz.viewer import ViewerConfig
 
 log = logging.getLogger("embodmocap")
 
@@ -57,7 +64,8 @@ class Inspect:
 
 @dataclass(frozen=True)
 class Demo:
-    """Run the built-in demo: synthesise a session, inspect it, and run the stages built so far (I, II, III)."""
+    """Run the built-in demo: synthesise a session, inspect it, run every stage, evaluate it against
+    its ground truth and write the report."""
 
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")] = Path("demo_out")
     """Folder for the demo session (replaced if it holds an earlier demo)."""
@@ -82,29 +90,152 @@ class Demo:
         print(f"\ndemo session written to {res.root} in {res.seconds_taken:.1f} s")
         if problems:
             return 1
-        from embodmocap.scene.stage import run as run_scene
+        status = Run(self.out).run()
+        if status != 0:
+            return status
+        status = Evaluate(self.out).run()
+        if status == 0:
+            status = Report(self.out).run()
+        return status
 
-        from embodmocap.sequence.stage import run as run_sequence
 
-        scene = run_scene(SceneConfig(), self.out)
-        print(f"\nStage I (scene): {scene.layout.root}")
-        for k, v in scene.figures.items():
-            print(f"  {k}: {v}")
-        seq = run_sequence(SequenceConfig(), self.out)
-        print(f"\nStage II (sequence {seq.name}): {seq.layout.root}")
-        print(f"  sync contact sheets: {seq.layout.root / 'sync_v1.png'}, {seq.layout.root / 'sync_v2.png'}")
-        for k, v in seq.figures.items():
-            print(f"  {k}: {v}")
-        from embodmocap.calibrate.stage import run as run_calibrate
+@dataclass(frozen=True)
+class Run:
+    """Run every stage for the scene(s) and every sequence of a session, in order (resumable)."""
 
-        cal = run_calibrate(CalibrateConfig(), self.out)
-        print(f"\nStage III (calibrate {cal.name}): {self.out / 'sequences' / cal.name / 'calibration.json'}")
-        for v, view in cal.report["views"].items():
-            print(f"  {v}: registered {100 * view['registered_fraction']:.0f}% of sampled frames; refinement moved "
-                  f"the view {100 * view['refine_shift_m']:.1f} cm / {view['refine_yaw_deg']:.2f} deg")
-        for w in cal.report.get("warnings", []):
-            print(f"  warning: {w}")
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[PipelineConfig, tyro.conf.arg(name="")] = PipelineConfig()
+    """Settings of every stage."""
+
+    def run(self) -> int:
+        from embodmocap.pipeline import run_session
+
+        res = run_session(self.config, self.session, force=self.force, on_progress=lambda m: print(m, flush=True))
+        print()
+        for r in res.runs:
+            line = f"  {r.target:<24} {r.stage:<10} {r.status:<7} {r.seconds:7.1f} s"
+            print(line + (f"  {r.error}" if r.error else ""))
+        if not res.ok:
+            print(f"{len(res.failed())} stage(s) failed; fix the cause and run the same command again to resume")
+            return 1
+        print(f"all stages done: {res.session}")
         return 0
+
+
+@dataclass(frozen=True)
+class Evaluate:
+    """Quality metrics of every fitted sequence (and errors against ground truth when the session has
+    it), written to SESSION/evaluation.json."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    config: Annotated[EvaluateConfig, tyro.conf.arg(name="")] = EvaluateConfig()
+    """What to compute."""
+
+    def run(self) -> int:
+        from embodmocap.evaluate.session import evaluate_session
+        from embodmocap.io.layout import SessionLayout
+
+        result = evaluate_session(self.session, self.config)
+        for name, m in result["scene"].items():
+            print(f"scene {name}: " + ", ".join(f"{k} {v}" for k, v in m.items()))
+        for name, m in result["sequences"].items():
+            print(f"sequence {name}:")
+            for k, v in m.items():
+                print(f"  {k}: {v}")
+        print(f"evaluation: {SessionLayout(self.session).evaluation}")
+        return 0
+
+
+@dataclass(frozen=True)
+class Report:
+    """Write SESSION/report.html (self-contained) and report.md: metrics, floor plan, errors over time,
+    stage residuals and timings, sync contact sheets, the fitted body over frames of each view."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    config: Annotated[ReportConfig, tyro.conf.arg(name="")] = ReportConfig()
+    """What the report shows."""
+
+    def run(self) -> int:
+        from embodmocap.evaluate.report import write_report
+
+        html_path, md_path = write_report(self.session, self.config)
+        print(f"report: {html_path} (Markdown: {md_path})")
+        return 0
+
+
+@dataclass(frozen=True)
+class View:
+    """Open the interactive 3D viewer (viser, in the browser): scene, animated body, camera frusta
+    with their images, keypoints, the performer's path; Z up."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to show; needed only when the session has several."""
+    config: Annotated[ViewerConfig, tyro.conf.arg(name="")] = ViewerConfig()
+    """Viewer settings."""
+
+    def run(self) -> int:
+        from embodmocap.viz.viewer import view_cli
+
+        view_cli(self.session, _sequence_name(self.session, self.seq), self.config)
+        return 0
+
+
+@dataclass(frozen=True)
+class Render:
+    """Render MP4 videos of the fitted body drawn over each view's RGB frames, and both views side by side."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to render; needed only when the session has several."""
+    config: Annotated[RenderConfig, tyro.conf.arg(name="")] = RenderConfig()
+    """Render settings."""
+
+    def run(self) -> int:
+        from embodmocap.viz.render import render_sequence
+
+        for path in render_sequence(self.session, _sequence_name(self.session, self.seq), self.config):
+            print(f"wrote {path}")
+        return 0
+
+
+@dataclass(frozen=True)
+class Export:
+    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv"]
+    """Format to write."""
+    seq: str | None = None
+    """Sequence to export; needed only when the session has several."""
+    out: Path | None = None
+    """Output file (folder for mimickit); default SESSION/sequences/SEQ/export/."""
+    config: Annotated[ExportConfig, tyro.conf.arg(name="")] = ExportConfig()
+    """Export settings."""
+
+    def run(self) -> int:
+        from embodmocap.export import export_sequence
+
+        path = export_sequence(self.session, _sequence_name(self.session, self.seq), self.to, self.out, config=self.config)
+        print(f"wrote {path}")
+        return 0
+
+
+def _sequence_name(session: Path, seq: str | None) -> str:
+    """The sequence to work on: ``seq``, or the session's only one."""
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.sequence.stage import _pick_sequence
+
+    return _pick_sequence(load_manifest(SessionLayout(session).manifest), seq).name
 
 
 @dataclass(frozen=True)
@@ -168,14 +299,38 @@ class Calibrate:
 
     def run(self) -> int:
         from embodmocap.calibrate.stage import run
+        from embodmocap.io.layout import SessionLayout
 
         out = run(self.config, self.session, self.seq, force=self.force)
-        print(f"sequence {out.name}: calibration in {self.session / 'sequences' / out.name / 'calibration.json'}")
+        print(f"sequence {out.name}: calibration in {SessionLayout(self.session).sequence(out.name).calibration}")
         for v, view in out.report["views"].items():
             print(f"  {v}: registered {100 * view['registered_fraction']:.0f}%, refinement moved it "
                   f"{100 * view['refine_shift_m']:.1f} cm / {view['refine_yaw_deg']:.2f} deg")
         for w in out.report.get("warnings", []):
             print(f"  warning: {w}")
+        return 0
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Stage IV: triangulate, fit world-space SMPL motion (two-phase SMPLify) and align it to contact markers."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to process; needed only when the session has several."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[MotionConfig, tyro.conf.arg(name="")] = MotionConfig()
+    """Stage settings."""
+
+    def run(self) -> int:
+        from embodmocap.motion.stage import run
+
+        out = run(self.config, self.session, self.seq, force=self.force)
+        print(f"sequence {out.name}: motion in {out.layout.smpl_world}")
+        for k, v in out.figures.items():
+            print(f"  {k}: {v}")
         return 0
 
 
@@ -233,6 +388,13 @@ Commands = Union[
     Annotated[Scene, tyro.conf.subcommand("scene")],
     Annotated[Sequence, tyro.conf.subcommand("sequence")],
     Annotated[Calibrate, tyro.conf.subcommand("calibrate")],
+    Annotated[Motion, tyro.conf.subcommand("motion")],
+    Annotated[Run, tyro.conf.subcommand("run")],
+    Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
+    Annotated[Report, tyro.conf.subcommand("report")],
+    Annotated[Export, tyro.conf.subcommand("export")],
+    Annotated[View, tyro.conf.subcommand("view")],
+    Annotated[Render, tyro.conf.subcommand("render")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
 ]

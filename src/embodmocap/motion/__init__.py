@@ -1,0 +1,1 @@
+"""Stage IV: world-space motion optimisation (SMPLify) and contact alignment."""

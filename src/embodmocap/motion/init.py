@@ -1,0 +1,172 @@
+"""Starting points for the world-space SMPLify.
+
+- :func:`init_from_prior`: a camera-space body prior (one view's regressor output) moved into the
+  world through that view's cameras, frame by frame, keeping each frame's pelvis where the
+  regressor put it.
+- :func:`init_from_keypoints`: no prior: a standing rest pose placed at the triangulated hips and
+  turned to face the way the hips and shoulders do.
+
+Frames with nothing to go on (an all-zero prior row, or no hips/shoulders) are filled from their
+neighbours: rotations by normalised quaternion interpolation, positions linearly, the ends held.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from embodmocap.body.model import BodyModel
+from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
+from embodmocap.types import COCO17_NAMES, SmplParams
+
+log = logging.getLogger(__name__)
+
+
+class CameraPrior(Protocol):
+    """What :func:`init_from_prior` reads (e.g. :class:`embodmocap.io.body_prior.BodyPriorSeq`)."""
+
+    global_orient_cam: NDArray  # (T, 3) axis-angle, camera frame (OpenCV axes)
+    body_pose: NDArray  # (T, 69)
+    betas: NDArray  # (T, B)
+    transl_cam: NDArray  # (T, 3) SMPL transl in the camera frame, metres
+
+
+def _interp_index(valid: NDArray[np.bool_]) -> tuple[NDArray, NDArray, NDArray]:
+    """For every frame: the previous and next valid frame and the weight of the next one.
+
+    Valid frames map to themselves (weight 0); frames before the first / after the last valid
+    frame hold it.
+    """
+    T = len(valid)
+    idx = np.flatnonzero(valid)
+    t = np.arange(T)
+    k = np.clip(np.searchsorted(idx, t, side="right") - 1, 0, len(idx) - 1)
+    prev = idx[k]
+    nxt = idx[np.clip(k + 1, 0, len(idx) - 1)]
+    prev = np.where(t < idx[0], idx[0], prev)
+    span = np.maximum(nxt - prev, 1)
+    w = np.clip((t - prev) / span, 0.0, 1.0)
+    w = np.where(valid, 0.0, w)
+    return prev, nxt, w
+
+
+def fill_rotations(rotvec: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Axis-angle (T, J, 3) with the invalid frames interpolated (nlerp) between valid ones."""
+    prev, nxt, w = _interp_index(valid)
+    T, J = rotvec.shape[:2]
+    q = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_quat().reshape(T, J, 4)
+    qa, qb = q[prev], q[nxt]
+    qb = np.where((qa * qb).sum(-1, keepdims=True) < 0, -qb, qb)  # shortest way round
+    qi = (1.0 - w)[:, None, None] * qa + w[:, None, None] * qb
+    qi /= np.linalg.norm(qi, axis=-1, keepdims=True)
+    return Rotation.from_quat(qi.reshape(-1, 4)).as_rotvec().reshape(T, J, 3)
+
+
+def fill_linear(x: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """(T, ...) values with the invalid frames linearly interpolated between valid ones."""
+    prev, nxt, w = _interp_index(valid)
+    w = w.reshape((-1,) + (1,) * (x.ndim - 1))
+    return (1.0 - w) * x[prev] + w * x[nxt]
+
+
+def init_from_prior(model: BodyModel, prior: CameraPrior, T_world_cam: NDArray, fps: float = 30.0,
+                    gender: str = "neutral") -> SmplParams:
+    """World-space parameters from a camera-space prior and the view's cameras.
+
+    Per frame t, with ``R, c`` the rotation and centre of ``T_world_cam[t]`` and ``J0(b)`` the
+    rest pelvis (:meth:`BodyModel.pelvis_offset`)::
+
+        global_orient_w = R * global_orient_cam
+        pelvis_w        = R (transl_cam + J0(b_t)) + c        (the regressor's pelvis, per frame)
+        transl_w        = pelvis_w - J0(b)                    (b = median of the valid b_t)
+
+    so the pelvis stays where the regressor put it even though the betas become one shared set.
+    Rows that are all zeros are missing and are interpolated from their neighbours.
+
+    Args:
+        model: body model (for ``J0``).
+        prior: (T,) rows of camera-space parameters (see :class:`CameraPrior`).
+        T_world_cam: (T, 4, 4) camera-to-world of the same frames (OpenCV axes).
+
+    Raises:
+        ValueError: mismatched lengths or no valid frame.
+    """
+    go_c = np.array(prior.global_orient_cam, dtype=np.float64)
+    pose = np.asarray(prior.body_pose, dtype=np.float64)
+    betas_t = np.asarray(prior.betas, dtype=np.float64)
+    tr_c = np.asarray(prior.transl_cam, dtype=np.float64)
+    Twc = np.array(T_world_cam, dtype=np.float64)
+    T = len(go_c)
+    if Twc.shape != (T, 4, 4):
+        raise ValueError(f"T_world_cam must be (T={T}, 4, 4) like the prior, got {Twc.shape}")
+    if pose.shape != (T, 69) or tr_c.shape != (T, 3) or betas_t.ndim != 2 or len(betas_t) != T:
+        raise ValueError(f"prior arrays disagree: global_orient {go_c.shape}, body_pose {pose.shape}, "
+                         f"betas {betas_t.shape}, transl {tr_c.shape}")
+    rows = np.concatenate([go_c, pose, betas_t, tr_c], 1)
+    valid = np.isfinite(rows).all(1) & (np.abs(np.nan_to_num(rows)).sum(1) > 0)
+    if not valid.any():
+        raise ValueError("the body prior has no valid frame (all rows are zero or non-finite)")
+    if not valid.all():
+        log.info("body prior: %d of %d frames missing, interpolated", int((~valid).sum()), T)
+
+    R, c = Twc[:, :3, :3], Twc[:, :3, 3]
+    go_w = (Rotation.from_matrix(R) * Rotation.from_rotvec(np.nan_to_num(go_c))).as_rotvec()
+    pelvis_w = np.einsum("tij,tj->ti", R, np.nan_to_num(tr_c) + model.pelvis_offset(np.nan_to_num(betas_t))) + c
+    betas = np.median(betas_t[valid], axis=0)
+
+    rot = fill_rotations(np.concatenate([go_w, np.nan_to_num(pose)], 1).reshape(T, 24, 3), valid).reshape(T, 72)
+    transl = fill_linear(pelvis_w, valid) - model.pelvis_offset(betas)
+    return SmplParams(betas=betas, global_orient=rot[:, :3], body_pose=rot[:, 3:], transl=transl, fps=fps, gender=gender)
+
+
+_I = {n: i for i, n in enumerate(COCO17_NAMES)}
+
+
+def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: float = 30.0,
+                        gender: str = "neutral", min_conf: float = 0.1) -> SmplParams:
+    """A standing rest pose at the triangulated hips, facing where the torso faces.
+
+    The body's left is along ``(left_hip - right_hip) + (left_shoulder - right_shoulder)``
+    projected on the floor; it faces ``left x up`` (Z up). The body is placed so that its COCO
+    hip midpoint is the observed one. Betas are zero. Frames where a hip or shoulder pair is
+    missing are interpolated.
+
+    Args:
+        points: (T, 17, 3) COCO-17 keypoints in the world (Z up), metres (NaN = missing).
+        conf: (T, 17) confidences; below ``min_conf`` counts as missing.
+
+    Raises:
+        ValueError: bad shapes, or no frame with both hips and both shoulders.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    conf = np.asarray(conf, dtype=np.float64)
+    T = len(points)
+    if points.shape != (T, 17, 3) or conf.shape != (T, 17):
+        raise ValueError(f"points must be (T, 17, 3) and conf (T, 17), got {points.shape} and {conf.shape}")
+    ok = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
+    torso = [_I["left_hip"], _I["right_hip"], _I["left_shoulder"], _I["right_shoulder"]]
+    valid = ok[:, torso].all(1)
+    if not valid.any():
+        raise ValueError("no frame has both hips and both shoulders: cannot place the body")
+    p = np.nan_to_num(points)
+    left = (p[:, _I["left_hip"]] - p[:, _I["right_hip"]]) + (p[:, _I["left_shoulder"]] - p[:, _I["right_shoulder"]])
+    left[:, 2] = 0.0
+    fwd = np.cross(left, [0.0, 0.0, 1.0])
+    yaw = np.arctan2(fwd[:, 1], fwd[:, 0])
+    # SMPL faces +Z of its frame; R_ZUP_YUP turns that to -Y, a further +90 deg to +X (yaw 0).
+    go = Rotation.from_matrix(rot_z(yaw + np.pi / 2) @ R_ZUP_YUP).as_rotvec()
+    go = fill_rotations(go[:, None], valid)[:, 0]
+    hips = fill_linear(0.5 * (p[:, _I["left_hip"]] + p[:, _I["right_hip"]]), valid)
+    betas = np.zeros(model.num_betas)
+    # COCO hips sit below and outside SMPL's pelvis joint: place the rest body so that its own
+    # COCO hip midpoint (an offset from the pelvis, fixed in the body frame) lands on the observed one.
+    rest = model.forward(betas, np.zeros((1, 3)), np.zeros((1, 69)))
+    coco0, pelvis0 = rest.coco17[0].double().numpy(), rest.joints[0, 0].double().numpy()
+    off = 0.5 * (coco0[_I["left_hip"]] + coco0[_I["right_hip"]]) - pelvis0  # canonical frame
+    pelvis = hips - Rotation.from_rotvec(go).apply(off)
+    transl = pelvis - model.pelvis_offset(betas)
+    return SmplParams(betas=betas, global_orient=go, body_pose=np.zeros((T, 69)), transl=transl, fps=fps, gender=gender)

@@ -1,0 +1,570 @@
+"""World-space SMPLify (Stage IV): fit SMPL motion to triangulated 3D and per-view 2D keypoints.
+
+Cameras and the scene are fixed; the unknowns are one shape ``betas`` (B,) for the sequence and
+per-frame ``global_orient`` (T, 3), ``body_pose`` (T, 69) and ``transl`` (T, 3) in the scene world
+(Z up, metres). The objective is a weighted sum of the terms of :mod:`embodmocap.motion.terms`.
+
+Two phases, as in the paper:
+
+1. **Phase 1** — shape, root orientation and translation (``body_pose`` fixed at the init) on the
+   3D keypoint term, the smoothness terms and the shape prior: it puts the body where the
+   keypoints are before the limbs are allowed to move.
+2. **Phase 2** — everything, with all terms (3D keypoints, reprojection in every view,
+   smoothness, pose prior, joint limits, shape prior).
+
+Speed: the body is evaluated by :class:`KeypointBody`, SMPL restricted to what the terms see
+(24 joints by forward kinematics and the 5 face vertices COCO-17 needs), which equals
+:class:`~embodmocap.body.model.BodyModel` exactly but skips skinning the 6,890 vertices; all frames
+of a window are one batch. Adam (or L-BFGS, ``cfg.solver``) runs each phase.
+
+Long sequences are cut into overlapping windows (``window_frames`` / ``overlap_frames``). Betas
+must be shared, so with more than one window they are fitted first by both phases on
+``shape_frames`` frames spread evenly over the whole sequence (smoothness off there: the frames
+are not consecutive), then held fixed while each window runs both phases. Window results are
+blended linearly across overlaps (translations linearly, rotations by normalised quaternion
+blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
+
+Threads: this module never calls ``torch.set_num_threads`` (it is process-global); callers that
+run several fits in parallel should set it themselves.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from embodmocap.body.joints import coco17_matrix, face_vertex_ids
+from embodmocap.body.model import BodyModel
+from embodmocap.motion import terms as TM
+from embodmocap.types import SmplParams
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------
+# Configuration and results
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SmplifyConfig:
+    """Weights, schedules and robust scales of the world-space SMPLify."""
+
+    w_kp3d: float = 1.0
+    """Weight of the 3D keypoint term (robust, dimensionless)."""
+    w_reproj: float = 0.5
+    """Weight of the reprojection term of each view (robust, dimensionless)."""
+    w_joint_vel: float = 0.0
+    """Weight of the joint velocity term (per m^2 of frame-to-frame joint displacement). Off by
+    default: it biases every real movement towards standing still; acceleration smooths without
+    that bias."""
+    w_joint_acc: float = 30.0
+    """Weight of the joint acceleration term (per m^2 of second difference per frame^2)."""
+    w_transl_vel: float = 0.0
+    """Weight of the translation velocity term (per m^2)."""
+    w_transl_acc: float = 30.0
+    """Weight of the translation acceleration term (per m^2)."""
+    w_pose_prior: float = 0.01
+    """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
+    used only when a prior pose is given."""
+    w_joint_limits: float = 1.0
+    """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
+    w_shape_prior: float = 0.01
+    """Weight of the betas L2 prior (per unit of mean squared beta)."""
+    kp3d_kernel: str = "geman_mcclure"
+    """Robust kernel of the 3D term: ``l2``, ``huber`` or ``geman_mcclure``."""
+    kp3d_scale_m: float = 0.05
+    """Robust scale of the 3D term, metres (a triangulation error of a few cm is normal; a
+    mis-triangulated point 20 cm off stops pulling)."""
+    reproj_kernel: str = "geman_mcclure"
+    """Robust kernel of the reprojection term."""
+    reproj_scale_px: float = 20.0
+    """Robust scale of the reprojection term, pixels."""
+    min_conf: float = 0.1
+    """Keypoints (3D and 2D) with confidence below this are ignored."""
+    solver: str = "adam"
+    """``adam`` or ``lbfgs`` (torch's L-BFGS with strong-Wolfe line search)."""
+    phase1_iterations: int = 60
+    """Iterations of phase 1 (Adam steps, or L-BFGS outer iterations)."""
+    phase1_lr: float = 0.03
+    """Adam learning rate of phase 1 (radians / metres / beta units per step at the start)."""
+    phase2_iterations: int = 300
+    """Iterations of phase 2."""
+    phase2_lr: float = 0.03
+    """Adam learning rate of phase 2."""
+    lr_final_ratio: float = 0.02
+    """Adam learning rates decay (cosine) to this fraction of their start within each phase:
+    large steps find the basin, small ones settle in it without Adam's jitter."""
+    betas_lr_scale: float = 3.0
+    """Betas learn this many times faster than the rest (they move by O(1) units, the angles by
+    O(0.1) rad)."""
+    window_frames: int = 300
+    """Frames per window for long sequences (a sequence this long or shorter is one window)."""
+    overlap_frames: int = 30
+    """Frames shared by consecutive windows, blended linearly."""
+    shape_frames: int = 100
+    """Frames (spread evenly over the sequence) on which betas are fitted when there are several
+    windows."""
+    device: str = "auto"
+    """``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``."""
+    dtype: str = "float64"
+    """``float64`` or ``float32``; the keypoint body is cheap, so double precision costs little on
+    CPU and keeps the finest steps exact."""
+
+
+@dataclass(frozen=True)
+class ViewObservations:
+    """One view's cameras and 2D keypoints, for the reprojection term.
+
+    K: (3, 3) intrinsics, pixels. T_world_cam: (T, 4, 4) camera-to-world of each sequence frame
+    (OpenCV axes, scene world). keypoints: (T, 17, 3) COCO-17 pixel x, y and confidence (0 or NaN
+    = missing). name: label used in the results (default ``view<i>``).
+    """
+
+    K: NDArray
+    T_world_cam: NDArray
+    keypoints: NDArray
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class SmplifyResult:
+    """The fitted motion and how well it fits.
+
+    params: world-space SMPL parameters (betas (B,), per-frame rotations and translation).
+    terms_before / terms_after: each weighted term of the phase-2 objective (name -> value) at
+    the init and at the result, over the whole sequence (``reproj/<view>`` per view).
+    reproj_px: per view, the median reprojection error of the fitted COCO-17 keypoints over the
+    keypoints with confidence, pixels (NaN if none).
+    seconds: wall time of the fit; phase_seconds: "shape", "phase1", "phase2" wall times
+    (summed over windows); windows: (start, end) frame ranges fitted.
+    """
+
+    params: SmplParams
+    terms_before: dict[str, float]
+    terms_after: dict[str, float]
+    reproj_px: dict[str, float]
+    seconds: float
+    phase_seconds: dict[str, float] = field(default_factory=dict)
+    windows: tuple[tuple[int, int], ...] = ()
+
+
+# ---------------------------------------------------------------------------------------------
+# The keypoint body: SMPL joints + face vertices without full skinning
+# ---------------------------------------------------------------------------------------------
+
+
+def axis_angle_to_matrix(r: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices, smooth at zero.
+
+    ``R = I + a [r]x + b [r]x^2`` with ``a = sin t / t`` and ``b = (1 - cos t) / t^2``; ``t`` is
+    ``|r|`` padded by 1e-12 under the square root so the gradient at r = 0 is finite.
+    """
+    t2 = (r * r).sum(-1, keepdim=True)
+    t = torch.sqrt(t2 + 1e-12)
+    a = (torch.sin(t) / t)[..., None]
+    b = ((1.0 - torch.cos(t)) / (t2 + 1e-12))[..., None]
+    x, y, z = r.unbind(-1)
+    o = torch.zeros_like(x)
+    Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(r.shape[:-1] + (3, 3))
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    return eye + a * Kx + b * (Kx @ Kx)
+
+
+class KeypointBody:
+    """SMPL evaluated only where SMPLify looks: the 24 joints and the COCO-17 keypoints.
+
+    Joints follow from the shaped rest joints by forward kinematics (pose blend shapes do not move
+    joints); the 5 face vertices are skinned alone. Results equal
+    :meth:`BodyModel.forward`'s ``joints`` and ``coco17``.
+    """
+
+    def __init__(self, model: BodyModel, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> None:
+        a = model.arrays
+        ids = face_vertex_ids(model.vertex_ids)
+        tt = lambda x: torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)  # noqa: E731
+        Jr = a["J_regressor"]
+        self.num_betas = model.num_betas
+        self.J_template = tt(Jr @ a["v_template"])  # (24, 3)
+        self.J_dirs = tt(np.einsum("jv,vcb->jcb", Jr, a["shapedirs"]))  # (24, 3, B)
+        self.f_template = tt(a["v_template"][ids])  # (5, 3)
+        self.f_dirs = tt(a["shapedirs"][ids])  # (5, 3, B)
+        self.f_posedirs = tt(a["posedirs"][ids])  # (5, 3, 207)
+        self.f_weights = tt(a["weights"][ids])  # (5, 24)
+        self.coco = tt(coco17_matrix())  # (17, 29)
+        parents = np.asarray(model.parents, dtype=np.int64).copy()
+        parents[0] = -1
+        self.parents = torch.as_tensor(parents, device=device)
+        # Joints grouped by depth in the tree: each level is one batched matmul.
+        depth = np.zeros(24, dtype=np.int64)
+        for j in range(1, 24):
+            depth[j] = depth[parents[j]] + 1
+        self.levels = [(np.flatnonzero(depth == d).tolist(), parents[depth == d].tolist()) for d in range(1, depth.max() + 1)]
+        self.dtype, self.device = dtype, torch.device(device)
+
+    def __call__(self, betas: torch.Tensor, global_orient: torch.Tensor, body_pose: torch.Tensor,
+                 transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joints (T, 24, 3) and COCO-17 keypoints (T, 17, 3) for betas (B,) and per-frame
+        global_orient (T, 3), body_pose (T, 69), transl (T, 3)."""
+        T = global_orient.shape[0]
+        b = torch.nn.functional.pad(betas, (0, self.num_betas - betas.shape[-1]))
+        J_rest = self.J_template + self.J_dirs @ b  # (24, 3)
+        R_local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], -1).reshape(T, 24, 3))
+        bone = J_rest[1:] - J_rest[self.parents[1:]]  # (23, 3) rest offset from the parent
+        # Per-joint lists, one batched product per tree level (in-place writes into one tensor
+        # would copy the whole tensor per level, forward and backward).
+        R_loc = R_local.unbind(1)
+        R_w: list[torch.Tensor] = [R_loc[0]] + [None] * 23  # type: ignore[list-item]
+        p_w: list[torch.Tensor] = [J_rest[0].expand(T, 3)] + [None] * 23  # type: ignore[list-item]
+        for idx, par in self.levels:
+            R_par = torch.stack([R_w[p] for p in par], 1)  # (T, n, 3, 3)
+            p_par = torch.stack([p_w[p] for p in par], 1)  # (T, n, 3)
+            R_new = (R_par @ torch.stack([R_loc[j] for j in idx], 1)).unbind(1)
+            p_new = (p_par + (R_par @ bone[[i - 1 for i in idx]][..., None])[..., 0]).unbind(1)
+            for k, j in enumerate(idx):
+                R_w[j], p_w[j] = R_new[k], p_new[k]
+        R_world, pos = torch.stack(R_w, 1), torch.stack(p_w, 1)
+        # Face vertices: shape + pose blend shapes, then linear blend skinning of 5 vertices.
+        feat = (R_local[:, 1:] - torch.eye(3, dtype=R_local.dtype, device=R_local.device)).reshape(T, 207)
+        v_posed = self.f_template + self.f_dirs @ b + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
+        local = v_posed[:, :, None, :] - J_rest  # (T, 5, 24, 3) vertex relative to each rest joint
+        moved = torch.einsum("tjab,tvjb->tvja", R_world, local) + pos[:, None]
+        face = (self.f_weights[None, :, :, None] * moved).sum(2)
+        joints = pos + transl[:, None]
+        face = face + transl[:, None]
+        coco = torch.einsum("kj,tjc->tkc", self.coco, torch.cat([joints, face], 1))
+        return joints, coco
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Data:
+    """All observations as tensors, frames on axis 0 (sliceable into windows)."""
+
+    kp3d: torch.Tensor  # (T, 17, 3), NaN-free
+    conf3d: torch.Tensor  # (T, 17)
+    K: torch.Tensor  # (V, 3, 3)
+    T_world_cam: torch.Tensor  # (T, V, 4, 4)
+    kp2d: torch.Tensor  # (T, V, 17, 2)
+    conf2d: torch.Tensor  # (T, V, 17)
+    prior: torch.Tensor | None  # (T, 69)
+    prior_conf: torch.Tensor | None  # (T,)
+
+    def slice(self, idx: slice | torch.Tensor) -> "_Data":
+        cut = lambda x: None if x is None else x[idx]  # noqa: E731
+        return _Data(cut(self.kp3d), cut(self.conf3d), self.K, cut(self.T_world_cam), cut(self.kp2d),
+                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf))
+
+
+def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: SmplParams, prior, model_betas: int) -> int:
+    T = len(init)
+    if T == 0:
+        raise ValueError("init has no frames: nothing to fit")
+    if kp3d.shape != (T, 17, 3):
+        raise ValueError(f"kp3d must be (T={T}, 17, 3) like init, got {kp3d.shape}")
+    if kp3d_conf.shape != (T, 17):
+        raise ValueError(f"kp3d_conf must be (T={T}, 17), got {kp3d_conf.shape}")
+    for i, v in enumerate(views):
+        name = v.name or f"view{i}"
+        if np.shape(v.K) != (3, 3):
+            raise ValueError(f"view {name}: K must be (3, 3), got {np.shape(v.K)}")
+        if np.shape(v.T_world_cam) != (T, 4, 4):
+            raise ValueError(f"view {name}: T_world_cam must be (T={T}, 4, 4), got {np.shape(v.T_world_cam)}")
+        if np.shape(v.keypoints) != (T, 17, 3):
+            raise ValueError(f"view {name}: keypoints must be (T={T}, 17, 3) pixels + confidence, got {np.shape(v.keypoints)}")
+        if not np.all(np.isfinite(v.K)) or not np.all(np.isfinite(v.T_world_cam)):
+            raise ValueError(f"view {name}: K and T_world_cam must be finite")
+    if init.betas.shape[0] > model_betas:
+        raise ValueError(f"init has {init.betas.shape[0]} betas, the body model {model_betas}")
+    if prior is not None and np.shape(prior) != (T, 69):
+        raise ValueError(f"prior_body_pose must be (T={T}, 69), got {np.shape(prior)}")
+    for name in ("global_orient", "body_pose", "transl", "betas"):
+        if not np.all(np.isfinite(getattr(init, name))):
+            raise ValueError(f"init.{name} has non-finite values")
+    return T
+
+
+def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device) -> _Data:
+    tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    T = len(kp3d)
+    conf3 = np.where(np.isfinite(kp3d).all(-1) & (np.nan_to_num(kp3d_conf) >= cfg.min_conf), kp3d_conf, 0.0)
+    V = len(views)
+    if V:
+        K = np.stack([v.K for v in views])
+        Twc = np.stack([v.T_world_cam for v in views], 1)
+        kp = np.stack([np.asarray(v.keypoints, dtype=np.float64) for v in views], 1)  # (T, V, 17, 3)
+    else:
+        K, Twc, kp = np.zeros((0, 3, 3)), np.zeros((T, 0, 4, 4)), np.zeros((T, 0, 17, 3))
+    c2 = np.nan_to_num(kp[..., 2])
+    c2 = np.where(np.isfinite(kp[..., :2]).all(-1) & (c2 >= cfg.min_conf), c2, 0.0)
+    prior_t = prior_c = None
+    if prior is not None:
+        prior = np.asarray(prior, dtype=np.float64)
+        ok = np.isfinite(prior).all(-1) & (np.abs(np.nan_to_num(prior)).sum(-1) > 0)  # all-zero row = missing
+        prior_t, prior_c = tt(np.where(ok[:, None], np.nan_to_num(prior), 0.0)), tt(ok.astype(np.float64))
+    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c)
+
+
+# ---------------------------------------------------------------------------------------------
+# Objective
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _State:
+    """Parameters of one window (leaf tensors)."""
+
+    betas: torch.Tensor  # (B,)
+    go: torch.Tensor  # (W, 3)
+    pose: torch.Tensor  # (W, 69)
+    transl: torch.Tensor  # (W, 3)
+
+
+def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: int, names: list[str],
+           smooth: bool = True) -> dict[str, torch.Tensor]:
+    """Weighted terms of ``phase`` (1 or 2) for the state ``s`` on data ``d``."""
+    joints, coco = body(s.betas, s.go, s.pose, s.transl)
+    out = {"kp3d": cfg.w_kp3d * TM.kp3d_term(coco, d.kp3d, d.conf3d, cfg.kp3d_kernel, cfg.kp3d_scale_m)}
+    if smooth:
+        out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
+        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
+        out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
+        out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
+    out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
+    if phase == 1:
+        return out
+    for v, name in enumerate(names):
+        out[f"reproj/{name}"] = cfg.w_reproj * TM.reproj_term(
+            coco, d.K[v : v + 1], d.T_world_cam[:, v : v + 1], d.kp2d[:, v : v + 1], d.conf2d[:, v : v + 1],
+            cfg.reproj_kernel, cfg.reproj_scale_px)
+    if d.prior is not None:
+        out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
+    out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
+    return out
+
+
+def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[], torch.Tensor], iterations: int,
+              cfg: SmplifyConfig) -> None:
+    """Minimise ``loss_fn`` over ``params`` in place (Adam with cosine decay, or L-BFGS)."""
+    if iterations <= 0 or not params:
+        return
+    if cfg.solver == "lbfgs":
+        opt = torch.optim.LBFGS(params, lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-12, tolerance_change=1e-14)
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            loss = loss_fn()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        return
+    opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
+    for it in range(iterations):
+        frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
+        for g, lr in zip(opt.param_groups, lrs):
+            g["lr"] = lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac)
+        opt.zero_grad()
+        loss_fn().backward()
+        opt.step()
+
+
+def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, names: list[str], free_betas: bool,
+                smooth: bool, timing: dict[str, float], label: str = "") -> _State:
+    """Both phases on one window; returns the fitted (detached) state."""
+    s = _State(*(x.detach().clone().requires_grad_(True) for x in (init.betas, init.go, init.pose, init.transl)))
+    if not free_betas:
+        s.betas.requires_grad_(False)
+    total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth).values())  # noqa: E731
+
+    t0 = time.perf_counter()
+    p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
+    lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
+    _optimise(p1, lr1, total(1), cfg.phase1_iterations, cfg)
+    t1 = time.perf_counter()
+    p2 = p1 + [s.pose]
+    lr2 = ([cfg.phase2_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase2_lr] * 3
+    _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg)
+    t2 = time.perf_counter()
+    timing[f"{label}phase1"] = timing.get(f"{label}phase1", 0.0) + t1 - t0
+    timing[f"{label}phase2"] = timing.get(f"{label}phase2", 0.0) + t2 - t1
+    return _State(*(x.detach() for x in (s.betas, s.go, s.pose, s.transl)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Windows
+# ---------------------------------------------------------------------------------------------
+
+
+def window_ranges(T: int, length: int, overlap: int) -> list[tuple[int, int]]:
+    """Evenly spaced windows ``[start, end)`` of ``length`` frames covering ``0..T``, neighbours
+    sharing at least ``overlap`` frames; one window when ``T <= length``."""
+    if length <= overlap or overlap < 0:
+        raise ValueError(f"window length {length} must exceed the overlap {overlap} >= 0")
+    if T <= length:
+        return [(0, T)]
+    n = math.ceil((T - overlap) / (length - overlap))
+    starts = np.round(np.linspace(0, T - length, n)).astype(int)
+    return [(int(s), int(s) + length) for s in starts]
+
+
+def _blend_weights(ranges: list[tuple[int, int]], T: int, ramp: int) -> NDArray[np.float64]:
+    """(n, T) blend weight of each window per frame: a trapezoid rising over ``ramp`` frames at
+    inner window edges, normalised to sum 1 per frame (linear cross-fade in a ``ramp`` overlap)."""
+    w = np.zeros((len(ranges), T))
+    for k, (s, e) in enumerate(ranges):
+        t = np.arange(s, e) + 0.5
+        up = np.ones(e - s) if s == 0 else np.clip((t - s) / max(ramp, 1), 0, 1)
+        down = np.ones(e - s) if e == T else np.clip((e - t) / max(ramp, 1), 0, 1)
+        w[k, s:e] = np.minimum(up, down)
+    return w / w.sum(0, keepdims=True)
+
+
+def _blend(ranges, states: list[_State], T: int, ramp: int) -> tuple[NDArray, NDArray, NDArray]:
+    """Blend window results: (T, 3) global_orient, (T, 69) body_pose, (T, 3) transl."""
+    w = _blend_weights(ranges, T, ramp)
+    quat = np.zeros((T, 24, 4))
+    transl = np.zeros((T, 3))
+    for k, ((s, e), st) in enumerate(zip(ranges, states)):
+        rot = np.concatenate([st.go.cpu().numpy(), st.pose.cpu().numpy()], 1).reshape(-1, 3)
+        q = Rotation.from_rotvec(rot).as_quat().reshape(e - s, 24, 4)
+        # q and -q are one rotation: flip to the hemisphere of what is accumulated so far.
+        sign = np.where((q * quat[s:e]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+        quat[s:e] += w[k, s:e, None, None] * sign * q
+        transl[s:e] += w[k, s:e, None] * st.transl.cpu().numpy()
+    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
+    rot = Rotation.from_quat(quat.reshape(-1, 4)).as_rotvec().reshape(T, 72)
+    return rot[:, :3], rot[:, 3:], transl
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+
+
+def _device(cfg: SmplifyConfig) -> torch.device:
+    if cfg.device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if cfg.device not in ("cpu", "cuda"):
+        raise ValueError(f"device must be auto, cpu or cuda, got {cfg.device!r}")
+    return torch.device(cfg.device)
+
+
+def _check_config(cfg: SmplifyConfig) -> torch.dtype:
+    if cfg.solver not in ("adam", "lbfgs"):
+        raise ValueError(f"unknown solver {cfg.solver!r}: use adam or lbfgs")
+    if cfg.dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype must be float32 or float64, got {cfg.dtype!r}")
+    window_ranges(cfg.window_frames + 1, cfg.window_frames, cfg.overlap_frames)  # validates the pair
+    return torch.float64 if cfg.dtype == "float64" else torch.float32
+
+
+def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _State, ranges: list[tuple[int, int]],
+                 cfg: SmplifyConfig, names: list[str], timing: dict[str, float]) -> tuple[NDArray, ...]:
+    """Betas on a subsample of the whole sequence, then each window with them fixed, blended.
+
+    Returns (T, 3) global_orient, (T, 69) body_pose, (T, 3) transl and (B,) betas.
+    """
+    T = ranges[-1][1]
+    t0 = time.perf_counter()
+    sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
+    sub = torch.as_tensor(sub, device=start.go.device)
+    sub_init = _State(start.betas, start.go[sub], start.pose[sub], start.transl[sub])
+    shape = _fit_window(body, data.slice(sub), sub_init, cfg, names, free_betas=True, smooth=False,
+                        timing=timing, label="shape_")
+    timing["shape"] = time.perf_counter() - t0
+    # Keep the init's pelvis where it was when the betas change: transl pivots on J0(betas).
+    b0, b1 = start.betas.cpu().numpy(), shape.betas.cpu().numpy()
+    shift = torch.as_tensor(model.pelvis_offset(b0) - model.pelvis_offset(b1), dtype=start.transl.dtype,
+                            device=start.transl.device)
+    states = []
+    for s, e in ranges:
+        w_init = _State(shape.betas, start.go[s:e], start.pose[s:e], start.transl[s:e] + shift)
+        states.append(_fit_window(body, data.slice(slice(s, e)), w_init, cfg, names, free_betas=False,
+                                  smooth=True, timing=timing))
+        log.debug("smplify window %d-%d done", s, e)
+    go, pose, transl = _blend(ranges, states, T, cfg.overlap_frames)
+    return go, pose, transl, b1
+
+
+def fit_world_smpl(
+    model: BodyModel,
+    kp3d: NDArray,
+    kp3d_conf: NDArray,
+    views: Sequence[ViewObservations],
+    init: SmplParams,
+    prior_body_pose: NDArray | None = None,
+    cfg: SmplifyConfig = SmplifyConfig(),
+) -> SmplifyResult:
+    """Fit world-space SMPL motion to 3D and 2D keypoints with the cameras fixed.
+
+    Args:
+        model: the body model.
+        kp3d: (T, 17, 3) triangulated COCO-17 keypoints in the world, metres (NaN = missing).
+        kp3d_conf: (T, 17) their confidences.
+        views: per-view cameras and 2D keypoints (may be empty: 3D term only).
+        init: starting parameters, T frames (see :mod:`embodmocap.motion.init`).
+        prior_body_pose: (T, 69) body pose to stay near (e.g. the regressor's), all-zero rows =
+            missing; None = no pose prior.
+        cfg: weights, schedules, windows, device.
+
+    Returns:
+        :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
+    """
+    t_start = time.perf_counter()
+    kp3d, kp3d_conf = np.asarray(kp3d, dtype=np.float64), np.asarray(kp3d_conf, dtype=np.float64)
+    T = _check_inputs(kp3d, kp3d_conf, views, init, prior_body_pose, model.num_betas)
+    dtype, device = _check_config(cfg), _device(cfg)
+    names = [v.name or f"view{i}" for i, v in enumerate(views)]
+    body = KeypointBody(model, dtype, device)
+    data = _to_data(kp3d, kp3d_conf, views, prior_body_pose, cfg, dtype, device)
+    tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
+
+    timing: dict[str, float] = {}
+    ranges = window_ranges(T, cfg.window_frames, cfg.overlap_frames)
+    if len(ranges) == 1:
+        fitted = _fit_window(body, data, start, cfg, names, free_betas=True, smooth=True, timing=timing)
+        go, pose, transl, betas = (x.cpu().numpy() for x in (fitted.go, fitted.pose, fitted.transl, fitted.betas))
+    else:
+        go, pose, transl, betas = _fit_windows(model, body, data, start, ranges, cfg, names, timing)
+
+    params = SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=init.fps, gender=init.gender)
+    before = _evaluate(body, start, data, cfg, names)
+    after_state = _State(tt(betas), tt(go), tt(pose), tt(transl))
+    after = _evaluate(body, after_state, data, cfg, names)
+    reproj = _median_reprojection(body, after_state, data, names)
+    seconds = time.perf_counter() - t_start
+    log.info("smplify: %d frames, %d window(s), loss %.4g -> %.4g in %.1f s", T, len(ranges),
+             sum(before.values()), sum(after.values()), seconds)
+    return SmplifyResult(params, before, after, reproj, seconds, {k: round(v, 3) for k, v in timing.items()}, tuple(ranges))
+
+
+def _evaluate(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, names: list[str]) -> dict[str, float]:
+    with torch.no_grad():
+        return {k: float(v) for k, v in _terms(body, s, d, cfg, 2, names).items()}
+
+
+def _median_reprojection(body: KeypointBody, s: _State, d: _Data, names: list[str]) -> dict[str, float]:
+    with torch.no_grad():
+        _, coco = body(s.betas, s.go, s.pose, s.transl)
+        uv, z = TM.project(coco, d.K, d.T_world_cam)
+        err = torch.linalg.norm(uv - d.kp2d, dim=-1)  # (T, V, 17)
+    out = {}
+    for v, name in enumerate(names):
+        e = err[:, v][(d.conf2d[:, v] > 0) & (z[:, v] > 0)]
+        out[name] = float(e.median()) if e.numel() else float("nan")
+    return out

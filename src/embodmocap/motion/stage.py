@@ -1,0 +1,235 @@
+"""Stage IV: world-space SMPL motion with the cameras and the scene fixed.
+
+``run(config, session, seq)`` reads top to bottom as the recipe:
+
+1. ``triangulate``: both views' COCO-17 keypoints (Stage II) triangulated with the cameras in the
+   scene's world (Stage III): confidence-weighted DLT over all frames at once, short gaps filled,
+   long gaps flagged -> ``keypoints3d.npz``;
+2. ``fit``: the two-phase world SMPLify (shape, translation and orientation first; then
+   everything) on the 3D keypoints, each view's 2D keypoints, smoothness and the pose prior,
+   initialised from the camera-space body prior moved into the world (or, without a prior, from
+   the 3D keypoints) -> ``smpl_fit.npz``;
+3. ``align``: with contact markers in the manifest, the yaw + translation that puts the feet on
+   the markers, applied to the body (pelvis-consistent) and the cameras; refused, with the
+   residual, when the markers disagree -> ``smpl_world.npz``, ``joints_world.npz`` and
+   ``<view>/cameras_final.npz`` (the final outputs, also written without markers).
+
+Each step is fingerprinted in ``motion_manifest.json`` and skipped when its inputs and settings
+did not change.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError
+from embodmocap.geometry.triangulation import TriangulationConfig, projection_matrices, triangulate
+from embodmocap.io.atomic import write_npz
+from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
+from embodmocap.io.manifest import load_manifest
+from embodmocap.io.smpl_file import read_smpl_npz, write_smpl_npz
+from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
+from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
+from embodmocap.motion.init import init_from_keypoints, init_from_prior
+from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
+
+log = logging.getLogger(__name__)
+
+KEYPOINTS3D_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """How Stage IV triangulates, fits and aligns the motion."""
+
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    """Triangulation of the two views' 2D keypoints."""
+    smplify: SmplifyConfig = field(default_factory=SmplifyConfig)
+    """The two-phase world SMPLify (weights, iterations, windows, device)."""
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    """Contact-marker alignment (used when the manifest lists contacts for the sequence)."""
+    use_body_prior: bool = True
+    """Initialise from the camera-space body prior (and pull the pose towards it) when the
+    sequence has one; False = start from the triangulated keypoints, no pose prior."""
+    align_contacts: bool = True
+    """Apply the contact-marker alignment when the manifest lists contacts."""
+    min_prior_fraction: float = 0.5
+    """A view's body prior is used only when at least this share of its frames has an estimate."""
+
+
+@dataclass(frozen=True)
+class MotionOutputs:
+    """What Stage IV produced for one sequence."""
+
+    name: str
+    layout: SequenceLayout
+    figures: dict
+    skipped: tuple[str, ...]
+
+
+def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> MotionOutputs:
+    """Run Stage IV for sequence ``seq`` (the only one when None)."""
+    from embodmocap.body.model import load_body_model
+    from embodmocap.sequence.stage import _pick_sequence
+
+    lay = SessionLayout(Path(session))
+    manifest = load_manifest(lay.manifest)
+    entry = _pick_sequence(manifest, seq)
+    out = lay.sequence(entry.name)
+    for v in VIEWS:
+        vl = out.view(v)
+        if not vl.keypoints.is_file():
+            raise InputError(vl.keypoints, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
+        if not vl.cameras_world.is_file():
+            raise InputError(vl.cameras_world, "Stage III outputs are missing", f"run `embodmocap calibrate {lay.root} --seq {entry.name}` first")
+    sm = StageManifest(out.motion_manifest, "motion", cfg)
+    skipped: list[str] = []
+    cams = {v: np.load(out.view(v).cameras_world) for v in VIEWS}
+    kps = {v: np.load(out.view(v).keypoints)["keypoints"] for v in VIEWS}
+    T = min(len(kps[v]) for v in VIEWS)
+    fps = _fps(out)
+
+    def step(name: str, fp: str) -> bool:
+        if not force and sm.is_current(name, fp):
+            skipped.append(name)
+            return False
+        return True
+
+    # 1. Triangulation.
+    fp_tri = fingerprint("triangulate", cfg.triangulation,
+                         *[path_fingerprint(p) for v in VIEWS for p in (out.view(v).keypoints, out.view(v).cameras_world)])
+    if step("triangulate", fp_tri):
+        t0 = time.perf_counter()
+        K = np.stack([cams[v]["K"] for v in VIEWS])
+        P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
+        kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
+        tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
+        write_npz(out.keypoints3d, version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
+                  reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS))
+        seen = np.isfinite(tri.points[..., 0])
+        sm.record("triangulate", fp_tri, [out.keypoints3d], time.perf_counter() - t0, {
+            "triangulated_fraction": round(float(seen.mean()), 4),
+            "filled_fraction": round(float(tri.filled.mean()), 4),
+            "long_gaps": len(tri.long_gaps),
+            "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
+        })
+        for joint, start, end in tri.long_gaps[:10]:
+            log.warning("%s: joint %d not triangulated for frames %d-%d (too long to fill)", entry.name, joint, start, end)
+
+    # 2. SMPLify.
+    model = load_body_model(manifest.body_model)
+    priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
+    fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, path_fingerprint(out.keypoints3d),
+                         *[path_fingerprint(out.view(v).body_prior) for v in priors], model.source)
+    if step("fit", fp_fit):
+        t0 = time.perf_counter()
+        k3 = np.load(out.keypoints3d)
+        views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kps[v][:T], name=v)
+                 for v in VIEWS]
+        if priors:
+            v_best = max(priors, key=lambda v: priors[v][1].mean())
+            prior, has = priors[v_best]
+            init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, manifest.gender or "neutral")
+            prior_pose = init.body_pose
+            log.info("%s: initialised from the %s body prior (%.0f%% of frames)", entry.name, v_best, 100 * has.mean())
+        else:
+            init = init_from_keypoints(model, k3["points"], k3["conf"], fps, manifest.gender or "neutral")
+            prior_pose, v_best = None, None
+        init = _with_fps(init, fps, manifest.gender)
+        res = fit_world_smpl(model, k3["points"], k3["conf"], views, init, prior_pose, cfg.smplify)
+        write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender))
+        sm.record("fit", fp_fit, [out.smpl_fit], time.perf_counter() - t0, {
+            "init": f"body prior {v_best}" if v_best else "keypoints",
+            "terms_before": res.terms_before, "terms_after": res.terms_after,
+            **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
+            "fit_seconds": {k: round(float(x), 2) for k, x in res.phase_seconds.items()},
+        })
+
+    # 3. Contact alignment (always writes the final outputs).
+    contacts = [(c.frame, np.asarray(c.xyz)) for c in entry.contacts] if cfg.align_contacts else []
+    fp_align = fingerprint("align", cfg.contact, cfg.align_contacts, [(f, x.tolist()) for f, x in contacts],
+                           path_fingerprint(out.smpl_fit), *[path_fingerprint(out.view(v).cameras_world) for v in VIEWS])
+    if step("align", fp_align):
+        t0 = time.perf_counter()
+        params, frames = read_smpl_npz(out.smpl_fit)
+        T_align, figures = np.eye(4), {"contact_alignment": "none (no contacts)"}
+        if contacts:
+            bad = [f for f, _ in contacts if not 0 <= f < len(params)]
+            if bad:
+                raise InputError(lay.manifest, f"sequence {entry.name}: contact frames {bad} outside 0..{len(params) - 1}",
+                                 "give contact frames in sequence frames (after sync and slicing)")
+            al = align_to_contacts(model, params, contacts, cfg.contact)
+            figures = {"contact_residuals_before_m": [round(float(r), 4) for r in al.residuals_before_m],
+                       "contact_residuals_after_m": [round(float(r), 4) for r in al.residuals_after_m],
+                       "contact_alignment": "refused" if al.refused else "applied"}
+            if al.refused:
+                log.warning("%s: contact alignment refused: %s", entry.name, al.message)
+                figures["contact_message"] = al.message
+            else:
+                T_align = al.T
+                params = apply_alignment(model, params, T_align)
+        write_smpl_npz(out.smpl_world, params, frames)
+        body = model.from_params(params, dtype=__import__("torch").float64)
+        write_npz(out.joints_world, version=np.int64(1), joints=body.joints.detach().numpy(),
+                  coco17=body.coco17.detach().numpy(), frames=frames)
+        outs = [out.smpl_world, out.joints_world]
+        for v in VIEWS:
+            c = cams[v]
+            write_npz(out.view(v).cameras_final, version=np.int64(1), K=c["K"], width=c["width"], height=c["height"],
+                      T_world_cam=apply_alignment_to_cameras(c["T_world_cam"], T_align), raw_frames=c["raw_frames"])
+            outs.append(out.view(v).cameras_final)
+        figures["T_align"] = T_align.tolist()
+        sm.record("align", fp_align, outs, time.perf_counter() - t0, figures)
+    return MotionOutputs(entry.name, out, sm.figures(), tuple(skipped))
+
+
+def _fps(out: SequenceLayout) -> float:
+    """Sequence frame rate from Stage II's manifest."""
+    import json
+
+    return float(json.loads(out.manifest.read_text())["figures"]["fps"])
+
+
+def _with_fps(params, fps: float, gender: str | None):
+    from dataclasses import replace
+
+    return replace(params, fps=float(fps), gender=gender or params.gender)
+
+
+def _priors(lay: SessionLayout, seq: str, T: int, cfg: MotionConfig) -> dict:
+    """view -> (prior with one row per sequence frame 0..T-1, (T,) bool has-estimate), for the views
+    whose prior covers at least ``cfg.min_prior_fraction`` of the frames."""
+    from embodmocap.io.body_prior import BodyPriorSeq, read_body_prior
+
+    found = {}
+    for v in VIEWS:
+        path = lay.sequence(seq).view(v).body_prior
+        if not path.is_file():
+            continue
+        prior = read_body_prior(path)
+        rows = np.full(T, -1)
+        idx = np.asarray(prior.frame_ids)
+        keep = (idx >= 0) & (idx < T)
+        rows[idx[keep]] = np.flatnonzero(keep)
+        has = rows >= 0
+        # Stage II writes zeros for frames with no estimate.
+        r = np.maximum(rows, 0)
+        has &= np.any(prior.body_pose[r] != 0, axis=1) | np.any(prior.transl_cam[r] != 0, axis=1)
+        if has.mean() < cfg.min_prior_fraction:
+            log.info("%s %s: body prior covers only %.0f%% of frames; not used", seq, v, 100 * has.mean())
+            continue
+        z = lambda a: np.where(has.reshape((-1,) + (1,) * (a.ndim - 1)), a[r], 0.0)  # noqa: E731
+        found[v] = (BodyPriorSeq(z(prior.global_orient_cam), z(prior.body_pose), z(prior.betas), z(prior.transl_cam),
+                                 np.arange(T)), has)
+    return found
+
+
+def _nanmedian(a: NDArray) -> float | None:
+    a = np.asarray(a, dtype=np.float64)
+    return round(float(np.nanmedian(a)), 3) if np.isfinite(a).any() else None

@@ -1,0 +1,159 @@
+"""World-space SMPLify loss terms: small pure torch functions, each returning a scalar.
+
+Every term is an *unweighted mean*, so its weight in :class:`~embodmocap.motion.smplify.SmplifyConfig`
+says how much it counts regardless of the number of frames. Units of each term:
+
+=================== ==================================================================== =========
+term                value                                                                unit
+=================== ==================================================================== =========
+kp3d                confidence-weighted mean of ``rho(|J - Y|^2)``                        1 (robust)
+reproj              confidence-weighted mean of ``rho(|pi(J) - y|^2)`` over views         1 (robust)
+joint_vel / _acc    mean squared norm of the 1st / 2nd frame difference of joints         m^2
+transl_vel / _acc   same for the SMPL translation                                         m^2
+pose_prior          mean squared axis-angle difference to a prior body pose               rad^2
+joint_limits        mean over frames of squared hinge violations (knees, elbows)          rad^2
+shape_prior         mean squared beta                                                     1
+=================== ==================================================================== =========
+
+``rho`` is a robust kernel (:func:`embodmocap.calibrate.losses.robust_rho`: ``l2``, ``huber`` or
+``geman_mcclure``) of the squared residual norm divided by ``scale**2``, so a residual of one
+``scale`` costs about 1 (Huber) or 0.5 (Geman-McClure) and gross outliers stop pulling.
+
+Missing observations are marked by zero confidence; their targets may be NaN (they are replaced
+by zeros before use, so no NaN reaches the gradient).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from embodmocap.calibrate.losses import robust_rho
+
+#: (SMPL joint id, axis, sign) of one-way hinges: ``sign * angle`` must stay >= 0. Knees flex
+#: about +x of the SMPL joint frame; the left elbow flexes about -y and the right one about +y.
+HINGES: tuple[tuple[int, int, float], ...] = ((4, 0, 1.0), (5, 0, 1.0), (18, 1, -1.0), (19, 1, 1.0))
+
+
+def _weighted_robust_mean(s: torch.Tensor, conf: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
+    """``sum(conf * rho(s)) / sum(conf)``; 0 when nothing has confidence."""
+    return (conf * robust_rho(s, kind, scale)).sum() / conf.sum().clamp(min=1e-12)
+
+
+def _clean(target: torch.Tensor, conf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Targets with NaN rows zeroed and their confidence set to 0 (rows = all but the last axis)."""
+    finite = torch.isfinite(target).all(-1)
+    conf = torch.where(finite, conf, torch.zeros_like(conf))
+    return torch.nan_to_num(target, nan=0.0, posinf=0.0, neginf=0.0), conf
+
+
+def kp3d_term(pred: torch.Tensor, target: torch.Tensor, conf: torch.Tensor, kind: str = "geman_mcclure",
+              scale: float = 0.05) -> torch.Tensor:
+    """3D keypoint term.
+
+    Args:
+        pred: (T, J, 3) model keypoints, metres.
+        target: (T, J, 3) triangulated keypoints, metres (NaN where missing).
+        conf: (T, J) confidence >= 0 (0 = ignore).
+        kind, scale: robust kernel and its scale in metres.
+    """
+    target, conf = _clean(target, conf)
+    s = ((pred - target) ** 2).sum(-1)
+    return _weighted_robust_mean(s, conf, kind, scale)
+
+
+def project(points: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
+            min_depth: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of world points into V cameras.
+
+    Args:
+        points: (T, J, 3) world points, metres.
+        K: (V, 3, 3) intrinsics (pixels).
+        T_world_cam: (T, V, 4, 4) camera-to-world, OpenCV axes (rigid).
+        min_depth: depths below this are clamped (keeps the division finite behind the camera).
+
+    Returns:
+        uv (T, V, J, 2) pixels and depth (T, V, J) metres along the optical axis.
+    """
+    R = T_world_cam[..., :3, :3]  # (T, V, 3, 3) camera -> world
+    c = T_world_cam[..., :3, 3]  # (T, V, 3) camera centre
+    # world -> camera of a rigid transform is R^T (p - c): no matrix inverse needed.
+    p_cam = torch.einsum("tvji,tvnj->tvni", R, points[:, None, :, :] - c[:, :, None, :])
+    z = p_cam[..., 2]
+    uvw = torch.einsum("vij,tvnj->tvni", K, p_cam / z.clamp(min=min_depth)[..., None])
+    return uvw[..., :2], z
+
+
+def reproj_term(pred: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, kp2d: torch.Tensor,
+                conf: torch.Tensor, kind: str = "geman_mcclure", scale: float = 20.0,
+                min_depth: float = 0.05) -> torch.Tensor:
+    """Per-view reprojection term, pixels.
+
+    Args:
+        pred: (T, J, 3) model keypoints in the world, metres.
+        K: (V, 3, 3) intrinsics of each view.
+        T_world_cam: (T, V, 4, 4) camera-to-world of each frame and view (OpenCV axes).
+        kp2d: (T, V, J, 2) detected keypoints, pixels (NaN where missing).
+        conf: (T, V, J) detection confidence (0 = ignore).
+        kind, scale: robust kernel and its scale in pixels.
+        min_depth: points closer than this to a camera (or behind it) do not count, metres.
+    """
+    kp2d, conf = _clean(kp2d, conf)
+    uv, z = project(pred, K, T_world_cam)
+    conf = torch.where(z.detach() > min_depth, conf, torch.zeros_like(conf))
+    s = ((uv - kp2d) ** 2).sum(-1)
+    return _weighted_robust_mean(s, conf, kind, scale)
+
+
+def velocity_term(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared norm of the first frame difference of ``x`` (T, ..., D) over the last axis.
+
+    For joints (T, 24, 3) or translations (T, 3), in m^2 per frame^2; 0 for fewer than 2 frames.
+    """
+    if x.shape[0] < 2:
+        return x.sum() * 0.0
+    return ((x[1:] - x[:-1]) ** 2).sum(-1).mean()
+
+
+def acceleration_term(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared norm of the second frame difference of ``x`` (T, ..., D); 0 for T < 3."""
+    if x.shape[0] < 3:
+        return x.sum() * 0.0
+    return ((x[2:] - 2.0 * x[1:-1] + x[:-2]) ** 2).sum(-1).mean()
+
+
+def pose_prior_term(body_pose: torch.Tensor, prior: torch.Tensor, conf: torch.Tensor | None = None) -> torch.Tensor:
+    """Pull towards a prior body pose: mean over frames of the squared axis-angle difference.
+
+    Args:
+        body_pose: (T, 69) axis-angle of joints 1..23.
+        prior: (T, 69) prior body pose (e.g. the regressor's, moved to the world: body pose is
+            frame independent).
+        conf: (T,) per-frame weight (0 where the prior is missing); None = all 1.
+
+    Axis-angle differences are a fair distance for the small corrections SMPLify makes; the
+    release uses the same plain squared difference.
+    """
+    d = ((body_pose - prior) ** 2).sum(-1)
+    if conf is None:
+        return d.mean()
+    return (conf * d).sum() / conf.sum().clamp(min=1e-12)
+
+
+def joint_limits_term(body_pose: torch.Tensor, hinges: tuple[tuple[int, int, float], ...] = HINGES) -> torch.Tensor:
+    """Hinge joints bend one way only: mean over frames of the summed squared violations.
+
+    Args:
+        body_pose: (T, 69) axis-angle of joints 1..23.
+        hinges: (SMPL joint, axis, sign); the axis-angle component ``sign * pose[joint, axis]``
+            below zero is penalised quadratically (knee hyper-extension, elbow bending backwards).
+    """
+    idx = torch.tensor([3 * (j - 1) + a for j, a, _ in hinges], device=body_pose.device)
+    sign = torch.tensor([s for _, _, s in hinges], dtype=body_pose.dtype, device=body_pose.device)
+    v = torch.relu(-sign * body_pose[:, idx])
+    return (v ** 2).sum(-1).mean() if len(body_pose) else body_pose.sum() * 0.0
+
+
+def shape_prior_term(betas: torch.Tensor) -> torch.Tensor:
+    """Mean squared shape coefficient of ``betas`` (B,): SMPL betas are unit-variance PCA
+    coefficients, so this is the (scaled) negative log-likelihood of the shape."""
+    return (betas ** 2).mean()

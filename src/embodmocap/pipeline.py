@@ -1,0 +1,126 @@
+"""Every stage of a session in order: the recipe ``embodmocap run`` follows.
+
+    for each scene:     Stage I   (scene mesh, sparse model)
+    for each sequence:  Stage II  (sync, slicing, perception)
+                        Stage III (both views in the scene's world)
+                        Stage IV  (world SMPL motion, contact alignment)
+
+Every stage is resumable (its steps are fingerprinted), so running the same command again after an
+interruption or a fix redoes only what is missing or out of date. A sequence that fails is reported
+with its cause and does not stop the others; a scene that fails skips its sequences.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.errors import EmbodMocapError
+from embodmocap.io.layout import SessionLayout
+from embodmocap.io.manifest import load_manifest
+from embodmocap.motion.stage import MotionConfig
+from embodmocap.scene.config import SceneConfig
+from embodmocap.sequence.config import SequenceConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of every stage (each as its own stage command takes them)."""
+
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    """Stage I."""
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
+    """Stage II."""
+    calibrate: CalibrateConfig = field(default_factory=CalibrateConfig)
+    """Stage III."""
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    """Stage IV."""
+    include_failed: bool = False
+    """Also process sequences the manifest marks ``failed = true``."""
+
+
+@dataclass(frozen=True)
+class StageRun:
+    """One stage of one scene or sequence: ``ok``, ``failed`` (with ``error``) or ``skipped``."""
+
+    target: str
+    stage: str
+    status: str
+    seconds: float
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """What ``run_session`` did, stage by stage."""
+
+    session: Path
+    runs: tuple[StageRun, ...]
+
+    @property
+    def ok(self) -> bool:
+        return all(r.status != "failed" for r in self.runs)
+
+    def failed(self) -> list[StageRun]:
+        return [r for r in self.runs if r.status == "failed"]
+
+
+def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False,
+                on_progress: Callable[[str], None] | None = None) -> PipelineResult:
+    """Run every stage for every scene and sequence of ``session`` (see the module docstring)."""
+    from embodmocap.calibrate import stage as stage3
+    from embodmocap.motion import stage as stage4
+    from embodmocap.scene import stage as stage1
+    from embodmocap.sequence import stage as stage2
+
+    lay = SessionLayout(Path(session))
+    manifest = load_manifest(lay.manifest)
+    say = on_progress or log.info
+    runs: list[StageRun] = []
+
+    def attempt(target: str, stage: str, fn: Callable[[], object]) -> bool:
+        say(f"{target}: {stage} ...")
+        t0 = time.perf_counter()
+        try:
+            fn()
+        except (EmbodMocapError, RuntimeError, ValueError, OSError) as err:
+            # Expected failures of one target (bad capture, too few registered frames, ...): report
+            # and go on with the others. Programming errors (TypeError, KeyError, ...) propagate.
+            seconds = time.perf_counter() - t0
+            msg = str(err) if isinstance(err, EmbodMocapError) else f"{type(err).__name__}: {err}"
+            log.debug("%s %s failed:\n%s", target, stage, traceback.format_exc())
+            say(f"{target}: {stage} FAILED after {seconds:.0f} s: {msg}")
+            runs.append(StageRun(target, stage, "failed", round(seconds, 2), msg))
+            return False
+        seconds = time.perf_counter() - t0
+        say(f"{target}: {stage} done in {seconds:.0f} s")
+        runs.append(StageRun(target, stage, "ok", round(seconds, 2)))
+        return True
+
+    scenes_ok = {}
+    for name in manifest.scenes:
+        scenes_ok[name] = attempt(f"scene {name}", "scene", lambda n=name: stage1.run(cfg.scene, lay.root, n, force=force))
+    for name, entry in manifest.sequences.items():
+        target = f"sequence {name}"
+        if entry.failed and not cfg.include_failed:
+            say(f"{target}: marked failed in the manifest; skipped")
+            runs.append(StageRun(target, "all", "skipped", 0.0, "marked failed in the manifest"))
+            continue
+        if not scenes_ok.get(entry.scene, False):
+            runs.append(StageRun(target, "all", "failed", 0.0, f"its scene {entry.scene} failed"))
+            say(f"{target}: skipped because its scene {entry.scene} failed")
+            continue
+        steps = (("sequence", lambda: stage2.run(cfg.sequence, lay.root, name, force=force)),
+                 ("calibrate", lambda: stage3.run(cfg.calibrate, lay.root, name, force=force)),
+                 ("motion", lambda: stage4.run(cfg.motion, lay.root, name, force=force)))
+        for stage, fn in steps:
+            if not attempt(target, stage, fn):
+                break
+    return PipelineResult(lay.root, tuple(runs))
