@@ -139,7 +139,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             prior_pose = init.body_pose
             log.info("%s: initialised from the %s body prior (%.0f%% of frames)", entry.name, v_best, 100 * has.mean())
         else:
-            init = init_from_keypoints(model, k3["points"], k3["conf"], fps, manifest.gender or "neutral")
+            try:
+                init = init_from_keypoints(model, k3["points"], k3["conf"], fps, manifest.gender or "neutral")
+            except ValueError as err:
+                raise InputError(out.keypoints3d, f"cannot place a starting body: {err}",
+                                 "both views must see the hips and shoulders in some frames; or give a body prior "
+                                 "(body_prior in session.toml)") from err
             prior_pose, v_best = None, None
         init = _with_fps(init, fps, manifest.gender)
         res = fit_world_smpl(model, k3["points"], k3["conf"], views, init, prior_pose, cfg.smplify)
