@@ -17,6 +17,7 @@ import tyro
 from embodmocap.errors import EmbodMocapError
 from embodmocap.scene.config import SceneConfig
 from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.evaluate.benchmark import BenchmarkConfig
 from embodmocap.evaluate.report import ReportConfig
 from embodmocap.evaluate.session import EvaluateConfig
 from embodmocap.export.run import ExportConfig
@@ -207,6 +208,25 @@ class Render:
 
 
 @dataclass(frozen=True)
+class Benchmark:
+    """Synthesise N sessions and reproduce the paper's two tables on them (capture methods: monocular,
+    single view v1 / v2, dual; loss ablation), written to OUT/benchmark.json and OUT/benchmark.md."""
+
+    out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")]
+    """Folder for the synthetic sessions and the tables (sessions already there are reused)."""
+    config: Annotated[BenchmarkConfig, tyro.conf.arg(name="")] = BenchmarkConfig()
+    """What to synthesise and compare."""
+
+    def run(self) -> int:
+        from embodmocap.evaluate.benchmark import run_benchmark, summary
+
+        result = run_benchmark(self.out, self.config)
+        print(summary(result))
+        print(f"tables: {self.out / 'benchmark.md'}; every row: {self.out / 'benchmark.json'}")
+        return 0 if all("error" not in r for r in result["rows"]) else 1
+
+
+@dataclass(frozen=True)
 class Export:
     """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV)."""
 
@@ -392,6 +412,7 @@ Commands = Union[
     Annotated[Run, tyro.conf.subcommand("run")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Report, tyro.conf.subcommand("report")],
+    Annotated[Benchmark, tyro.conf.subcommand("benchmark")],
     Annotated[Export, tyro.conf.subcommand("export")],
     Annotated[View, tyro.conf.subcommand("view")],
     Annotated[Render, tyro.conf.subcommand("render")],

@@ -132,21 +132,37 @@ def _fitted(lay: SessionLayout, seq: str, body_model_path):
 
 def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
     """The paper's quality metrics of one fitted sequence (no ground truth needed)."""
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.smpl_file import read_smpl_npz
+
+    params, _ = read_smpl_npz(lay.sequence(seq).smpl_world)
+    cams = {v: np.load(lay.sequence(seq).view(v).cameras_final)["T_world_cam"] for v in VIEWS}
+    return quality_metrics(lay, seq, load_body_model(body_model_path), params, cams, cfg)
+
+
+def quality_metrics(lay: SessionLayout, seq: str, model, params, T_world_cam: dict[str, NDArray],
+                    cfg: EvaluateConfig = EvaluateConfig()) -> dict:
+    """Quality metrics of a motion ``params`` (world, one row per sequence frame) seen by the views'
+    cameras ``T_world_cam`` (view -> (T, 4, 4)), against the sequence's Stage II observations
+    (keypoints, masks, depth). Used for the stage's own outputs and for benchmark variants."""
+    import torch
+
     from embodmocap.geometry.raycast import depth_map
     from embodmocap.io.frame_stack import read_depth_m, read_mask
     from embodmocap.types import Intrinsics
 
-    model, params, frames, body = _fitted(lay, seq, body_model_path)
+    with torch.no_grad():
+        body = model.from_params(params, dtype=torch.float64)
     verts = body.vertices.numpy()
     coco = body.coco17.numpy()
-    out: dict = {"frames": int(len(frames)), "fps": float(params.fps),
+    out: dict = {"frames": int(len(params)), "fps": float(params.fps),
                  "jitter": round(float(M.jitter(body.joints.numpy(), params.fps)), 4)}
     ious, reps, derrs = [], [], []
     for v in VIEWS:
         vl = lay.sequence(seq).view(v)
-        cams = np.load(vl.cameras_final)
+        cams = np.load(vl.cameras)
         K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
-        T_wc = cams["T_world_cam"]
+        T_wc = T_world_cam[v]
         kp = np.load(vl.keypoints)["keypoints"]
         n = min(len(kp), len(coco), len(T_wc))
         proj = _project(K, T_wc[:n], coco[:n])
@@ -154,8 +170,7 @@ def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: Ev
         sample = np.unique(np.linspace(0, n - 1, min(cfg.frames_per_view, n)).astype(np.int64))
         pred_masks, true_masks, d_pred, d_true, d_mask = [], [], [], [], []
         has_masks, has_depth = vl.masks.is_file(), vl.depth.is_file()
-        Kd = Intrinsics.from_K(np.load(vl.cameras)["K_depth"], int(np.load(vl.cameras)["depth_width"]),
-                               int(np.load(vl.cameras)["depth_height"])) if has_depth else None
+        Kd = Intrinsics.from_K(cams["K_depth"], int(cams["depth_width"]), int(cams["depth_height"])) if has_depth else None
         for t in sample:
             if has_masks:
                 pred_masks.append(np.isfinite(depth_map(verts[t], model.faces, K, T_wc[t])))
@@ -198,15 +213,7 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     """Errors of one fitted sequence against the synthetic truth (Stage I's world)."""
     _, params, frames, body = _fitted(lay, seq, body_model_path)
     truth = sequence_truth(lay, scene, seq)
-    ok = truth.valid[frames]
-    pred, gt = body.joints.numpy()[ok], truth.joints[frames][ok]
-    out: dict = {}
-    for c in CHUNKS:
-        suffix = "" if c == 100 else f"_c{c}"
-        out[f"w_mpjpe_mm{suffix}"] = round(float(M.w_mpjpe(pred, gt, chunk=c)), 2)
-        out[f"wa_mpjpe_mm{suffix}"] = round(float(M.wa_mpjpe(pred, gt, chunk=c)), 2)
-    out["pa_mpjpe_mm"] = round(float(M.pa_mpjpe(pred, gt)), 2)
-    out["rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
+    out = motion_errors(body.joints.numpy(), frames, truth)
     calib = json.loads(lay.sequence(seq).calibration.read_text()) if lay.sequence(seq).calibration.is_file() else None
     sync = json.loads(lay.sequence(seq).sync.read_text())["views"] if lay.sequence(seq).sync.is_file() else {}
     mm = lay.sequence(seq).motion_manifest
@@ -221,6 +228,21 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
             out[f"{v}_view_yaw_err_deg"] = round(float(deg), 4)
         if v in sync:
             out[f"{v}_sync_err_frames"] = int(M.sync_err_frames(sync[v]["frame"], truth.sync_frame[v]))
+    return out
+
+
+def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth) -> dict:
+    """W-/WA-MPJPE (chunks 100, 500, 1000), PA-MPJPE and RTE of world joints (T, 24, 3) at sequence
+    ``frames`` against the truth (frames outside the scripted motion are left out)."""
+    ok = truth.valid[frames]
+    pred, gt = np.asarray(joints)[ok], truth.joints[frames][ok]
+    out: dict = {}
+    for c in CHUNKS:
+        suffix = "" if c == 100 else f"_c{c}"
+        out[f"w_mpjpe_mm{suffix}"] = round(float(M.w_mpjpe(pred, gt, chunk=c)), 2)
+        out[f"wa_mpjpe_mm{suffix}"] = round(float(M.wa_mpjpe(pred, gt, chunk=c)), 2)
+    out["pa_mpjpe_mm"] = round(float(M.pa_mpjpe(pred, gt)), 2)
+    out["rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
     return out
 
 
