@@ -43,46 +43,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-class _DevTools:
-    """Minimal Chrome DevTools protocol client: one page, request/response by id."""
-
-    def __init__(self, user_data_dir: Path, timeout_s: float = 30.0) -> None:
-        from websockets.sync.client import connect
-
-        port_file = user_data_dir / "DevToolsActivePort"
-        deadline = time.monotonic() + timeout_s
-        while not (port_file.exists() and port_file.read_text().strip()):
-            if time.monotonic() > deadline:
-                raise TimeoutError("Chromium did not open its DevTools port")
-            time.sleep(0.05)
-        port = int(port_file.read_text().split()[0])
-        while True:
-            pages = [t for t in json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list"))
-                     if t["type"] == "page"]
-            if pages or time.monotonic() > deadline:
-                break
-            time.sleep(0.1)
-        self._ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout_s)
-        self._id = 0
-
-    def call(self, method: str, **params) -> dict:
-        self._id += 1
-        self._ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self._ws.recv(timeout=60))
-            if msg.get("id") == self._id:
-                return msg["result"]
-
-    def screenshot(self) -> np.ndarray:
-        import cv2
-
-        png = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-
-    def close(self) -> None:
-        self._ws.close()
-
-
 def _coloured_fraction(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 60) -> float:
     """Fraction of pixels within ``tol`` (per channel) of a saturated colour."""
     return float((np.abs(img.astype(int) - rgb).max(axis=-1) < tol).mean())
@@ -100,7 +60,6 @@ def test_viewer_serves_the_scene_to_a_browser(session, tmp_path):
 
     chromium = _chromium()
     handle = serve(session, SYNTH.sequence_name, ViewerConfig(port=_free_port(), max_image_side=160))
-    browser = None
     try:
         # Server side: every layer exists, with the data of the first frame.
         scene = handle.server.scene
@@ -127,36 +86,27 @@ def test_viewer_serves_the_scene_to_a_browser(session, tmp_path):
         handle.set_frame(0)
 
         # Client side: a headless Chromium connects and draws the scene.
-        user_dir = tmp_path / "chromium"
-        browser = subprocess.Popen(
-            [str(chromium), "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-             "--disable-quic", "--no-first-run", "--disable-background-networking", "--disable-component-update",
-             "--disable-sync", f"--user-data-dir={user_dir}", "--remote-debugging-port=0",
-             "--window-size=1280,800", handle.url],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        tools = _DevTools(user_dir)
-        deadline = time.monotonic() + 30
-        while not handle.server.get_clients():
-            assert time.monotonic() < deadline, "the browser never connected to the viewer"
-            time.sleep(0.05)
-        # Software WebGL is slow: poll until the body (blue) and a frustum (red) are drawn.
-        img = None
-        while time.monotonic() < deadline + 30:
-            time.sleep(2.0)
-            img = tools.screenshot()
-            if _coloured_fraction(img, (110, 170, 255)) > 1e-4 and _coloured_fraction(img, (220, 60, 60)) > 1e-4:
-                break
-        tools.close()
-        assert len(handle.server.get_clients()) == 1
+        from embodmocap.viz.browser import HeadlessChromium
+
+        with HeadlessChromium(handle.url, tmp_path / "chromium") as tools:
+            deadline = time.monotonic() + 30
+            while not handle.server.get_clients():
+                assert time.monotonic() < deadline, "the browser never connected to the viewer"
+                time.sleep(0.05)
+            # Software WebGL is slow: poll until the body (blue) and a frustum (red) are drawn.
+            img = None
+            while time.monotonic() < deadline + 30:
+                time.sleep(2.0)
+                img = tools.screenshot()
+                if _coloured_fraction(img, (110, 170, 255)) > 1e-4 and _coloured_fraction(img, (220, 60, 60)) > 1e-4:
+                    break
+            assert len(handle.server.get_clients()) == 1
         assert img is not None and img.shape[1] == 1280
         assert img.std() > 20  # not a blank page
         assert len(np.unique(img.reshape(-1, 3) // 16, axis=0)) > 50  # many colours: the scene is drawn
         assert _coloured_fraction(img, (110, 170, 255)) > 1e-4, "body not visible"
         assert _coloured_fraction(img, (220, 60, 60)) > 1e-4, "v1 frustum not visible"
     finally:
-        if browser is not None:
-            browser.terminate()
-            browser.wait(timeout=10)
         handle.stop()
 
 

@@ -7,7 +7,8 @@
 
 Every stage is resumable (its steps are fingerprinted), so running the same command again after an
 interruption or a fix redoes only what is missing or out of date. A sequence that fails is reported
-with its cause and does not stop the others; a scene that fails skips its sequences.
+with its cause and does not stop the others; the sequences of a scene that failed are not run and
+count as failed.
 """
 
 from __future__ import annotations

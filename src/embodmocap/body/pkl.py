@@ -12,7 +12,7 @@ current Python / numpy, so the pickle is read with an unpickler that:
   so loading a model file cannot run arbitrary code.
 
 Sparse matrices become dense arrays. :func:`load_model_arrays` then checks the keys and shapes
-every consumer relies on (see ``docs/parts/body.md``).
+every consumer relies on (see ``docs/formats.md``).
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ What makes it usable in place of SMPL:
   depth; further components (num_betas > 10) are small smooth random fields.
 - ``posedirs`` (pose correctives) are zero, with SMPL's shape (V, 3, 207).
 
-The file format is written up in ``docs/parts/body.md``.
+The file format is written up in ``docs/formats.md``.
 """
 
 from __future__ import annotations

@@ -34,8 +34,6 @@ class ReportConfig:
 
     overlay_frames: int = 3
     """Frames per view shown with the fitted body drawn over them."""
-    overlay_width: int = 480
-    """Width of each overlay picture, pixels."""
     floor_points: int = 60000
     """Points sampled on the scene mesh for the floor plan."""
     plan_cut_m: float = 1.8

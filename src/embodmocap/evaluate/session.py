@@ -97,7 +97,7 @@ def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
     has_gt = lay.ground_truth.info.is_file()
-    result: dict = {"version": EVALUATION_VERSION, "session": str(lay.root), "ground_truth": has_gt,
+    result: dict = {"version": EVALUATION_VERSION, "session": str(lay.root.resolve()), "ground_truth": has_gt,
                     "scene": {}, "sequences": {}}
     for name in manifest.scenes:
         if has_gt and lay.scene(name).mesh_raw.is_file() and lay.scene(name).keyframes.is_file():
@@ -105,7 +105,9 @@ def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()
     for name, entry in manifest.sequences.items():
         sl = lay.sequence(name)
         if not sl.smpl_world.is_file():
-            result["sequences"][name] = {"missing": f"no fitted motion: run `embodmocap run {lay.root}` first"}
+            hint = (f"the manifest marks it failed: run `embodmocap run {lay.root} --include-failed`" if entry.failed
+                    else f"no fitted motion: run `embodmocap run {lay.root}` first")
+            result["sequences"][name] = {"missing": hint}
             continue
         log.info("evaluating %s", name)
         metrics = sequence_quality(lay, name, manifest.body_model, cfg)
@@ -178,7 +180,9 @@ def quality_metrics(lay: SessionLayout, seq: str, model, params, T_world_cam: di
             if has_depth:
                 dp = depth_map(verts[t], model.faces, Kd, T_wc[t])
                 ds = read_depth_m(vl.depth, int(t))
-                if ds.shape != dp.shape:  # refined depth at another size: compare at the sensor's
+                if ds.shape != dp.shape:  # depth stored at another size than K_depth says: not comparable
+                    log.warning("%s %s: depth frame %d is %s, K_depth says %s; depth error skipped", seq, v, t,
+                                ds.shape, dp.shape)
                     continue
                 d_pred.append(dp)
                 d_true.append(ds)

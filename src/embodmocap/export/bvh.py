@@ -1,6 +1,6 @@
 """BVH export of the SMPL 24-joint skeleton with the performer's own bone lengths.
 
-Conventions of the file written (documented in ``docs/parts/export.md``):
+Conventions of the file written (documented in ``docs/formats.md``):
 
 - **Y up.** BVH has no up-axis field and Blender's importer assumes Y up, so the world is turned
   from our Z-up frame with ``p_yup = R_YUP_ZUP @ p_zup``, i.e. ``(x, y, z) -> (x, z, -y)``.

@@ -2,7 +2,7 @@
 
 Written with numpy and the standard library only (no glTF package needed to write).
 
-Conventions (documented in ``docs/parts/export.md``):
+Conventions (documented in ``docs/formats.md``):
 
 - **Y up** as glTF requires: every world point is turned with ``R_YUP_ZUP`` (``(x, y, z) ->
   (x, z, -y)``) from our Z-up world. The body's rest pose is SMPL's canonical frame, already Y up.

@@ -15,8 +15,9 @@ like this (raw captures may also live elsewhere; the manifest names them)::
         body_prior.npz                camera-space body prior per frame
       ground_truth/                   only for synthetic sessions
       scenes/<scene>/                 stage I outputs
-      sequences/<seq>/                stage II-IV outputs
-      evaluation.json, report.html    evaluation outputs
+      sequences/<seq>/                stage II-IV outputs (export/, render/ from export and render)
+      evaluation.json                 metrics (embodmocap evaluate)
+      report.html, report.md, report_assets/   the report (embodmocap report)
 """
 
 from __future__ import annotations

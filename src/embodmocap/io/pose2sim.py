@@ -1,7 +1,7 @@
 """Readers for Pose2Sim files: camera calibration TOML and TRC marker trajectories.
 
 Used to check our triangulation against Pose2Sim's on its real demo (4 static cameras, OpenPose
-BODY_25B keypoints). Formats (see docs/parts/triangulation.md):
+BODY_25B keypoints). Formats (see docs/formats.md):
 
 - ``Calib_*.toml``: one table per camera with ``name``, ``size`` [w, h] px, ``matrix`` (K, 3x3),
   ``distortions`` [k1, k2, p1, p2] (OpenCV model), ``rotation`` (Rodrigues vector, world ->

@@ -163,16 +163,20 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     if step("align", fp_align):
         t0 = time.perf_counter()
         params, frames = read_smpl_npz(out.smpl_fit)
-        T_align, figures = np.eye(4), {"contact_alignment": "none (no contacts)"}
+        # Every contact figure is written on every run: the stage manifest merges figures, and a
+        # stale message from an earlier run must not survive.
+        T_align = np.eye(4)
+        figures = {"contact_alignment": "none (no contacts)", "contact_residuals_before_m": [],
+                   "contact_residuals_after_m": [], "contact_message": ""}
         if contacts:
             bad = [f for f, _ in contacts if not 0 <= f < len(params)]
             if bad:
                 raise InputError(lay.manifest, f"sequence {entry.name}: contact frames {bad} outside 0..{len(params) - 1}",
                                  "give contact frames in sequence frames (after sync and slicing)")
             al = align_to_contacts(model, params, contacts, cfg.contact)
-            figures = {"contact_residuals_before_m": [round(float(r), 4) for r in al.residuals_before_m],
-                       "contact_residuals_after_m": [round(float(r), 4) for r in al.residuals_after_m],
-                       "contact_alignment": "refused" if al.refused else "applied"}
+            figures.update({"contact_residuals_before_m": [round(float(r), 4) for r in al.residuals_before_m],
+                            "contact_residuals_after_m": [round(float(r), 4) for r in al.residuals_after_m],
+                            "contact_alignment": "refused" if al.refused else "applied"})
             if al.refused:
                 log.warning("%s: contact alignment refused: %s", entry.name, al.message)
                 figures["contact_message"] = al.message

@@ -11,7 +11,7 @@ person, an all-False mask, an all-zero depth, no prior row) and adds the frame t
 ``missing_frames`` so the stage can report it. A file that exists but cannot be read is an
 :class:`~embodmocap.errors.InputError` naming it.
 
-Backends and their inputs (formats in ``docs/parts/precomputed.md``):
+Backends and their inputs (formats in ``docs/formats.md``):
 
 - :class:`PrecomputedKeypoints`: OpenPose JSON per frame (BODY_25, BODY_25B, COCO-18, COCO-17,
   mapped to COCO-17 by :mod:`embodmocap.io.openpose`) or one COCO keypoint JSON file. Returns every

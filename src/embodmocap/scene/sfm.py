@@ -14,7 +14,7 @@ matches) and the binary model are kept on disk::
       database.db     COLMAP database: one PINHOLE camera, keypoints, descriptors, verified matches
       pairs.txt       the image pairs that were matched, one "name_a name_b" per line
       sparse/         COLMAP binary model (cameras.bin, images.bin, points3D.bin, rigs.bin, frames.bin)
-      summary.json    quality figures, image order and timings of the run (see docs/parts/scene-sfm.md)
+      summary.json    quality figures, image order and timings of the run (see docs/formats.md)
 
 Pixel convention: this package puts the centre of the top-left pixel at (0, 0); COLMAP puts it at
 (0.5, 0.5). So COLMAP's principal point is ours plus 0.5 (:func:`colmap_camera_params`) and COLMAP

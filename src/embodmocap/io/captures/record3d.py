@@ -1,6 +1,6 @@
 """Record3D exports (iOS app): an export folder or a ``.r3d`` file (a zip of the same files).
 
-Layout (see docs/parts/captures.md)::
+Layout (see docs/formats.md)::
 
     metadata        JSON: K (9 floats, column-major 3x3 at w x h), w, h (RGB size), dw, dh (depth
                     size), fps, poses ([qx, qy, qz, qw, px, py, pz] per frame), optional

@@ -1,6 +1,6 @@
 """Spectacular AI recordings (the paper's released data format): read and write.
 
-Folder layout (see docs/parts/captures.md)::
+Folder layout (see docs/formats.md)::
 
     data.jsonl          one JSON object per line: frame lines {"frames": [...], "number": n, "time": t},
                         IMU lines {"sensor": {"type": "accelerometer"|"gyroscope", "values": [...]}, "time": t}

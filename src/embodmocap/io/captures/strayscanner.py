@@ -1,6 +1,6 @@
 """Stray Scanner captures (iOS app): read and write.
 
-Folder layout (see docs/parts/captures.md)::
+Folder layout (see docs/formats.md)::
 
     rgb.mp4                 RGB video (size and rate read from the file)
     depth/000000.png        uint16 depth in millimetres, LiDAR resolution (typically 256x192)
