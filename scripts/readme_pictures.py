@@ -31,7 +31,9 @@ def viewer_picture(session: Path, seq: str, out: Path) -> None:
             while not handle.server.get_clients() and time.monotonic() < deadline:
                 time.sleep(0.1)
             time.sleep(12.0)  # software WebGL: let the scene and images arrive and draw
-            out.write_bytes(page.screenshot_png())
+            import cv2
+
+            cv2.imwrite(str(out), cv2.cvtColor(page.screenshot(), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
     finally:
         handle.stop()
 
@@ -46,7 +48,7 @@ def render_picture(session: Path, seq: str, out: Path) -> None:
     side = [p for p in paths if "side_by_side" in p.name][0]
     with VideoReader(side) as reader:
         frame = reader.read(len(reader) // 2)
-    cv2.imwrite(str(out), cv2.cvtColor(np.asarray(frame), cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out), cv2.cvtColor(np.asarray(frame), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
 def export_picture(session: Path, seq: str, out: Path) -> None:
@@ -99,9 +101,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("docs/images"))
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    viewer_picture(args.session, args.seq, args.out / "viewer.png")
+    viewer_picture(args.session, args.seq, args.out / "viewer.jpg")
     print("viewer done", flush=True)
-    render_picture(args.session, args.seq, args.out / "render.png")
+    render_picture(args.session, args.seq, args.out / "render.jpg")
     export_picture(args.session, args.seq, args.out / "export_csv.png")
     print(f"pictures in {args.out}")
 
