@@ -13,13 +13,13 @@ Targets (issue 5): median over seeds <= 2 cm and <= 0.5 deg, 95th percentile <= 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from _seeds import run_seeds, seed_arguments
 
 
 def errors(T_est, T_true, centres) -> tuple[float, float]:
@@ -82,25 +82,8 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
-    ap.add_argument("--preset", default="indoor")
-    ap.add_argument("--seconds", type=float, default=6.0)
-    ap.add_argument("--scene-seconds", type=float, default=15.0)
-    ap.add_argument("--out", type=Path, default=Path("bench_out/calibrate"))
-    args = ap.parse_args()
-    rows = []
-    for seed in args.seeds:
-        try:
-            row = one_seed(args.out, seed, args.preset, args.seconds, args.scene_seconds)
-        except Exception as err:  # a failed seed is reported, not hidden
-            row = {"preset": args.preset, "seed": seed, "error": f"{type(err).__name__}: {err}"}
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_calibrate.json").write_text(json.dumps(rows, indent=2))
-    ok = [r for r in rows if "error" not in r]
-    print(f"\n{len(ok)} of {len(rows)} seeds calibrated")
+    args = seed_arguments(__doc__.splitlines()[0], "bench_out/calibrate")
+    ok = run_seeds(one_seed, args, "bench_calibrate")
     print("| method | median cm | p95 cm | median deg | p95 deg |")
     print("|---|---|---|---|---|")
     for name in ("registration", "single", "joint"):

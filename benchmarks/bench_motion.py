@@ -12,12 +12,11 @@ Targets (issue 6, dual view, default noise): W-MPJPE <= 60 mm, WA-MPJPE <= 45 mm
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from _seeds import run_seeds, seed_arguments
 
 KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500", "w_mpjpe_mm_c1000",
         "wa_mpjpe_mm_c1000", "pa_mpjpe_mm", "rte_pct")
@@ -52,25 +51,8 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
-    ap.add_argument("--preset", default="indoor")
-    ap.add_argument("--seconds", type=float, default=6.0)
-    ap.add_argument("--scene-seconds", type=float, default=15.0)
-    ap.add_argument("--out", type=Path, default=Path("bench_out/calibrate"))
-    args = ap.parse_args()
-    rows = []
-    for seed in args.seeds:
-        try:
-            row = one_seed(args.out, seed, args.preset, args.seconds, args.scene_seconds)
-        except Exception as err:  # a failed seed is reported, not hidden
-            row = {"preset": args.preset, "seed": seed, "error": f"{type(err).__name__}: {err}"}
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_motion.json").write_text(json.dumps(rows, indent=2))
-    ok = [r for r in rows if "error" not in r]
-    print(f"\n{len(ok)} of {len(rows)} seeds fitted")
+    args = seed_arguments(__doc__.splitlines()[0], "bench_out/calibrate")
+    ok = run_seeds(one_seed, args, "bench_motion")
     print("| metric | median | p95 | max |")
     print("|---|---|---|---|")
     for k in KEYS:

@@ -65,7 +65,7 @@ def export_picture(session: Path, seq: str, out: Path) -> None:
     path = export_sequence(session, seq, "csv")
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    header, data = rows[0], np.array(rows[1:], dtype=float)
+    data = np.array(rows[1:], dtype=float)  # rows[0] is the header
     joints = data[:, 2:].reshape(len(data), -1, 3)
     lay = SessionLayout(session)
     scene = next(iter(lay.root.joinpath("scenes").iterdir())).name

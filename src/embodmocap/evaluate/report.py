@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from embodmocap.io.atomic import write_bytes, write_text
 from embodmocap.io.layout import VIEWS, SessionLayout
