@@ -305,3 +305,22 @@ def test_bad_inputs_raise_clear_errors(body, motion):
     with pytest.raises(ValueError, match="T_world_cam must be"):
         init_from_prior(body, BodyPriorSeq(params.global_orient, params.body_pose, np.zeros((T, 10)),
                                            params.transl, np.arange(T)), views[0].T_world_cam[:3])
+
+
+def test_snap_to_keypoints_moves_a_far_init_onto_the_triangulation(body, motion):
+    """A prior whose depth is 60 cm off (a monocular regressor's typical failure) is put back on the
+    keypoints: frame by frame, by the median offset of the seen joints; frames with too few seen
+    joints take the offset of their neighbours."""
+    from embodmocap.motion.init import snap_to_keypoints
+
+    params, _, coco = motion
+    far = SmplParams(params.betas, params.global_orient, params.body_pose,
+                     params.transl + np.array([0.6, -0.2, 0.1]), fps=params.fps)
+    conf = np.ones(coco.shape[:2])
+    points = coco.copy()
+    points[10:14] = np.nan  # four frames with nothing triangulated
+    snapped = snap_to_keypoints(body, far, points, conf)
+    np.testing.assert_allclose(snapped.transl, params.transl, atol=1e-6)
+    np.testing.assert_array_equal(snapped.body_pose, far.body_pose)
+    with pytest.raises(ValueError, match="points must be"):
+        snap_to_keypoints(body, far, points[:-1], conf)

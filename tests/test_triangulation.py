@@ -289,3 +289,25 @@ def test_rot_z_rigid_motion_of_world_moves_points():
     M = make_T(rot_z(0.7), [1.0, -2.0, 0.5])
     res = triangulate(projection_matrices(K, M @ T_wc), xy, np.ones((8, 3, 5)))
     np.testing.assert_allclose(res.points, X @ M[:3, :3].T + M[:3, 3], atol=1e-8)
+
+
+def test_two_view_point_whose_rays_miss_is_dropped_and_filled():
+    """With 2 views no view can be dropped: a point whose rays miss by more than reject_px (one 2D
+    keypoint misplaced) is treated as not triangulated and, in a short gap, interpolated."""
+    rng = np.random.default_rng(5)
+    T, J = 40, 17
+    P = projection_matrices(K, ring_cameras(2, T))
+    # A body walking at constant velocity, so that interpolation across one frame is exact.
+    X = body_points(rng, 1, J)[0][None] + np.arange(T)[:, None, None] * np.array([0.02, 0.01, 0.0])
+    xy = project(P, X) + rng.normal(size=(T, 2, J, 2)) * 0.5
+    xy[20, 0, 3] += [80.0, 0.0]  # one keypoint of one view 80 px off (a swapped limb, say)
+    conf = np.ones((T, 2, J))
+    res = triangulate(P, xy, conf)
+    kept = triangulate(P, xy, conf, TriangulationConfig(drop_unresolved=False))
+    assert kept.reproj_err_px[20, 3].max() > 15 and np.linalg.norm(kept.points[20, 3] - X[20, 3]) > 0.05
+    assert res.filled[20, 3] and res.conf[20, 3] == 0.0  # dropped, then filled from frames 19 and 21
+    assert np.linalg.norm(res.points[20, 3] - X[20, 3]) < np.linalg.norm(kept.points[20, 3] - X[20, 3]) / 3
+    # Nothing else changed.
+    others = np.ones((T, J), bool)
+    others[20, 3] = False
+    np.testing.assert_allclose(res.points[others], kept.points[others])

@@ -205,7 +205,13 @@ def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, 
         (lambda t: read_mask(vl.masks, t, width)) if has_masks else None,
         frames, cams["K_depth"], points_per_frame=cfg.chamfer_points_per_frame,
     )
-    matches = L.Matches2D3D.from_arrays(reg["match_frames"], reg["match_xy"], reg["match_xyz"])
+    # Only matches of frames whose registration agrees with the offset: a wrongly registered frame
+    # brings 2D-3D matches that are consistent with a wrong pose, and through the VIO pose they
+    # reproject hundreds of pixels off (seen: one such frame outweighed every other term).
+    agree = np.linalg.norm(init.apply_points(cams["T_world_cam"][reg["t"], :3, 3]) - reg["T_world_cam"][:, :3, 3], axis=1)
+    ok_frames = np.asarray(reg["t"])[agree <= cfg.offset.inlier_threshold_m]
+    keep = np.isin(reg["match_frames"], ok_frames)
+    matches = L.Matches2D3D.from_arrays(reg["match_frames"][keep], reg["match_xy"][keep], reg["match_xyz"][keep])
     return ViewData(T_world_cam=init.apply(cams["T_world_cam"]), K=cams["K"], background=cloud,
                     matches=matches, T_world_vio_init=init.T)
 

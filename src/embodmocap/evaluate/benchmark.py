@@ -236,6 +236,10 @@ class _Context:
             scfg = replace(scfg, w_kp3d=0.0)
         prior_view = single_view or "v1"
         init = self.prior_in_world(prior_view, cameras[prior_view])
+        if not single_view:  # as Stage IV does: start where the triangulation puts the body
+            from embodmocap.motion.init import snap_to_keypoints
+
+            init = snap_to_keypoints(self.model, init, points, conf)
         obs = [ViewObservations(K=K[v], T_world_cam=cameras[v][:T], keypoints=kps[v], name=v) for v in views]
         return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, scfg).params
 

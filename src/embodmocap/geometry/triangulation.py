@@ -54,6 +54,12 @@ class TriangulationConfig:
     min_views: int = 2
     """Fewest views (at ``min_conf`` or above) needed to triangulate a point; at least 2."""
 
+    drop_unresolved: bool = True
+    """A point still above ``reject_px`` once no view can be dropped (always the case with 2
+    views: the rays do not meet, so at least one 2D keypoint is wrong, e.g. a swapped or
+    misplaced limb) counts as not triangulated, and is gap-filled like a missing one. False
+    keeps it (with its error in ``reproj_err_px``)."""
+
 
 @dataclass(frozen=True)
 class Triangulation:
@@ -162,6 +168,10 @@ def triangulate(P: F, points2d: F, conf: F, cfg: TriangulationConfig | None = No
 
     n_used = used.sum(-1)
     valid = (n_used >= cfg.min_views) & _in_front(P[:, None], X, used)
+    if cfg.drop_unresolved:
+        with np.errstate(invalid="ignore"):
+            worst = np.where(used, _reproj_err(P[:, None], X, xy), -np.inf).max(axis=-1)
+        valid &= ~(worst > cfg.reject_px)
     X = np.where(valid[..., None], X, np.nan)
     # mean used confidence * (views used / V) is simply the used confidences summed over V
     point_conf = np.where(valid, (w * used).sum(-1) / V, 0.0)

@@ -170,3 +170,40 @@ def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: f
     pelvis = hips - Rotation.from_rotvec(go).apply(off)
     transl = pelvis - model.pelvis_offset(betas)
     return SmplParams(betas=betas, global_orient=go, body_pose=np.zeros((T, 69)), transl=transl, fps=fps, gender=gender)
+
+
+def snap_to_keypoints(model: BodyModel, params: SmplParams, points: NDArray, conf: NDArray,
+                      min_conf: float = 0.1, min_joints: int = 4) -> SmplParams:
+    """Move each frame of ``params`` so that its COCO-17 joints sit on the triangulated ones.
+
+    A monocular prior's depth is often tens of centimetres off, and the world SMPLify's robust 3D
+    term (a few centimetres of scale) gives almost no pull from that far away. So before fitting,
+    each frame's translation is shifted by the median (per axis) of ``points - joints`` over the
+    joints seen with confidence >= ``min_conf``; frames with fewer than ``min_joints`` such joints
+    take the shift interpolated from their neighbours. Rotations, pose and shape are kept.
+
+    Args:
+        model: the body model.
+        params: (T frames) world parameters, e.g. from :func:`init_from_prior`.
+        points: (T, 17, 3) triangulated COCO-17 keypoints, NaN where missing.
+        conf: (T, 17) their confidence.
+    """
+    import torch
+
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape != (len(params), 17, 3) or np.shape(conf) != (len(params), 17):
+        raise ValueError(f"points must be ({len(params)}, 17, 3) and conf ({len(params)}, 17), "
+                         f"got {points.shape} and {np.shape(conf)}")
+    with torch.no_grad():
+        coco = model.from_params(params, dtype=torch.float64).coco17.numpy()
+    seen = np.isfinite(points).all(axis=-1) & (np.asarray(conf) >= min_conf)
+    diff = np.where(seen[..., None], points - coco, np.nan)
+    ok = seen.sum(axis=1) >= min_joints
+    if not ok.any():
+        return params
+    with np.errstate(all="ignore"):
+        shift = np.nanmedian(np.where(ok[:, None, None], diff, 0.0), axis=1)  # (T, 3)
+    shift = fill_linear(np.where(ok[:, None], shift, 0.0), ok)
+    from dataclasses import replace
+
+    return replace(params, transl=np.asarray(params.transl) + shift)

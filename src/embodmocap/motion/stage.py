@@ -36,7 +36,7 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.smpl_file import read_smpl_npz, write_smpl_npz
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
 from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
-from embodmocap.motion.init import init_from_keypoints, init_from_prior
+from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
 from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
 
 log = logging.getLogger(__name__)
@@ -119,8 +119,10 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             "long_gaps": len(tri.long_gaps),
             "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
         })
-        for joint, start, end in tri.long_gaps[:10]:
-            log.warning("%s: joint %d not triangulated for frames %d-%d (too long to fill)", entry.name, joint, start, end)
+        if tri.long_gaps:
+            worst = max(tri.long_gaps, key=lambda g: g[2] - g[1])
+            log.warning("%s: %d gaps in the 3D keypoints are too long to fill (the longest: joint %d, frames %d-%d); "
+                        "the fit relies on the 2D keypoints and smoothness there", entry.name, len(tri.long_gaps), *worst)
 
     # 2. SMPLify.
     model = load_body_model(manifest.body_model)
@@ -136,6 +138,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             v_best = max(priors, key=lambda v: priors[v][1].mean())
             prior, has = priors[v_best]
             init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, manifest.gender or "neutral")
+            # The prior's depth can be far off; start where the triangulation says the body is.
+            init = snap_to_keypoints(model, init, k3["points"], k3["conf"])
             prior_pose = init.body_pose
             log.info("%s: initialised from the %s body prior (%.0f%% of frames)", entry.name, v_best, 100 * has.mean())
         else:
