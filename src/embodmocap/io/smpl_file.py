@@ -7,7 +7,8 @@ Keys (see docs/formats.md, "Stage IV outputs"):
     trans            (T, 3) float64 SMPL ``transl``, metres (not the pelvis position)
     betas            (B,) float64 shape, one set for the sequence
     gender           () str
-    mocap_framerate  () float64 frames per second
+    mocap_framerate  () float64 frames per second (AMASS's name)
+    framerate        () float64 the same value (the name issue 6 of the tracker uses)
     frames           (T,) int64 sequence frame of each row
 
 AMASS's own files use the same key names (``poses``, ``trans``, ``betas``, ``gender``,
@@ -37,7 +38,7 @@ def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None 
         raise ValueError(f"frames must be ({T},), got {frames.shape}")
     write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
               betas=np.asarray(params.betas), gender=np.array(params.gender),
-              mocap_framerate=np.float64(params.fps), frames=frames)
+              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames)
     return Path(path)
 
 
