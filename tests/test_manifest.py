@@ -235,3 +235,19 @@ def test_loading_does_not_modify_the_file(session: Path) -> None:
     before = (session / "session.toml").read_bytes()
     load_manifest(session)
     assert (session / "session.toml").read_bytes() == before
+
+
+def test_synthesised_into_a_relative_folder_the_manifest_finds_everything(tmp_path, monkeypatch):
+    """`embodmocap demo` writes to the relative folder demo_out: every path in its manifest must
+    resolve inside that folder (not inside demo_out/demo_out)."""
+    from embodmocap.io.manifest import validate_manifest
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.studio import synthesize
+
+    monkeypatch.chdir(tmp_path)
+    synthesize(SynthConfig(seconds=1.0, scene_seconds=1.0, fps=10, width=160, height=120, depth_width=64,
+                           depth_height=48), "rel")
+    m = load_manifest(tmp_path / "rel" / "session.toml")
+    assert validate_manifest(m) == []
+    assert m.scenes["scene0"].capture == tmp_path / "rel" / "captures" / "scene0"
+    assert 'capture = "captures/scene0"' in (tmp_path / "rel" / "session.toml").read_text()

@@ -21,6 +21,7 @@ n_k - 1``, so its raw sync frame (the first frame without the dot) is ``e - star
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -79,7 +80,8 @@ def _capture_writer(cfg: SynthConfig, out: Path):
 def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     """Write a complete synthetic session into ``out`` (created; must not hold a session)."""
     t0 = time.perf_counter()
-    lay = SessionLayout(Path(out))
+    # Absolute: the manifest resolves relative paths against the session folder, not the cwd.
+    lay = SessionLayout(Path(os.path.abspath(out)))
     lay.root.mkdir(parents=True, exist_ok=True)
     K, K_depth = cfg.intrinsics(), cfg.depth_intrinsics()
 
