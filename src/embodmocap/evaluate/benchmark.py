@@ -215,6 +215,7 @@ class _Context:
         from embodmocap.geometry.triangulation import projection_matrices, triangulate
         from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
         from embodmocap.motion.stage import MotionConfig
+        from embodmocap.motion.swaps import fix_swaps
 
         mcfg = MotionConfig()
         T = self._T()
@@ -227,7 +228,8 @@ class _Context:
             scfg = replace(scfg, w_kp3d=0.0)
         else:
             P = projection_matrices(np.stack([K[v] for v in views]), np.stack([cameras[v][:T] for v in views], axis=1))
-            kp = np.stack([kps[v] for v in views], axis=1)
+            kp, _ = fix_swaps(P, np.stack([kps[v] for v in views], axis=1), mcfg.triangulation)
+            kps = {v: kp[:, i] for i, v in enumerate(views)}
             tri = triangulate(P, kp[..., :2], kp[..., 2], mcfg.triangulation)
             points, conf = tri.points, tri.conf
         if variant == "no_smooth":

@@ -2,9 +2,9 @@
 
 ``run(config, session, seq)`` reads top to bottom as the recipe:
 
-1. ``triangulate``: both views' COCO-17 keypoints (Stage II) triangulated with the cameras in the
-   scene's world (Stage III): confidence-weighted DLT over all frames at once, short gaps filled,
-   long gaps flagged -> ``keypoints3d.npz``;
+1. ``triangulate``: both views' COCO-17 keypoints (Stage II), left/right swaps undone, triangulated
+   with the cameras in the scene's world (Stage III): confidence-weighted DLT over all frames at
+   once, short gaps filled, long gaps flagged -> ``keypoints3d.npz``;
 2. ``fit``: the two-phase world SMPLify (shape, translation and orientation first; then
    everything) on the 3D keypoints, each view's 2D keypoints, smoothness and the pose prior,
    initialised from the camera-space body prior moved into the world (or, without a prior, from
@@ -38,6 +38,7 @@ from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_finger
 from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
 from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
+from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,9 @@ class MotionConfig:
     sequence has one; False = start from the triangulated keypoints, no pose prior."""
     align_contacts: bool = True
     """Apply the contact-marker alignment when the manifest lists contacts."""
+    fix_swaps: bool = True
+    """Find and undo left/right swaps of the 2D keypoints (a detector labelling an arm, a leg or
+    the whole body the wrong way round in one view) before triangulating and fitting."""
     min_prior_fraction: float = 0.5
     """A view's body prior is used only when at least this share of its frames has an estimate."""
 
@@ -102,22 +106,29 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         return True
 
     # 1. Triangulation.
-    fp_tri = fingerprint("triangulate", cfg.triangulation,
+    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps,
                          *[path_fingerprint(p) for v in VIEWS for p in (out.view(v).keypoints, out.view(v).cameras_world)])
     if step("triangulate", fp_tri):
         t0 = time.perf_counter()
         K = np.stack([cams[v]["K"] for v in VIEWS])
         P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
         kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
+        if cfg.fix_swaps:
+            kp, swapped = fix_swaps(P, kp, cfg.triangulation)
+        else:
+            swapped = np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)
         tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
         write_npz(out.keypoints3d, version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
-                  reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS))
+                  reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS), keypoints2d=kp,
+                  swapped=swapped, swap_groups=np.array(list(COCO17_SWAP_GROUPS)))
         seen = np.isfinite(tri.points[..., 0])
         sm.record("triangulate", fp_tri, [out.keypoints3d], time.perf_counter() - t0, {
             "triangulated_fraction": round(float(seen.mean()), 4),
             "filled_fraction": round(float(tri.filled.mean()), 4),
             "long_gaps": len(tri.long_gaps),
             "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
+            **{f"{v}_swaps_undone": {g: int(swapped[:, i, k].sum()) for k, g in enumerate(COCO17_SWAP_GROUPS)}
+               for i, v in enumerate(VIEWS)},
         })
         if tri.long_gaps:
             worst = max(tri.long_gaps, key=lambda g: g[2] - g[1])
@@ -132,8 +143,10 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     if step("fit", fp_fit):
         t0 = time.perf_counter()
         k3 = np.load(out.keypoints3d)
-        views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kps[v][:T], name=v)
-                 for v in VIEWS]
+        # The 2D keypoints as the triangulation step left them (left/right swaps undone).
+        kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+        views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
+                 for i, v in enumerate(VIEWS)]
         if priors:
             v_best = max(priors, key=lambda v: priors[v][1].mean())
             prior, has = priors[v_best]

@@ -1,0 +1,186 @@
+"""Left/right swaps of 2D keypoints, found and undone with the other views.
+
+2D pose detectors sometimes label a limb pair the wrong way round in one view (the left elbow and
+wrist placed on the right arm, or the whole skeleton mirrored), often for many frames in a row and
+with high confidence. Two views then disagree: the rays of a swapped pair do not meet, the pair is
+triangulated in the wrong place or dropped, and the fit is pulled.
+
+For every frame, each view's pairs are swapped in turn (all pairs of one group at once: arms,
+legs, face) and the frame re-triangulated; a swap is kept when it lowers the frame's reprojection
+error by at least half. With two views, swapping either view makes them agree, so the geometry
+cannot say which view was wrong; the body decides (:func:`_mislabelled`): shoulders, hips and ears
+must lie the right way round for where the nose faces, each elbow (knee) must hang from the
+shoulder (hip) of its side. Frames where that cannot be told are left as they are.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.geometry.triangulation import TriangulationConfig, triangulate
+
+log = logging.getLogger(__name__)
+
+#: COCO-17 left/right pairs, grouped as detectors confuse them. Order matters: the torso pairs go
+#: first, so that the limbs are judged against shoulders and hips already put right.
+COCO17_SWAP_GROUPS: dict[str, tuple[tuple[int, int], ...]] = {
+    "shoulders": ((5, 6),),
+    "hips": ((11, 12),),
+    "face": ((1, 2), (3, 4)),
+    "arms": ((7, 8), (9, 10)),
+    "legs": ((13, 14), (15, 16)),
+}
+_NOSE, _L_SHOULDER, _R_SHOULDER, _L_ELBOW, _R_ELBOW = 0, 5, 6, 7, 8
+_L_HIP, _R_HIP, _L_KNEE, _R_KNEE, _L_EAR, _R_EAR = 11, 12, 13, 14, 3, 4
+
+@dataclass(frozen=True)
+class SwapConfig:
+    """How left/right swaps are found."""
+
+    min_error_px: float = 8.0
+    """Frames whose mean reprojection error over the group's points (each capped at ``cap_px``)
+    is below this are consistent already and left alone."""
+    min_gain: float = 0.5
+    """A swap is kept when it brings the frame's error below this fraction of the unswapped one."""
+    cap_px: float = 60.0
+    """Per-point reprojection errors are capped at this before averaging (one wild point must not
+    decide)."""
+
+
+def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
+                 joints: list[int]) -> tuple[NDArray, NDArray]:
+    """(T,) mean capped reprojection error over ``joints`` of each frame, and (T, J, 3) the
+    triangulated points (no gap filling, no rejection)."""
+    tri = triangulate(P, xy, conf, TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
+                                                        max_gap_frames=0, drop_unresolved=False))
+    err = np.minimum(tri.reproj_err_px[:, joints], cap)  # (T, j, V)
+    seen = np.isfinite(err)
+    return np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1), tri.points
+
+
+def _swap(kp: NDArray, pairs: tuple[tuple[int, int], ...]) -> NDArray:
+    out = kp.copy()
+    for a, b in pairs:
+        out[..., [a, b], :] = kp[..., [b, a], :]
+    return out
+
+
+def _mislabelled(points: NDArray, group: str) -> NDArray[np.bool_]:
+    """(T,) True where the 3D COCO-17 skeleton has ``group`` the wrong way round, or where that
+    cannot be told (a needed point missing): such frames never take a swap.
+
+    Torso pairs and the face: with Z up, a body facing ``f`` (from the mid-shoulders towards the
+    nose, horizontally) has its left side towards ``z x f``. Limbs: each elbow (knee) hangs from
+    the shoulder (hip) of its own side.
+    """
+    p = points
+    def d(a, b):  # noqa: E306
+        return np.linalg.norm(p[:, a] - p[:, b], axis=-1)
+
+    with np.errstate(invalid="ignore"):
+        if group in ("arms", "legs"):
+            (l_end, r_end), (l_root, r_root) = (((_L_ELBOW, _R_ELBOW), (_L_SHOULDER, _R_SHOULDER)) if group == "arms"
+                                                else ((_L_KNEE, _R_KNEE), (_L_HIP, _R_HIP)))
+            # Each elbow (knee) seen votes with how much nearer its own shoulder (hip) it is; one
+            # seen side is enough (the other limb is often occluded).
+            votes = np.stack([d(l_end, r_root) - d(l_end, l_root), d(r_end, l_root) - d(r_end, r_root)])
+            score = np.nansum(votes, axis=0)
+            return ~((score > 0) & np.isfinite(votes).any(axis=0))
+        mid = 0.5 * (p[:, _L_SHOULDER] + p[:, _R_SHOULDER])
+        facing = p[:, _NOSE] - mid
+        left = np.stack([-facing[:, 1], facing[:, 0], np.zeros(len(p))], axis=-1)  # z x facing
+        pair = {"shoulders": (_L_SHOULDER, _R_SHOULDER), "hips": (_L_HIP, _R_HIP), "face": (_L_EAR, _R_EAR)}[group]
+        side = np.sum((p[:, pair[0]] - p[:, pair[1]]) * left, axis=-1)
+        return ~(side > 0)
+
+
+def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """[start, end) of each run of True."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
+
+
+def _continuity_gain(kp: NDArray, v: int, run: tuple[int, int], pairs, min_conf: float) -> float:
+    """How much swapping view ``v``'s pairs over ``run`` shortens the 2D jumps at the run's ends
+    (pixels; positive = the swapped labels continue their neighbours better)."""
+    a, b = run
+    joints = [j for pair in pairs for j in pair]
+    gain = 0.0
+    for inside, outside in ((a, a - 1), (b - 1, b)):
+        if outside < 0 or outside >= len(kp):
+            continue
+        k_in, k_out = kp[inside, v], kp[outside, v]
+        ok = (k_in[joints, 2] >= min_conf) & (k_out[joints, 2] >= min_conf)
+        if not ok.any():
+            continue
+        raw = np.linalg.norm(k_in[joints, :2] - k_out[joints, :2], axis=-1)
+        sw = np.linalg.norm(_swap(k_in, pairs)[joints, :2] - k_out[joints, :2], axis=-1)
+        gain += float(np.sum((raw - sw)[ok]))
+    return gain
+
+
+def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = TriangulationConfig(),
+              cfg: SwapConfig = SwapConfig(),
+              groups: dict[str, tuple[tuple[int, int], ...]] = COCO17_SWAP_GROUPS) -> tuple[NDArray, NDArray[np.bool_]]:
+    """Undo left/right swaps of COCO-17 keypoints (see the module docstring).
+
+    Args:
+        P: (V, 3, 4) or (T, V, 3, 4) projection matrices (world Z up).
+        keypoints: (T, V, 17, 3) pixels and confidence of each view.
+        tcfg: the triangulation settings (its ``min_conf``).
+        cfg: swap detection settings.
+        groups: name -> left/right index pairs swapped together.
+
+    Returns:
+        (keypoints with the swaps undone (T, V, 17, 3), swapped (T, V, G) bool per group in
+        ``groups`` order).
+    """
+    kp = np.array(keypoints, dtype=np.float64, copy=True)
+    T, V = kp.shape[:2]
+    names = list(groups)
+    swapped = np.zeros((T, V, len(names)), dtype=bool)
+    for g, name in enumerate(names):
+        joints = [j for pair in groups[name] for j in pair]
+        base, _ = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+        bad = base >= cfg.min_error_px
+        if not bad.any():
+            continue
+        best_err, best_view = base.copy(), np.full(T, -1)
+        trials = []
+        for v in range(V):
+            trial = kp.copy()
+            trial[:, v] = _swap(kp[:, v], groups[name])
+            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+            trials.append((err, Xv))
+            # With 3+ views only the wrong view's swap lowers the error.
+            ok = bad & (err < cfg.min_gain * base) & (err < best_err)
+            best_err = np.where(ok, err, best_err)
+            best_view = np.where(ok, v, best_view)
+        if V == 2:
+            # Two views agree after swapping either one: decide per run of frames, by which view's
+            # labels jump at the run's ends (the swapped one does), else by the body's anatomy.
+            fixed_view = np.full(T, -1)
+            for run in _runs(best_view >= 0):
+                gains = [_continuity_gain(kp, v, run, groups[name], tcfg.min_conf) for v in range(V)]
+                if max(gains) > 0:
+                    fixed_view[run[0]:run[1]] = int(np.argmax(gains))
+                else:
+                    for v in range(V):
+                        right = ~_mislabelled(trials[v][1][run[0]:run[1]], name)
+                        if right.mean() > 0.5:
+                            fixed_view[run[0]:run[1]] = v
+                            break
+            best_view = fixed_view
+        t_idx = np.flatnonzero(best_view >= 0)
+        for t in t_idx:
+            v = best_view[t]
+            kp[t, v] = _swap(kp[t, v], groups[name])
+            swapped[t, v, g] = True
+        if len(t_idx):
+            log.info("left/right %s swapped back in %d frames (%s)", name, len(t_idx),
+                     ", ".join(f"view {v}: {int((best_view == v).sum())}" for v in range(V) if (best_view == v).any()))
+    return kp, swapped
