@@ -26,7 +26,8 @@ def viewer_picture(session: Path, seq: str, out: Path) -> None:
     handle = serve(session, seq, ViewerConfig(port=port))
     try:
         handle.set_frame(handle.num_frames // 2)
-        with tempfile.TemporaryDirectory() as tmp, HeadlessChromium(handle.url, Path(tmp), (1280, 800)) as page:
+        # (Chromium's helper processes may still write to the profile while it is removed.)
+        with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as tmp, HeadlessChromium(handle.url, Path(tmp), (1280, 800)) as page:
             deadline = time.monotonic() + 60
             while not handle.server.get_clients() and time.monotonic() < deadline:
                 time.sleep(0.1)
