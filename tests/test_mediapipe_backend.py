@@ -9,7 +9,6 @@ a wrong pixel scale or a wrong crop-to-frame transform.
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +19,9 @@ from embodmocap.perception.mediapipe_backend import (
     COCO17_FROM_BLAZEPOSE, MediaPipeConfig, MediaPipePose, _to_coco17,
 )
 from embodmocap.types import COCO17_NAMES
+from shared_data import shared_data
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "pose2sim_demo"
-if not DATA.is_dir():  # the tree may sit elsewhere; the shared data lives at /work/shared
-    DATA = Path("/work/shared/data/pose2sim_demo")
+DATA = shared_data("pose2sim_demo")
 
 #: Video frame v of these files is best matched by OpenPose file number v - 1 (see the benchmark
 #: and ``test_openpose_files_lag_the_video_by_one_frame``).

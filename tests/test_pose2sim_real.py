@@ -20,7 +20,6 @@ from __future__ import annotations
 import itertools
 import logging
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,11 +28,12 @@ from embodmocap.errors import InputError
 from embodmocap.geometry.triangulation import TriangulationConfig, projection_matrices, triangulate
 from embodmocap.io.openpose import keypoint_files, read_openpose_raw
 from embodmocap.io.pose2sim import BODY_25B_MARKERS, R_CALIB_TRC, read_pose2sim_calibration, read_trc
+from shared_data import shared_data
 
 cv2 = pytest.importorskip("cv2")
 log = logging.getLogger(__name__)
 
-DEMO = Path(__file__).parents[1].parent / "shared" / "data" / "pose2sim_demo"
+DEMO = shared_data("pose2sim_demo")
 TRC = "S00_P00_T01_BalancingTrial_0-100.trc"
 MIN_CONF = 0.3
 

@@ -1,16 +1,13 @@
 """A real iPhone LiDAR frame (256x192 float32 TIFF in metres + 1920x1440 JPEG)."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
 from embodmocap.io.captures.common import depth_to_rgb_scale, read_depth_image
+from shared_data import shared_data
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iphone_lidar_frame"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data/iphone_lidar_frame")
+DATA = shared_data("iphone_lidar_frame")
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason="real data folder not available")
 
 
