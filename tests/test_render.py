@@ -6,7 +6,6 @@ truth (true body, true cameras), so the overlay must coincide with the person in
 
 from __future__ import annotations
 
-import json
 import shutil
 from pathlib import Path
 
@@ -15,12 +14,9 @@ import numpy as np
 import pytest
 
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout
-from embodmocap.io.smpl_file import write_smpl_npz
 from embodmocap.io.video import VideoReader
-from embodmocap.synth.config import SynthConfig
-from embodmocap.types import PngMasks, SmplParams
+from embodmocap.types import PngMasks
 
 from stage4_session import SYNTH, make_stage4_session  # noqa: E402  (tests/ helper module)
 

@@ -9,13 +9,10 @@ messages were drawn).
 
 from __future__ import annotations
 
-import base64
-import json
 import shutil
 import socket
 import subprocess
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -58,7 +55,7 @@ def session(tmp_path_factory):
 def test_viewer_serves_the_scene_to_a_browser(session, tmp_path):
     from embodmocap.viz.viewer import ViewerConfig, serve
 
-    chromium = _chromium()
+    _chromium()  # installs it if needed, or skips the test
     handle = serve(session, SYNTH.sequence_name, ViewerConfig(port=_free_port(), max_image_side=160))
     try:
         # Server side: every layer exists, with the data of the first frame.
