@@ -30,22 +30,12 @@ import numpy as np
 LIMB_JOINTS = [1, 2, 4, 5, 7, 8, 16, 17, 18, 19, 20, 21]
 
 
-def _look_at(centre, target):
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    T[:3, 3] = centre
-    return T
-
-
 def child(args) -> dict:
     import torch
     from scipy.spatial.transform import Rotation
 
     from embodmocap.body.model import load_body_model
-    from embodmocap.geometry.transforms import invert_T
+    from embodmocap.geometry.transforms import invert_T, look_at_T
     from embodmocap.io.body_prior import BodyPriorSeq
     from embodmocap.motion.init import init_from_prior
     from embodmocap.motion.smplify import KeypointBody, SmplifyConfig, ViewObservations, fit_world_smpl
@@ -70,7 +60,7 @@ def child(args) -> dict:
     views = []
     for name, a0, rate in (("v1", 0.3, 0.0), ("v2", 1.9, 0.002)):
         # Cameras follow the performer (as the handheld phones do) from 4 m away.
-        cams = np.stack([_look_at(p + [4 * np.cos(a), 4 * np.sin(a), 0.3], p)
+        cams = np.stack([look_at_T(p + [4 * np.cos(a), 4 * np.sin(a), 0.3], p)
                          for p, a in zip(joints[:, 0], a0 + rate * np.arange(T))])
         Tcw = invert_T(cams)
         pc = np.einsum("tij,tkj->tki", Tcw[:, :3, :3], coco) + Tcw[:, None, :3, 3]

@@ -10,7 +10,7 @@ import pytest
 
 from embodmocap.calibrate import losses as L
 from embodmocap.calibrate.refine import RefineConfig, ViewData, refine_offsets
-from embodmocap.geometry.transforms import invert_T, make_T, rot_z
+from embodmocap.geometry.transforms import invert_T, look_at_T, make_T, rot_z
 
 W, H = 640, 480
 K = np.array([[500.0, 0.0, 319.5], [0.0, 500.0, 239.5], [0.0, 0.0, 1.0]])
@@ -25,18 +25,11 @@ def box_mesh(lo, hi):
     return v, np.array(f)
 
 
-def look_at(c, target):
-    z = (target - c) / np.linalg.norm(target - c)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return make_T(np.stack([x, np.cross(z, x), z], axis=1), c)
-
-
 def trajectory(phase, n=40):
     s = np.linspace(0, 1, n)
     ang = phase + 0.8 * s
     c = np.stack([1.8 * np.cos(ang), 1.6 * np.sin(ang), 1.3 + 0.1 * np.sin(6 * s)], -1)
-    return np.stack([look_at(ci, np.array([0.2, 0.0, 1.0])) for ci in c])
+    return np.stack([look_at_T(ci, np.array([0.2, 0.0, 1.0])) for ci in c])
 
 
 def in_view(T_world_cam, pts):

@@ -8,7 +8,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from embodmocap.body.model import load_body_model
-from embodmocap.geometry.transforms import invert_T
+from embodmocap.geometry.transforms import invert_T, look_at_T
 from embodmocap.io.body_prior import BodyPriorSeq
 from embodmocap.motion import terms as TM
 from embodmocap.motion.init import init_from_keypoints, init_from_prior
@@ -41,17 +41,6 @@ def motion(body):
     return params, out.joints.numpy(), out.coco17.numpy()
 
 
-def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(4, 4) OpenCV camera-to-world looking from ``centre`` at ``target``, Z up."""
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    T[:3, 3] = centre
-    return T
-
-
 K = np.array([[700.0, 0.0, 360.0], [0.0, 700.0, 480.0], [0.0, 0.0, 1.0]])
 
 
@@ -60,7 +49,7 @@ def _cameras(centre: np.ndarray, T: int) -> dict[str, np.ndarray]:
     out = {}
     for name, a0, rate in (("v1", 0.3, 0.0), ("v2", 1.9, 0.004)):
         ang = a0 + rate * np.arange(T)
-        out[name] = np.stack([_look_at(centre + [4 * np.cos(a), 4 * np.sin(a), 0.3], centre) for a in ang])
+        out[name] = np.stack([look_at_T(centre + [4 * np.cos(a), 4 * np.sin(a), 0.3], centre) for a in ang])
     return out
 
 
@@ -131,7 +120,7 @@ def test_gradients_of_every_term_match_finite_differences():
     for kind in ("l2", "huber", "geman_mcclure"):
         _gradcheck(lambda p: TM.kp3d_term(p, target, conf, kind, 0.05), pred)
     # Reprojection: points about 3 m in front of cameras that look along +y of the world.
-    cams = torch.as_tensor(np.stack([_look_at(np.array([x, -3.0, 0.0]), np.array([0.0, 0.0, 0.0])) for x in (0.0, 1.0)]))
+    cams = torch.as_tensor(np.stack([look_at_T(np.array([x, -3.0, 0.0]), np.array([0.0, 0.0, 0.0])) for x in (0.0, 1.0)]))
     Twc = cams[None].expand(T, V, 4, 4)
     Kt = torch.as_tensor(K)[None].expand(V, 3, 3)
     pts = (r(T, J, 3) * 0.3).requires_grad_()

@@ -7,22 +7,11 @@ import pytest
 import torch
 
 from embodmocap.body.model import load_body_model
-from embodmocap.geometry.transforms import R_ZUP_YUP
+from embodmocap.geometry.transforms import R_ZUP_YUP, look_at_T
 from embodmocap.geometry.triangulation import projection_matrices
 from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
 
 K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-
-
-def _look_at(c, target):
-    z = target - c
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-    T[:3, 3] = c
-    return T
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +37,7 @@ def scene():
     centre = np.array([0.75, 0.0, 1.0])
     # One camera held high: with both at one height the epipolar lines run level and a left/right
     # swap (a sideways shift) slides along them, unseen.
-    cams = [_look_at(centre + 3.5 * np.array([np.cos(a), np.sin(a), h]), centre)
+    cams = [look_at_T(centre + 3.5 * np.array([np.cos(a), np.sin(a), h]), centre)
             for a, h in ((0.9, 0.1), (2.2, 0.7), (3.8, 0.3))]
     T_wc = np.broadcast_to(np.stack(cams), (T, 3, 4, 4))
     P = projection_matrices(K, T_wc)

@@ -87,3 +87,22 @@ def test_intrinsics_scaling_pixel_centres():
     assert np.isclose(d.cx, 127.5) and np.isclose(d.cy, 95.5)
     back = d.scaled(1920, 1440)
     np.testing.assert_allclose(back.K, K.K, atol=1e-9)
+
+
+def test_look_at_points_the_camera_at_the_target_without_roll():
+    from embodmocap.geometry.transforms import look_at_R, look_at_T
+
+    rng = np.random.default_rng(3)
+    c = rng.normal(size=(5, 3))
+    t = c + rng.normal(size=(5, 3))
+    T = look_at_T(c, t)
+    R = T[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), (5, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(R), 1.0)
+    d = (t - c) / np.linalg.norm(t - c, axis=1, keepdims=True)
+    np.testing.assert_allclose(R[:, :, 2], d, atol=1e-12)  # optical axis at the target
+    np.testing.assert_allclose(R[:, 2, 0], 0.0, atol=1e-12)  # camera x horizontal: no roll
+    assert np.all(R[:, 2, 1] < 0)  # image y points down in the world
+    np.testing.assert_allclose(T[:, :3, 3], c)
+    np.testing.assert_allclose(look_at_T(c[0], t[0]), T[0])
+    np.testing.assert_allclose(look_at_R(c, t), R)

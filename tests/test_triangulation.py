@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from embodmocap.geometry.transforms import invert_T, make_T, rot_z
+from embodmocap.geometry.transforms import invert_T, look_at_T, make_T, rot_z
 from embodmocap.geometry.triangulation import (
     Triangulation,
     TriangulationConfig,
@@ -19,16 +19,6 @@ K = np.array([[900.0, 0.0, 360.0], [0.0, 900.0, 480.0], [0.0, 0.0, 1.0]])
 NO_REJECT = TriangulationConfig(reject_px=np.inf, max_gap_frames=0)
 
 
-def look_at(centre, target):
-    """(..., 4, 4) camera-to-world, OpenCV axes, looking from ``centre`` at ``target``, Z up."""
-    z = target - centre
-    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x = x / np.linalg.norm(x, axis=-1, keepdims=True)
-    y = np.cross(z, x)
-    return make_T(np.stack([x, y, z], axis=-1), centre)
-
-
 def ring_cameras(V, T=None, radius=4.0, offset=(0.0, 0.0, 0.0)):
     """V cameras on a ring around ``offset`` + (0, 0, 1); (V, 4, 4), or (T, V, 4, 4) if T is
     given: then the ring turns and the cameras bob over time (hand-held)."""
@@ -37,11 +27,11 @@ def ring_cameras(V, T=None, radius=4.0, offset=(0.0, 0.0, 0.0)):
     ang = np.linspace(0, 2 * np.pi, V, endpoint=False) + 0.3
     if T is None:
         centres = np.stack([radius * np.cos(ang), radius * np.sin(ang), np.full(V, 1.6)], -1) + offset
-        return look_at(centres, target)
+        return look_at_T(centres, target)
     t = np.arange(T)[:, None]
     a = ang[None] + 0.01 * t
     centres = np.stack([radius * np.cos(a), radius * np.sin(a), 1.6 + 0.2 * np.sin(0.1 * t + ang)], -1) + offset
-    return look_at(centres, np.broadcast_to(target, centres.shape) + 0.1 * np.sin(0.05 * t)[..., None])
+    return look_at_T(centres, np.broadcast_to(target, centres.shape) + 0.1 * np.sin(0.05 * t)[..., None])
 
 
 def project(P, X):

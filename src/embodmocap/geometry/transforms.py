@@ -39,6 +39,23 @@ def make_T(R: F, t: F) -> F:
     return T
 
 
+def look_at_R(centres: F, targets: F) -> F:
+    """Camera-to-world rotations (..., 3, 3), OpenCV axes, looking from ``centres`` at ``targets``
+    (both (..., 3), broadcast) with no roll in a Z-up world (camera x horizontal, y pointing
+    down-ish). Undefined when looking straight up or down."""
+    z = np.asarray(targets, dtype=np.float64) - np.asarray(centres, dtype=np.float64)
+    z = z / np.linalg.norm(z, axis=-1, keepdims=True)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.stack([x, np.cross(z, x), z], axis=-1)
+
+
+def look_at_T(centres: F, targets: F) -> F:
+    """Camera-to-world transforms (..., 4, 4) of :func:`look_at_R` cameras at ``centres``."""
+    return make_T(look_at_R(centres, targets), np.broadcast_to(np.asarray(centres, dtype=np.float64),
+                                                                np.broadcast_shapes(np.shape(centres), np.shape(targets))))
+
+
 def invert_T(T: F) -> F:
     """Inverse of rigid transforms (..., 4, 4), using R^T rather than a general inverse."""
     T = np.asarray(T, dtype=np.float64)

@@ -43,7 +43,6 @@ from embodmocap.synth.render import Renderer
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.scene import build_scene, write_scene_ply
 from embodmocap.synth.sync_event import aim_at_dot, choose_dot, with_dot
-from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
 

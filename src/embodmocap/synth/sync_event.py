@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.transforms import look_at_R
 from embodmocap.synth.scene import BuiltScene
-from embodmocap.synth.trajectory import look_at
 
 
 @dataclass(frozen=True)
@@ -123,11 +123,11 @@ def aim_at_dot(T_scene_cam: NDArray, dot: NDArray, event_frame: int, fps: float,
     c = T[sel, :3, 3]
     R = T[sel, :3, :3]
     fwd = R[:, :, 2]
-    R_aim = look_at(c, c + fwd)
+    R_aim = look_at_R(c, c + fwd)
     R_shake = np.swapaxes(R_aim, 1, 2) @ R  # what the hand adds on top of the aim
     to_dot = dot[None] - c
     to_dot /= np.linalg.norm(to_dot, axis=1, keepdims=True)
     d = w[sel, None] * to_dot + (1 - w[sel, None]) * fwd
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    T[sel, :3, :3] = look_at(c, c + d) @ R_shake
+    T[sel, :3, :3] = look_at_R(c, c + d) @ R_shake
     return T

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 
-from embodmocap.geometry.transforms import make_T, rot_z
+from embodmocap.geometry.transforms import look_at_R, make_T, rot_z
 from embodmocap.synth.spec import SceneSpec
 
 log = logging.getLogger(__name__)
@@ -32,17 +32,6 @@ GRAVITY_MPS2 = 9.81
 
 # ------------------------------------------------------------------------------------------------
 # Shared pieces
-
-
-def look_at(centres: NDArray, targets: NDArray) -> NDArray[np.float64]:
-    """Camera-to-world rotations (T, 3, 3), OpenCV axes, looking from ``centres`` at ``targets``
-    (both (T, 3)) with no roll (camera x horizontal, y pointing down-ish)."""
-    z = np.asarray(targets, float) - np.asarray(centres, float)
-    z /= np.linalg.norm(z, axis=-1, keepdims=True)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x, axis=-1, keepdims=True)  # undefined only when looking straight up/down
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=-1)
 
 
 def _smooth_noise(n: int, sigma_frames: float, rng: np.random.Generator, dims: int) -> NDArray[np.float64]:
@@ -184,7 +173,7 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     tz = np.maximum(tz, height - np.tan(np.deg2rad(cfg.max_pitch_deg)) * dist)
     centres = np.column_stack([xy, height])
     targets = np.column_stack([xy + look * dist[:, None], tz])
-    T = make_T(look_at(centres, targets), centres)
+    T = make_T(look_at_R(centres, targets), centres)
     return _add_shake(T, fps, rng, cfg.shake)
 
 
@@ -328,7 +317,7 @@ def follow_views(spec: SceneSpec, performer_xyz: NDArray, fps: float, rng: np.ra
         xy = np.clip(xy, lo, hi)
         height = (h0 + h1) / 2 + (h1 - h0) / 2 * np.clip(_smooth_noise(n, 1.5 * fps, rng, 1)[:, 0], -1, 1)
         centres = np.column_stack([xy, height])
-        T = make_T(look_at(centres, aim), centres)
+        T = make_T(look_at_R(centres, aim), centres)
         poses.append(_add_shake(T, fps, rng, cfg.shake))
     return poses[0], poses[1]
 
