@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from embodmocap.geometry.transforms import apply_T, invert_T, make_T
+from embodmocap.geometry.transforms import apply_T, invert_T, look_at_R, make_T
 from embodmocap.synth import lidar, trajectory
 from embodmocap.synth.render import Renderer, RenderConfig, _cast, _raycasting_scene, camera_ray_dirs
 from embodmocap.synth.scene import box_mesh, build_scene, scene_mesh_trimesh
@@ -111,7 +111,7 @@ def test_laser_dot_visible_when_on_at_its_projection(indoor, distance):
     spec = built.spec
     n = spec.laser_normal
     c = spec.laser_dot + n * distance + np.array([0, 0, 0.1])
-    R = trajectory.look_at(c[None], spec.laser_dot[None])[0]
+    R = look_at_R(c[None], spec.laser_dot[None])[0]
     T = make_T(R, c)
     on = r.render(K, T, laser_on=True)
     off = r.render(K, T, laser_on=False)
@@ -128,7 +128,7 @@ def test_laser_dot_hidden_behind_the_body(indoor):
     built, r = indoor
     spec = built.spec
     c = spec.laser_dot + spec.laser_normal * 3.0
-    T = make_T(trajectory.look_at(c[None], spec.laser_dot[None])[0], c)
+    T = make_T(look_at_R(c[None], spec.laser_dot[None])[0], c)
     v, f = box_mesh((spec.laser_dot + spec.laser_normal * 1.0)[None], np.full((1, 3), 0.4))
     out = r.render(K, T, (v, f), laser_on=True)
     assert not _red(out.rgb).any()
