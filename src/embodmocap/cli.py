@@ -1,7 +1,9 @@
 """The ``embodmocap`` command: one subcommand per job, generated from config dataclasses by tyro.
 
-Every option's help text is the docstring of its dataclass field. Errors caused by input are shown
-as one line (what, where, what to do); ``--debug`` anywhere on the command line shows the traceback.
+Every option's help text is the docstring of its dataclass field. Every failure is shown as one line
+(what, where, what to do): input errors, file system errors (disk full, permission denied) and,
+as a last resort, unexpected ones; ``--debug`` anywhere on the command line shows the traceback.
+Commands that write into a session check that they can before any work starts.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Annotated, Literal, Union
 
 import tyro
 
-from embodmocap.errors import EmbodMocapError
+from embodmocap.errors import EmbodMocapError, os_error_line
 from embodmocap.scene.config import SceneConfig
 from embodmocap.calibrate.stage import CalibrateConfig
 from embodmocap.evaluate.benchmark import BenchmarkConfig
@@ -421,6 +423,19 @@ Commands = Union[
 ]
 
 
+def _preflight(cmd) -> None:
+    """Before a command that writes into a session: writable folders, stale temporary files gone."""
+    from embodmocap.io.preflight import check_writable, prepare_session
+
+    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render)):
+        prepare_session(cmd.session)
+    if isinstance(cmd, Export) and cmd.out is not None:
+        folder = cmd.out if cmd.to == "mimickit" else cmd.out.parent
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent  # the export creates the missing folders
+        check_writable(folder, "export folder")
+
+
 def _setup_logging(debug: bool) -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
@@ -441,6 +456,7 @@ def main(argv: list[str] | None = None) -> int:
             Commands, args=argv, prog="embodmocap",
             description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
         )
+        _preflight(cmd)
         return int(cmd.run())
     except EmbodMocapError as err:
         if debug:
@@ -450,6 +466,18 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: run the same command again to resume", file=sys.stderr)
         return 130
+    except OSError as err:  # disk full, permission denied, read-only file system, ...
+        if debug:
+            raise
+        print(f"error: {os_error_line(err)}", file=sys.stderr)
+        return 2
+    except Exception as err:  # noqa: BLE001 - a bug or an unforeseen input: still one line
+        if debug:
+            raise
+        first = (str(err).splitlines() or [""])[0][:300]
+        print(f"error: unexpected {type(err).__name__}: {first} (run the same command with --debug for the "
+              "traceback, and report it)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":  # pragma: no cover

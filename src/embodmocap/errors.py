@@ -43,3 +43,24 @@ def require(module: str, extra: str):
         return importlib.import_module(module)
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise MissingExtraError(module, extra) from err
+
+
+def os_error_line(err: OSError) -> str:
+    """One line for a failed file operation: the file, what happened, what to do."""
+    import errno
+
+    where = f"{err.filename}: " if err.filename else ""
+    code = err.errno
+    if code == errno.ENOSPC:
+        what, fix = "no space left on the device", "free some disk space, then run the same command again to resume"
+    elif code == getattr(errno, "EDQUOT", -1):
+        what, fix = "disk quota exceeded", "free some space or raise the quota, then run the same command again to resume"
+    elif code in (errno.EACCES, errno.EPERM):
+        what, fix = "permission denied", "make it writable for you (chmod/chown), or copy the session to a folder you own"
+    elif code == errno.EROFS:
+        what, fix = "read-only file system", "copy the session to a writable disk and run there"
+    elif code == errno.ENOENT:
+        what, fix = "no such file or folder", "check the path"
+    else:
+        what, fix = err.strerror or str(err), "check the file, then run the same command again"
+    return f"{where}{what} ({fix})"

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from embodmocap.calibrate.stage import CalibrateConfig
-from embodmocap.errors import EmbodMocapError
+from embodmocap.errors import EmbodMocapError, os_error_line
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.motion.stage import MotionConfig
@@ -95,7 +95,8 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
             # Expected failures of one target (bad capture, too few registered frames, ...): report
             # and go on with the others. Programming errors (TypeError, KeyError, ...) propagate.
             seconds = time.perf_counter() - t0
-            msg = str(err) if isinstance(err, EmbodMocapError) else f"{type(err).__name__}: {err}"
+            msg = (str(err) if isinstance(err, EmbodMocapError) else os_error_line(err) if isinstance(err, OSError)
+                   else f"{type(err).__name__}: {err}")
             log.debug("%s %s failed:\n%s", target, stage, traceback.format_exc())
             say(f"{target}: {stage} FAILED after {seconds:.0f} s: {msg}")
             runs.append(StageRun(target, stage, "failed", round(seconds, 2), msg))

@@ -37,7 +37,7 @@ from embodmocap.io.captures import open_capture
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
+from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,7 @@ class CalibrateOutputs:
     skipped: tuple[str, ...]
 
 
+@tracked_stage
 def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> CalibrateOutputs:
     """Run Stage III for sequence ``seq`` (the only one when None)."""
     from embodmocap.sequence.stage import _pick_sequence
@@ -100,7 +101,11 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     for v in VIEWS:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
             raise InputError(out.view(v).root, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
-    sm = StageManifest(out.calibrate_manifest, "calibrate", cfg)
+    sm = StageManifest(out.calibrate_manifest, "calibrate", cfg, root=lay.root, upstream=[
+        Upstream(scene.manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}"),
+        Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")],
+        inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in VIEWS
+                                                  for k in ("cameras", "keypoints", "masks", "depth")]])
     skipped: list[str] = []
     upstream = fingerprint(path_fingerprint(scene.sfm_dir / "sparse"), path_fingerprint(scene.mesh_raw),
                            *[path_fingerprint(out.view(v).cameras) for v in VIEWS])

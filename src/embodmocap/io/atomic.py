@@ -1,7 +1,10 @@
 """Atomic writes: a crash never leaves a half-written file that looks complete.
 
 Each writer writes to a temporary name in the destination folder and renames it into place
-(``os.replace`` is atomic on POSIX within one file system).
+(``os.replace`` is atomic on POSIX within one file system). Temporary names are hidden and carry
+the writer's process id (``.<name>.part-<pid>-<random><suffix>``), so that a later run can remove
+what a killed run left behind without touching the files of a run still in progress
+(:func:`remove_stale_temps`).
 """
 
 from __future__ import annotations
@@ -9,12 +12,75 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+
+#: Marks a temporary name written by this module (followed by the writer's pid).
+TEMP_MARK = ".part-"
+
+# Names of temporary files/folders of versions before the pid mark: ".<name>.<8 random chars>"
+# (tempfile's alphabet), optionally with a suffix, and atomic_dir's ".<name>.old".
+_LEGACY_TEMP = re.compile(r"^\.[^/]+\.(?:[a-z0-9_]{8}(?:\.[A-Za-z0-9]{1,5})?|old)$")
+
+
+def temp_prefix(path: str | Path) -> str:
+    """The hidden prefix of this process's temporary names for ``path``."""
+    return f".{Path(path).name}{TEMP_MARK}{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # someone else's live process
+    return True
+
+
+def is_stale_temp(name: str) -> bool:
+    """True when ``name`` is a temporary name of a writer that is no longer running."""
+    if not name.startswith("."):
+        return False
+    if TEMP_MARK in name:
+        pid = name.split(TEMP_MARK, 1)[1].split("-", 1)[0]
+        return pid.isdigit() and not _pid_alive(int(pid))
+    return bool(_LEGACY_TEMP.match(name))
+
+
+def remove_stale_temps(folder: str | Path, recursive: bool = True) -> list[Path]:
+    """Remove the temporary files and folders that killed writers left in ``folder`` (and below).
+
+    Only names this module writes are touched (see :func:`is_stale_temp`); those of a writer that
+    is still running are kept. Returns what was removed.
+    """
+    removed: list[Path] = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return removed
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in list(dirnames) + filenames:
+            if is_stale_temp(name):
+                p = Path(dirpath) / name
+                try:
+                    if p.is_dir() and not p.is_symlink():
+                        shutil.rmtree(p)
+                    else:
+                        p.unlink()
+                except FileNotFoundError:
+                    continue
+                removed.append(p)
+                if name in dirnames:
+                    dirnames.remove(name)
+        if not recursive:
+            break
+    return removed
 
 
 @contextlib.contextmanager
@@ -26,7 +92,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path), suffix=suffix if suffix is not None else path.suffix, dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -77,13 +143,13 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a temporary folder next to ``path``; on success it replaces ``path`` whole."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(path), dir=path.parent))
     # mkdtemp makes the folder 0700; give it the mode a plainly created folder gets.
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
         if path.exists():
-            old = path.with_name(f".{path.name}.old")
+            old = path.with_name(f"{temp_prefix(path)}old")
             if old.exists():
                 shutil.rmtree(old)
             os.replace(path, old)

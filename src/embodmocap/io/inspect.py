@@ -1,7 +1,8 @@
 """``embodmocap inspect PATH``: what a capture or a session holds, and every problem found.
 
-Nothing stops at the first problem: each capture, perception folder and the manifest are checked
-and all problems are listed, so a user fixes a session in one pass.
+Nothing stops at the first problem: each capture, every perception file, the body model, the
+manifest and the session folder's write access are checked and all problems are listed, so a user
+fixes a session in one pass (session checks in ``inspect_session``).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ def inspect_path(path: str | Path) -> tuple[str, list[str]]:
 
 
 def _inspect_session(root: Path) -> tuple[str, list[str]]:
+    from embodmocap.io import inspect_session as chk
     from embodmocap.io.manifest import read_manifest
 
     lay = SessionLayout(root)
@@ -41,6 +43,8 @@ def _inspect_session(root: Path) -> tuple[str, list[str]]:
     problems = [f"{lay.manifest}: {p}" for p in found]
     body = manifest.body_model or "(generated test model)"
     lines.append(f"  body model: {body}")
+    problems += chk.body_model_problems(manifest.body_model)
+    problems += chk.writable_problems(root)
     for name, scene in manifest.scenes.items():
         lines.append(f"  scene {name} ({'indoor' if scene.indoor else 'outdoor'}):")
         problems += _add_capture(lines, scene.capture, "    ")
@@ -56,6 +60,7 @@ def _inspect_session(root: Path) -> tuple[str, list[str]]:
             if view.body_prior is not None:
                 ok = Path(view.body_prior).is_file()
                 lines.append(f"      body prior: {view.body_prior}{'' if ok else ' (missing)'}")
+            problems += chk.view_perception_problems(view)
     if lay.ground_truth.info.is_file():
         lines.append(f"  ground truth: {lay.ground_truth.root}")
     lines.append("")

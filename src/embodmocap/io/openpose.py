@@ -19,7 +19,6 @@ With 25 points the two 25-point layouts are told apart from the data (see :func:
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 import warnings
@@ -31,6 +30,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json
+from embodmocap.io.jsonfile import read_json
 from embodmocap.types import Keypoints2D
 
 log = logging.getLogger(__name__)
@@ -52,6 +52,13 @@ LAYOUT_SIZE: dict[str, int] = {"COCO17": 17, "COCO18": 18, "BODY_25": 25, "BODY_
 #: Trailing frame number of a keypoint file: ``*_000012_keypoints.json``, ``000012_keypoints.json``,
 #: ``cam01.0012.json``, ``frame12.json``.
 _FRAME_RE = re.compile(r"(\d+)(?:_keypoints)?\.json$", re.IGNORECASE)
+
+#: Largest OpenPose per-frame JSON accepted: one frame of even a crowd (100 people, 25 points,
+#: hands and face) is well under 1 MiB; a bigger file is not a keypoint file.
+MAX_FRAME_JSON_BYTES = 4 << 20
+#: Largest COCO keypoint file (every frame of a sequence in one file) accepted: ~1 KB per person
+#: and frame, so 256 MiB covers hours of 60 fps video.
+MAX_COCO_JSON_BYTES = 256 << 20
 
 #: Points below this confidence are ignored when judging a layout or a person's size.
 _CONF_MIN = 0.1
@@ -97,12 +104,7 @@ def read_openpose_raw(path: str | Path) -> NDArray[np.float64]:
             multiple of 3, or people with different point counts.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as err:
-        raise InputError(path, "keypoint file not found", "check the keypoint folder") from err
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError(path, f"not valid JSON ({err})", "re-export the keypoints") from err
+    doc = read_json(path, max_bytes=MAX_FRAME_JSON_BYTES, what="keypoint file", fix="re-export the keypoints")
     if not isinstance(doc, dict) or not isinstance(doc.get("people"), list):
         raise InputError(path, "no 'people' list: not an OpenPose JSON file", "export with OpenPose --write_json")
     arrays = []
@@ -275,12 +277,7 @@ def read_coco_keypoints(path: str | Path) -> dict[int | str, NDArray[np.float64]
         InputError: unreadable JSON, neither shape, or a keypoint list that is not 51 numbers.
     """
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError as err:
-        raise InputError(path, "COCO keypoint file not found", "check the path") from err
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError(path, f"not valid JSON ({err})", "re-export the keypoints") from err
+    doc = read_json(path, max_bytes=MAX_COCO_JSON_BYTES, what="COCO keypoint file", fix="re-export the keypoints")
     if isinstance(doc, dict) and isinstance(doc.get("annotations"), list):
         entries, is_annotation = doc["annotations"], True
         image_ids = [im.get("id") for im in doc.get("images", []) if isinstance(im, dict)]

@@ -2,9 +2,19 @@
 
 A stage is a list of steps. Before a step runs, the stage computes its fingerprint from the
 step's config, the fingerprints of its input files and those of the steps it depends on. The step
-is skipped when the manifest holds the same fingerprint and every output it recorded still exists;
-otherwise it runs and the manifest is rewritten (atomically) right after it, so a run interrupted
-between steps resumes at the first step that is not done.
+is skipped when the manifest holds the same fingerprint and every output it recorded still exists
+with the content it was written with; otherwise it runs and the manifest is rewritten (atomically)
+right after it, so a run interrupted between steps resumes at the first step that is not done.
+
+Fingerprints depend on content, never on modification times or absolute paths, so a session
+folder that is moved, copied (``cp -a``, ``rsync -a``, even ``cp -r``) or reached through a
+relative path or a symlink redoes nothing (policy in :func:`file_digest`). Paths in the manifest
+are relative to the manifest's folder.
+
+A stage run also records its status (``running`` while it works, then ``ok``, ``failed`` or
+``interrupted``) and the fingerprints of the inputs it read. A downstream stage refuses to start on
+an upstream stage that failed, did not finish, whose outputs changed or whose inputs changed since
+it ran (:func:`require_upstream`), naming the stage to rerun.
 
 The manifest (``manifest.json`` next to the stage's outputs) also carries what users want to see:
 the resolved config, the package version, timings and the quality figures of each step.
@@ -12,40 +22,99 @@ the resolved config, the package version, timings and the quality figures of eac
 
 from __future__ import annotations
 
+import contextvars
+import functools
 import hashlib
 import json
 import logging
+import os
 import time
-from dataclasses import asdict, is_dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable, Sequence, TypeVar
 
 from embodmocap import __version__
-from embodmocap.io.atomic import write_json
+from embodmocap.errors import InputError
+from embodmocap.io.atomic import remove_stale_temps, write_json
 
 log = logging.getLogger(__name__)
 
-MANIFEST_VERSION = 1
+#: 2: content fingerprints, per-output fingerprints, status and inputs (1: sizes + mtimes).
+MANIFEST_VERSION = 2
+
+#: Files up to this size are hashed whole; larger ones are sampled (see :func:`file_digest`).
+SMALL_FILE_BYTES = 8 << 20
+#: Bytes hashed at each end of a large file.
+EDGE_BYTES = 1 << 20
+#: Blocks hashed evenly spread between the ends of a large file, and their size.
+SAMPLE_BLOCKS = 16
+SAMPLE_BYTES = 64 << 10
+
+#: Stage manifests are small; anything bigger is not one of ours.
+MAX_MANIFEST_BYTES = 64 << 20
+
+# Digests of files already hashed in this process, keyed by what changes when a file is rewritten
+# (device, inode, size, mtime): stages fingerprint the same capture several times per run.
+_DIGESTS: dict[tuple, str] = {}
+
+
+def file_digest(path: str | Path) -> str:
+    """A content fingerprint of one file (hex, 32 characters).
+
+    Files up to :data:`SMALL_FILE_BYTES` (8 MiB: keypoint JSON, PNG frames, CSV, npz outputs) are
+    hashed whole with SHA-256. Larger files (videos, depth stacks, COLMAP databases) hash their size,
+    the first and the last MiB and 16 evenly spread 64 KiB blocks: about 3 MiB read whatever the
+    size, and any rewrite that changes the size, either end or one of the blocks is seen. Never the
+    modification time, so faithful copies fingerprint the same.
+    """
+    p = os.path.abspath(path)
+    st = os.stat(p)
+    key = (p, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    hit = _DIGESTS.get(key)
+    if hit is not None:
+        return hit
+    h = hashlib.sha256()
+    size = st.st_size
+    with open(p, "rb") as f:
+        if size <= SMALL_FILE_BYTES:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        else:
+            h.update(f"sampled {size}".encode())
+            spans = [(0, EDGE_BYTES), (size - EDGE_BYTES, EDGE_BYTES)]
+            step = (size - 2 * EDGE_BYTES - SAMPLE_BYTES) / (SAMPLE_BLOCKS + 1)
+            spans += [(EDGE_BYTES + int(step * (k + 1)), SAMPLE_BYTES) for k in range(SAMPLE_BLOCKS)]
+            for off, n in spans:
+                f.seek(off)
+                h.update(f.read(n))
+    digest = h.hexdigest()[:32]
+    _DIGESTS[key] = digest
+    return digest
 
 
 def path_fingerprint(path: str | Path) -> list:
-    """A cheap fingerprint of a file or folder: names, sizes and modification times.
+    """A content fingerprint of a file or folder (see :func:`file_digest`), free of absolute paths.
 
-    Content hashes of multi-GB captures would cost minutes; size + mtime changes whenever a file is
-    rewritten, which is what matters for deciding whether to redo a step.
+    A file gives ``[name, size, digest]``; a folder the sorted ``[relative path, size, digest]`` of
+    every file below it (hidden files and folders, e.g. temporary ones, left out); a missing path
+    ``[name, None]``.
     """
     p = Path(path)
     if p.is_file():
-        st = p.stat()
-        return [p.name, st.st_size, st.st_mtime_ns]
+        return [p.name, p.stat().st_size, file_digest(p)]
     if p.is_dir():
         out = []
-        for f in sorted(p.rglob("*")):
-            if f.is_file() and not f.name.startswith("."):
-                st = f.stat()
-                out.append([str(f.relative_to(p)), st.st_size, st.st_mtime_ns])
+        for dirpath, dirnames, filenames in os.walk(p):
+            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+            for name in sorted(filenames):
+                if name.startswith("."):
+                    continue
+                f = Path(dirpath) / name
+                if f.is_file():
+                    out.append([f.relative_to(p).as_posix(), f.stat().st_size, file_digest(f)])
+        out.sort()
         return out
-    return [str(p), None]
+    return [p.name, None]
 
 
 def fingerprint(*parts: Any) -> str:
@@ -63,49 +132,110 @@ def _plain(o: Any) -> Any:
     raise TypeError(f"cannot fingerprint {type(o).__name__}")
 
 
-class StageManifest:
-    """The manifest of one stage's run: steps done, their fingerprints, timings and figures."""
+def _abspath(p: str | Path) -> str:
+    """Absolute and ``..``-free, symlinks kept (a session reached through a link stays there)."""
+    return os.path.abspath(p)
 
-    def __init__(self, path: str | Path, stage: str, config: Any) -> None:
-        self.path = Path(path)
+
+# The manifests opened by the stage call in progress (see :func:`tracked_stage`).
+_ACTIVE: contextvars.ContextVar[list | None] = contextvars.ContextVar("embodmocap_stage_manifests", default=None)
+
+
+@dataclass(frozen=True)
+class Upstream:
+    """A stage whose outputs this stage reads: its manifest, its name and the command that reruns it."""
+
+    manifest: Path
+    stage: str
+    command: str
+
+
+class StageManifest:
+    """The manifest of one stage's run: steps done, their fingerprints, status, timings and figures.
+
+    Args:
+        path: the manifest file.
+        stage: the stage's name (``scene``, ``sequence``, ``calibrate``, ``motion``).
+        config: the stage's config (recorded as given).
+        inputs: files and folders the stage reads; their fingerprints are recorded when the stage
+            finishes, so a downstream stage can tell that this one is out of date.
+        upstream: stages whose outputs this one reads; checked first (:func:`require_upstream`).
+        root: the session folder. Paths inside it are stored relative to the manifest's folder (so
+            the session can move), paths outside it absolute. Default: the manifest's folder.
+    """
+
+    def __init__(self, path: str | Path, stage: str, config: Any, *, inputs: Iterable[str | Path | None] = (),
+                 upstream: Sequence[Upstream] = (), root: str | Path | None = None) -> None:
+        for up in upstream:
+            require_upstream(up)
+        self.path = Path(_abspath(path))
         self.stage = stage
+        self.root = _abspath(root if root is not None else self.path.parent)
+        self.inputs = [Path(p) for p in inputs if p is not None]
         self.data: dict[str, Any] = {
             "version": MANIFEST_VERSION, "stage": stage, "package_version": __version__,
-            "config": json.loads(json.dumps(config, default=_plain)), "steps": {}, "figures": {},
+            "config": json.loads(json.dumps(config, default=_plain)), "status": "running",
+            "steps": {}, "figures": {}, "inputs": {},
         }
         old = self._load()
         if old is not None:
             self.data["steps"] = old.get("steps", {})
             self.data["figures"] = old.get("figures", {})
+        # Temporary files of an earlier run that was killed (kill -9, power loss) go first.
+        remove_stale_temps(self.path.parent)
+        active = _ACTIVE.get()
+        if active is not None:
+            active.append(self)
+        # Recorded at once: a run killed from here on leaves "running", which downstream stages
+        # read as "did not finish".
+        self.save()
 
     def _load(self) -> dict | None:
         if not self.path.is_file():
             return None
         try:
+            if self.path.stat().st_size > MAX_MANIFEST_BYTES:
+                raise ValueError("too large")
             old = json.loads(self.path.read_text())
-        except (OSError, json.JSONDecodeError):
+        except (OSError, ValueError, RecursionError):
             log.warning("%s: unreadable stage manifest, redoing every step", self.path)
             return None
-        if old.get("version") != MANIFEST_VERSION or old.get("stage") != self.stage:
+        if not isinstance(old, dict) or old.get("version") != MANIFEST_VERSION or old.get("stage") != self.stage:
+            return None  # another format (an older version) or another stage: redo every step
+        if not isinstance(old.get("steps"), dict) or not isinstance(old.get("figures"), dict):
             return None
         return old
 
+    # -- paths --------------------------------------------------------------------------------
+
+    def _store(self, p: str | Path) -> str:
+        """How a path is written to the manifest: relative to its folder inside the session."""
+        a = _abspath(p)
+        if a == self.root or a.startswith(self.root.rstrip(os.sep) + os.sep):
+            return Path(os.path.relpath(a, self.path.parent)).as_posix()
+        return a
+
+    def resolve(self, stored: str) -> Path:
+        """A path as written in the manifest, as a path from here (whatever the current directory)."""
+        return _resolve(self.path, stored)
+
+    # -- steps --------------------------------------------------------------------------------
+
     def is_current(self, step: str, fp: str) -> bool:
-        """True when ``step`` was done with fingerprint ``fp`` and all its outputs still exist."""
+        """True when ``step`` was done with fingerprint ``fp`` and its outputs are as it wrote them."""
         rec = self.data["steps"].get(step)
-        if rec is None or rec.get("fingerprint") != fp:
+        if not isinstance(rec, dict) or rec.get("fingerprint") != fp:
             return False
-        root = self.path.parent
-        return all((root / o).exists() for o in rec.get("outputs", []))
+        return not _changed_outputs(self.path, rec)
 
     def record(self, step: str, fp: str, outputs: Iterable[str | Path], seconds: float,
                figures: dict[str, Any] | None = None) -> None:
-        """Mark ``step`` done and rewrite the manifest atomically."""
-        root = self.path.parent
-        outs = [str(Path(o).relative_to(root)) if Path(o).is_absolute() else str(o) for o in outputs]
+        """Mark ``step`` done (with its outputs' fingerprints) and rewrite the manifest atomically."""
+        outs = [Path(o) for o in outputs]
         self.data["steps"][step] = {
-            "fingerprint": fp, "outputs": outs, "seconds": round(float(seconds), 3),
-            "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "fingerprint": fp, "outputs": [self._store(o) for o in outs],
+            "output_fingerprints": {self._store(o): fingerprint(path_fingerprint(o)) for o in outs},
+            "seconds": round(float(seconds), 3), "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
         if figures:
             self.data["figures"].update(figures)
@@ -114,5 +244,101 @@ class StageManifest:
     def figures(self) -> dict[str, Any]:
         return dict(self.data["figures"])
 
+    def finish(self, status: str, error: BaseException | str | None = None) -> None:
+        """Record how the stage's run ended: ``ok`` (with its inputs' fingerprints), ``failed`` or
+        ``interrupted`` (with the error's first line)."""
+        self.data["status"] = status
+        self.data["ended"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+        if status == "ok":
+            self.data.pop("error", None)
+            self.data["inputs"] = {self._store(p): fingerprint(path_fingerprint(p)) for p in self.inputs}
+        else:
+            msg = str(error) if error is not None else ""
+            self.data["error"] = (msg.splitlines() or [type(error).__name__ if error else ""])[0][:300]
+        self.save()
+
     def save(self) -> None:
         write_json(self.path, self.data)
+
+
+def _resolve(manifest: Path, stored: str) -> Path:
+    p = Path(stored)
+    return p if p.is_absolute() else Path(os.path.normpath(Path(manifest).parent / p))
+
+
+def _changed_outputs(manifest: Path, rec: dict) -> list[str]:
+    """Outputs of a step record that are missing or no longer hold what was written."""
+    bad = []
+    fps = rec.get("output_fingerprints") or {}
+    for o in rec.get("outputs", []):
+        q = _resolve(manifest, o)
+        if not q.exists():
+            bad.append(f"{o} is missing")
+        elif o in fps and fingerprint(path_fingerprint(q)) != fps[o]:
+            bad.append(f"{o} changed since it was written")
+    return bad
+
+
+def require_upstream(up: Upstream) -> None:
+    """Refuse to go on when an upstream stage failed, did not finish, or is out of date.
+
+    A manifest that does not exist or was written by an older version of the package says nothing
+    about the run (outputs made by hand, or by an earlier version): the stage's own checks for
+    missing outputs apply. Raises :class:`InputError` naming the upstream manifest, what is wrong
+    and the command to rerun.
+    """
+    path = Path(up.manifest)
+    fix = f"run `{up.command}` first"
+    if not path.is_file():
+        return
+    try:
+        if path.stat().st_size > MAX_MANIFEST_BYTES:
+            raise ValueError("too large")
+        data = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        raise InputError(path, f"the {up.stage} stage's manifest is unreadable", fix) from None
+    if not isinstance(data, dict) or data.get("version") != MANIFEST_VERSION:
+        return
+    status = data.get("status")
+    if status == "failed":
+        raise InputError(path, f"the {up.stage} stage failed in its last run ({data.get('error', '')})", fix)
+    if status != "ok":
+        raise InputError(path, f"the {up.stage} stage did not finish its last run ({status})", fix)
+    for step, rec in (data.get("steps") or {}).items():
+        bad = _changed_outputs(path, rec) if isinstance(rec, dict) else []
+        if bad:
+            raise InputError(path, f"the {up.stage} stage's output {bad[0]} (step {step})", fix)
+    for stored, fp in (data.get("inputs") or {}).items():
+        q = _resolve(path, stored)
+        if fingerprint(path_fingerprint(q)) != fp:
+            raise InputError(path, f"the {up.stage} stage is out of date: its input {q} changed since it ran", fix)
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def tracked_stage(fn: F) -> F:
+    """Decorate a stage's ``run``: every :class:`StageManifest` it opens records how the run ended
+    (``ok``, ``failed`` with the error, or ``interrupted`` on Ctrl-C)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        opened: list[StageManifest] = []
+        token = _ACTIVE.set(opened)
+        try:
+            result = fn(*args, **kwargs)
+        except BaseException as err:
+            status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+            for sm in opened:
+                try:
+                    sm.finish(status, err)
+                except OSError as save_err:  # e.g. the disk is full: the original error matters
+                    log.debug("could not record %s in %s: %s", status, sm.path, save_err)
+            raise
+        finally:
+            _ACTIVE.reset(token)
+        for sm in opened:
+            sm.finish("ok")
+        return result
+
+    return wrapper  # type: ignore[return-value]

@@ -34,7 +34,7 @@ from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.smpl_file import read_smpl_npz, write_smpl_npz
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
+from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
 from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
@@ -77,6 +77,7 @@ class MotionOutputs:
     skipped: tuple[str, ...]
 
 
+@tracked_stage
 def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> MotionOutputs:
     """Run Stage IV for sequence ``seq`` (the only one when None)."""
     from embodmocap.body.model import load_body_model
@@ -92,7 +93,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             raise InputError(vl.keypoints, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
         if not vl.cameras_world.is_file():
             raise InputError(vl.cameras_world, "Stage III outputs are missing", f"run `embodmocap calibrate {lay.root} --seq {entry.name}` first")
-    sm = StageManifest(out.motion_manifest, "motion", cfg)
+    sm = StageManifest(out.motion_manifest, "motion", cfg, root=lay.root, upstream=[
+        Upstream(lay.scene(entry.scene).manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}"),
+        Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}"),
+        Upstream(out.calibrate_manifest, "calibrate", f"embodmocap calibrate {lay.root} --seq {entry.name}")],
+        inputs=[manifest.body_model, *[getattr(out.view(v), k) for v in VIEWS
+                                       for k in ("keypoints", "cameras_world", "body_prior")]])
     skipped: list[str] = []
     cams = {v: np.load(out.view(v).cameras_world) for v in VIEWS}
     kps = {v: np.load(out.view(v).keypoints)["keypoints"] for v in VIEWS}
@@ -139,7 +145,9 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     model = load_body_model(manifest.body_model)
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, path_fingerprint(out.keypoints3d),
-                         *[path_fingerprint(out.view(v).body_prior) for v in priors], model.source)
+                         *[path_fingerprint(out.view(v).body_prior) for v in priors],
+                         # the model's content, not its absolute path: a moved session redoes nothing
+                         path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
     if step("fit", fp_fit):
         t0 = time.perf_counter()
         k3 = np.load(out.keypoints3d)

@@ -23,7 +23,6 @@ Backends and their inputs (formats in ``docs/formats.md``):
 
 from __future__ import annotations
 
-import json
 import threading
 import logging
 import os
@@ -291,10 +290,10 @@ def _read_coco_by_frame(path: Path) -> dict[int, NDArray[np.float64]]:
     """COCO keypoints keyed by frame number (trailing digits of file name, else of image id)."""
     by_image = read_coco_keypoints(path)
     names: dict = {}
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:  # read_coco_keypoints checked it
-        raise InputError(path, f"not valid JSON ({err})", "re-export the keypoints") from err
+    from embodmocap.io.jsonfile import read_json
+    from embodmocap.io.openpose import MAX_COCO_JSON_BYTES
+
+    doc = read_json(path, max_bytes=MAX_COCO_JSON_BYTES, what="COCO keypoint file", fix="re-export the keypoints")
     if isinstance(doc, dict):
         names = {im["id"]: im["file_name"] for im in doc.get("images", [])
                  if isinstance(im, dict) and "id" in im and isinstance(im.get("file_name"), str)}

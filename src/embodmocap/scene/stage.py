@@ -31,7 +31,7 @@ from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
+from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import DepthStats, fusion_frames
 from embodmocap.scene.keyframes import choose_keyframes
@@ -79,6 +79,7 @@ def _pick_scene(manifest, scene: str | None) -> str:
     return next(iter(manifest.scenes))
 
 
+@tracked_stage
 def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, force: bool = False) -> SceneOutputs:
     """Run Stage I for ``scene`` of the session at ``session`` (the only scene when None)."""
     lay = SessionLayout(Path(session))
@@ -88,7 +89,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     indoor = entry.indoor
     out = lay.scene(name)
     out.root.mkdir(parents=True, exist_ok=True)
-    sm = StageManifest(out.manifest, "scene", cfg)
+    sm = StageManifest(out.manifest, "scene", cfg, inputs=[entry.capture], root=lay.root)
     capture = open_capture(entry.capture)
     skipped: list[str] = []
     log.info("scene %s: %s capture, %d frames, %s", name, capture.format, capture.num_frames,

@@ -33,7 +33,7 @@ from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout, ViewLayout
 from embodmocap.io.manifest import SequenceEntry, load_manifest
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
+from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.perception.tracking import performer_keypoints, select_performer_two_views, track_people
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
@@ -67,13 +67,16 @@ def _pick_sequence(manifest, seq: str | None) -> SequenceEntry:
     return manifest.sequences[seq]
 
 
+@tracked_stage
 def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> SequenceOutputs:
     """Run Stage II for sequence ``seq`` of the session (the only one when None)."""
     lay = SessionLayout(Path(session))
     entry = _pick_sequence(load_manifest(lay.manifest), seq)
     out = lay.sequence(entry.name)
     out.root.mkdir(parents=True, exist_ok=True)
-    sm = StageManifest(out.manifest, "sequence", cfg)
+    sm = StageManifest(out.manifest, "sequence", cfg, root=lay.root, inputs=[
+        p for v in VIEWS for p in (entry.views[v].capture, entry.views[v].keypoints, entry.views[v].masks,
+                                   entry.views[v].depth, entry.views[v].body_prior)])
     captures = {v: open_capture(entry.views[v].capture) for v in VIEWS}
     skipped: list[str] = []
 
