@@ -65,7 +65,8 @@ def file_digest(path: str | Path) -> str:
     hashed whole with SHA-256. Larger files (videos, depth stacks, COLMAP databases) hash their size,
     the first and the last MiB and 16 evenly spread 64 KiB blocks: about 3 MiB read whatever the
     size, and any rewrite that changes the size, either end or one of the blocks is seen. Never the
-    modification time, so faithful copies fingerprint the same.
+    modification time, so faithful copies fingerprint the same. SQLite files (COLMAP's database)
+    leave out the header's change counters, which every open bumps.
     """
     p = os.path.abspath(path)
     st = os.stat(p)
@@ -77,6 +78,7 @@ def file_digest(path: str | Path) -> str:
     size = st.st_size
     with open(p, "rb") as f:
         if size <= SMALL_FILE_BYTES:
+            h.update(_without_sqlite_counters(f.read(1 << 20)))
             for chunk in iter(lambda: f.read(1 << 20), b""):
                 h.update(chunk)
         else:
@@ -86,10 +88,26 @@ def file_digest(path: str | Path) -> str:
             spans += [(EDGE_BYTES + int(step * (k + 1)), SAMPLE_BYTES) for k in range(SAMPLE_BLOCKS)]
             for off, n in spans:
                 f.seek(off)
-                h.update(f.read(n))
+                block = f.read(n)
+                h.update(_without_sqlite_counters(block) if off == 0 else block)
     digest = h.hexdigest()[:32]
     _DIGESTS[key] = digest
     return digest
+
+
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+
+
+def _without_sqlite_counters(head: bytes) -> bytes:
+    """The start of a file, with an SQLite database's change counters (header bytes 24-27 and
+    92-95) zeroed: SQLite bumps them whenever the file is opened for writing, even to read (COLMAP
+    opens its database so), and they say nothing about the content."""
+    if not head.startswith(_SQLITE_MAGIC) or len(head) < 100:
+        return head
+    b = bytearray(head)
+    b[24:28] = bytes(4)
+    b[92:96] = bytes(4)
+    return bytes(b)
 
 
 def path_fingerprint(path: str | Path) -> list:
