@@ -429,11 +429,30 @@ def _preflight(cmd) -> None:
 
     if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render)):
         prepare_session(cmd.session)
+    if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
+        _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
         folder = cmd.out if cmd.to == "mimickit" else cmd.out.parent
         while not folder.exists() and folder != folder.parent:
             folder = folder.parent  # the export creates the missing folders
         check_writable(folder, "export folder")
+
+
+def _require_stages_done(session: Path, seq: str | None) -> None:
+    """Export and render read every stage's outputs of a sequence: none may have failed or be stale."""
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.io.stage_manifest import Upstream, require_upstream
+    from embodmocap.sequence.stage import _pick_sequence
+
+    lay = SessionLayout(session)
+    entry = _pick_sequence(load_manifest(lay.manifest), seq)
+    sl = lay.sequence(entry.name)
+    for path, stage, target in ((lay.scene(entry.scene).manifest, "scene", f"--scene {entry.scene}"),
+                                (sl.manifest, "sequence", f"--seq {entry.name}"),
+                                (sl.calibrate_manifest, "calibrate", f"--seq {entry.name}"),
+                                (sl.motion_manifest, "motion", f"--seq {entry.name}")):
+        require_upstream(Upstream(path, stage, f"embodmocap {stage} {session} {target}"))
 
 
 def _setup_logging(debug: bool) -> None:
