@@ -122,3 +122,22 @@ def test_inspect_lists_every_session_problem_at_once(tmp_path):
     for needle in (f"{empty}: keypoint file is empty", f"{nested}: keypoint file is nested 50000 levels deep",
                    f"{mask}: not a PNG or JPEG image", "/etc/passwd: unknown body model file type"):
         assert needle in joined, text
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode != 0,
+                    reason="needs user + mount namespaces (unshare -rm) for a small file system")
+def test_full_disk_under_a_memory_mapped_stack_is_an_error_not_sigbus(tmp_path):
+    # Stage II writes masks and depth through memory maps; on a full disk that used to be SIGBUS.
+    code = ("import numpy as np, sys\n"
+            "from embodmocap.io.frame_stack import write_stack\n"
+            "try:\n"
+            "    with write_stack(sys.argv[1] + '/depth.npy', (64, 192, 256), np.uint16) as s:\n"
+            "        s[:] = 1\n"
+            "except OSError as e:\n"
+            "    print('OSError', e.errno, e.filename); sys.exit(2)\n")
+    script = f'mount -t tmpfs -o size=1m tmpfs "{tmp_path}" && "$@"; rc=$?; ls -A "{tmp_path}"; exit $rc'
+    res = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh", sys.executable, "-c", code, str(tmp_path)],
+                         capture_output=True, text=True, env=_env(), timeout=300)
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)  # -7 would be SIGBUS
+    first, *left = res.stdout.splitlines()
+    assert first == f"OSError 28 {tmp_path}/depth.npy" and left == []  # no partial file left

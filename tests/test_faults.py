@@ -126,7 +126,7 @@ def test_moved_or_copied_session_redoes_nothing(reference, tmp_path, how):
 def test_bad_keypoint_file_stops_downstream_stages_until_fixed(reference, tmp_path):
     ref, outputs, _ = reference
     work = _copy(ref, tmp_path / "s")
-    kp = SessionLayout(work).perception(SEQ, "v1").keypoints_json(30)
+    kp = SessionLayout(work).perception(SEQ, "v1").keypoints_json(45)
     saved = kp.read_bytes()
     kp.write_bytes(b"")
     res = cli("sequence", str(work))
@@ -157,7 +157,7 @@ def test_out_of_date_upstream_is_named(reference, tmp_path):
 @pytest.mark.parametrize("fault", ["nested", "huge"])
 def test_hostile_keypoint_json_is_one_line(inputs, tmp_path, fault):
     work = _copy(inputs, tmp_path / "s")
-    kp = SessionLayout(work).perception(SEQ, "v2").keypoints_json(12)
+    kp = SessionLayout(work).perception(SEQ, "v2").keypoints_json(45)
     if fault == "nested":
         kp.write_text("[" * 300_000 + "]" * 300_000)
         needles = ("nested 300000 levels deep",)

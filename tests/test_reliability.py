@@ -268,3 +268,17 @@ def test_colmap_database_reads_do_not_change_its_fingerprint(tmp_path):
     with pycolmap.Database.open(copy) as d:
         d.write_camera(pycolmap.Camera(model="PINHOLE", width=64, height=48, params=[60, 60, 32, 24]))
     assert file_digest(copy) != file_digest(db)
+
+
+def test_write_errors_name_the_destination_not_the_temporary_file(tmp_path):
+    dest = tmp_path / "mesh_raw.ply"
+    with pytest.raises(OSError) as info:
+        with atomic_path(dest):
+            raise OSError(errno.ENOSPC, "No space left on device")  # as a failed write() raises it
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(dest)
+    assert os_error_line(info.value).startswith(f"{dest}: no space left on the device")
+    with pytest.raises(OSError) as info:
+        with atomic_dir(tmp_path / "sfm") as tmp:
+            raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "database.db"))
+    assert info.value.filename == str(tmp_path / "sfm" / "database.db")
+    assert list(tmp_path.iterdir()) == []

@@ -101,6 +101,8 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         if tmp_path.exists():
             os.chmod(tmp_path, default_file_mode())
         os.replace(tmp_path, path)
+    except OSError as err:
+        raise _naming(err, path, tmp_path) from err
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -157,9 +159,21 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
             shutil.rmtree(old)
         else:
             os.replace(tmp, path)
+    except OSError as err:
+        raise _naming(err, path, tmp) from err
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+
+
+def _naming(err: OSError, path: Path, tmp: Path) -> OSError:
+    """``err`` naming the destination: a failed ``write()`` (disk full) names no file, and the
+    temporary name means nothing to a user."""
+    name = None if err.filename is None else str(err.filename)
+    if name is not None and not name.startswith(str(tmp)):
+        return err
+    where = str(path) if name is None or name == str(tmp) else str(path) + name[len(str(tmp)):]
+    return type(err)(err.errno, err.strerror or str(err), where) if err.errno else OSError(None, str(err), where)
 
 
 def _json_default(o: Any) -> Any:

@@ -30,11 +30,26 @@ def write_stack(path: str | Path, shape: tuple[int, ...], dtype) -> Iterator[np.
     """A writable memory-mapped ``.npy`` of ``shape``; renamed into place only on success."""
     with atomic_path(path, suffix=".npy") as tmp:
         arr = np.lib.format.open_memmap(tmp, mode="w+", dtype=dtype, shape=shape)
+        _reserve(tmp)
         try:
             yield arr
             arr.flush()
         finally:
             del arr
+
+
+def _reserve(path: Path) -> None:
+    """Allocate the file's blocks now: on a full disk, writing through the memory map would kill
+    the process with SIGBUS (no message, no clean-up); allocating raises ENOSPC instead."""
+    import errno
+    import os
+
+    with open(path, "r+b") as f:
+        try:
+            os.posix_fallocate(f.fileno(), 0, os.fstat(f.fileno()).st_size)
+        except OSError as err:
+            if err.errno not in (errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
 
 
 def pack_mask(mask: NDArray) -> NDArray[np.uint8]:
