@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -83,7 +84,10 @@ def _plain_json(obj, root: str):
     if isinstance(obj, list):
         return [_plain_json(v, root) for v in obj]
     if isinstance(obj, str):
-        return obj.replace(root, "<session>")
+        # Paths into a session (e.g. keyframes.json's capture) as seen from the session: a copy
+        # that was not rerun still names the folder it was copied from.
+        m = re.match(r"^/.*?/((?:captures|perception|scenes|sequences)/.*)$", obj)
+        return f"<session>/{m.group(1)}" if m else obj.replace(root, "<session>")
     return obj
 
 
