@@ -193,7 +193,7 @@ def test_disk_full_is_one_line_and_leaves_no_partial_file(inputs, tmp_path):
     work = _copy(inputs, tmp_path / "s")
     scenes = work / "scenes"
     scenes.mkdir()
-    # A 1 MiB file system where Stage I writes: its key frames fit, its mesh does not.
+    # A 1 MiB file system where Stage I writes: its key frames fit, its sparse model does not.
     script = (f'mount -t tmpfs -o size=1m tmpfs "{scenes}" && "$@"; rc=$?; '
               f'echo "left: $(ls -A "{scenes}/{SYNTH.scene_name}" | tr "\\n" " ")"; exit $rc')
     res = cli("scene", str(work), *STAGE_OPTIONS["scene"], prefix=("unshare", "-rm", "sh", "-c", script, "sh"))
@@ -201,7 +201,7 @@ def test_disk_full_is_one_line_and_leaves_no_partial_file(inputs, tmp_path):
     assert res.returncode == 2, res.stdout
     assert str(scenes) in line
     left = res.stdout.strip().splitlines()[-1]
-    assert ".part-" not in left and "mesh_raw.ply" not in left, left
+    assert ".part-" not in left and "sfm" not in left and "keyframes.json" in left, left
     # With space again, the same command finishes.
     res = cli("scene", str(work), *STAGE_OPTIONS["scene"])
     assert res.returncode == 0, res.stdout
