@@ -33,6 +33,7 @@ def _one_line_error(res: subprocess.CompletedProcess, *needles: str) -> str:
     assert len(errors) == 1, res.stdout
     for n in needles:
         assert n in errors[0], errors[0]
+    print(f"status {res.returncode}: {errors[0]}")  # shown with -rA: the outcomes in docs/reliability.md
     return errors[0]
 
 
@@ -85,6 +86,7 @@ def test_kill_9_at_a_random_point_then_rerun_gives_the_same_outputs(reference, t
     assert res.returncode == 0, res.stdout
     assert differences(outputs, snapshot(work)) == [], f"killed {delay:.1f} s into {stage}"
     assert stale_temps(work) == []
+    print(f"killed {delay:.1f} s into {stage} (of {seconds[stage]:.1f} s); the rerun's outputs equal the reference's")
 
 
 def test_sigint_is_one_line_and_status_130(inputs, tmp_path):
@@ -100,6 +102,7 @@ def test_sigint_is_one_line_and_status_130(inputs, tmp_path):
     assert proc.returncode == 130, out
     assert "interrupted: run the same command again to resume" in out and "Traceback" not in out
     assert json.loads(man.read_text())["status"] == "interrupted"
+    print(f"status {proc.returncode}: {out.strip().splitlines()[-1]}")
 
 
 @pytest.mark.parametrize("how", ["cp -a", "cp -r", "mv", "symlink", "relative"])
@@ -121,6 +124,7 @@ def test_moved_or_copied_session_redoes_nothing(reference, tmp_path, how):
     # No step ran again: every step record (fingerprint, outputs, finish time) is unchanged.
     assert _manifests(target) == before
     assert differences(outputs, snapshot(target)) == []
+    print(f"{how}: no step redone")
 
 
 def test_bad_keypoint_file_stops_downstream_stages_until_fixed(reference, tmp_path):
