@@ -1,12 +1,14 @@
 """Reliability figures (issue 20): SfM repeatability and cost by thread count, and the cost of a
 rerun that has nothing to redo on a copied session.
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_reliability.py SESSION [--runs 2] [--threads 1 -1]
+    OMP_NUM_THREADS=1 python benchmarks/bench_reliability.py SESSION [--runs 2] [--threads 1 -1] \
+        [--run-options "--scene.voxel-m-indoor 0.02 ..."]
 
 SESSION must have Stage I done (``embodmocap scene SESSION``): its key frames (``sfm/images``) and
 their poses (``keyframes.json``) are the SfM input, built ``--runs`` times per thread count into a
 temporary folder. Then the finished session is copied with ``cp -r`` (new mtimes) and
-``embodmocap run`` is timed on the copy (every step must be skipped).
+``embodmocap run`` (with the options the session was processed with) is timed on the copy
+(every step must be skipped).
 """
 
 from __future__ import annotations
@@ -54,12 +56,12 @@ def sfm_runs(session: Path, threads: int, runs: int, work: Path) -> list[dict]:
     return rows
 
 
-def noop_rerun(session: Path, work: Path) -> dict:
+def noop_rerun(session: Path, work: Path, options: list[str]) -> dict:
     copy = work / "copy"
     subprocess.run(["cp", "-r", str(session), str(copy)], check=True)
     before = {p.as_posix(): json.loads(p.read_text())["steps"] for p in copy.rglob("*manifest.json")}
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "embodmocap.cli", "run", str(copy)], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "embodmocap.cli", "run", str(copy), *options], capture_output=True, text=True)
     seconds = time.perf_counter() - t0
     after = {p.as_posix(): json.loads(p.read_text())["steps"] for p in copy.rglob("*manifest.json")}
     return {"rerun_status": proc.returncode, "rerun_seconds": round(seconds, 1), "steps_redone":
@@ -72,6 +74,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, -1])
     ap.add_argument("--no-rerun", action="store_true", help="skip the copied-session rerun")
+    ap.add_argument("--run-options", default="", help="options of `embodmocap run` the session was processed with")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(dir=args.session.parent) as tmp:
         rows = [row for t in args.threads for row in sfm_runs(args.session, t, args.runs, Path(tmp))]
@@ -81,7 +84,7 @@ def main() -> None:
             print(f"threads {t:>2}: points {[r['points'] for r in mine]}, seconds {[r['seconds'] for r in mine]}, "
                   f"bitwise identical: {same}")
         if not args.no_rerun:
-            print(noop_rerun(args.session, Path(tmp)))
+            print(noop_rerun(args.session, Path(tmp), args.run_options.split()))
         shutil.rmtree(tmp, ignore_errors=True)
 
 
