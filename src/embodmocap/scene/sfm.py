@@ -107,7 +107,7 @@ class SfmConfig:
     """Threads for extraction, matching and triangulation (-1 = all cores). With more than one
     thread COLMAP's results depend on thread timing (image ids, match order, point ids: the model
     differs byte for byte from run to run, its point count by a few); 1 makes runs bitwise
-    repeatable at about 1.3x the time on 2 cores (docs/reliability.md)."""
+    repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
 
