@@ -141,3 +141,29 @@ def test_full_disk_under_a_memory_mapped_stack_is_an_error_not_sigbus(tmp_path):
     assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)  # -7 would be SIGBUS
     first, *left = res.stdout.splitlines()
     assert first == f"OSError 28 {tmp_path}/depth.npy" and left == []  # no partial file left
+
+
+@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode != 0,
+                    reason="needs user + mount namespaces (unshare -rm) for a small file system")
+def test_sfm_refuses_to_start_on_a_disk_too_small(tmp_path):
+    # COLMAP aborts the whole process (SIGABRT, a C++ stack trace) when its database meets a full
+    # disk, so SfM checks the free space first.
+    pytest.importorskip("pycolmap")
+    code = ("import numpy as np, sys\n"
+            "from embodmocap.errors import InputError\n"
+            "from embodmocap.scene.sfm import build_sparse_model\n"
+            "from embodmocap.types import Intrinsics\n"
+            "K = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)\n"
+            "rgb = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)\n"
+            "T = np.stack([np.eye(4)] * 2); T[1, 0, 3] = 0.1\n"
+            "try:\n"
+            "    build_sparse_model([('a', rgb), ('b', rgb)], K, T, sys.argv[1] + '/sfm')\n"
+            "except InputError as e:\n"
+            "    print(e); sys.exit(2)\n")
+    script = f'mount -t tmpfs -o size=1m tmpfs "{tmp_path}" && "$@"; rc=$?; ls -A "{tmp_path}"; exit $rc'
+    res = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh", sys.executable, "-c", code, str(tmp_path)],
+                         capture_output=True, text=True, env=_env(), timeout=300)
+    assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
+    first, *left = res.stdout.splitlines()
+    assert first.startswith(f"{tmp_path}: only 1 MiB free on its disk; the sparse model of 2 key frames needs up to")
+    assert "free some disk space" in first and left == []

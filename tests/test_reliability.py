@@ -281,4 +281,8 @@ def test_write_errors_name_the_destination_not_the_temporary_file(tmp_path):
         with atomic_dir(tmp_path / "sfm") as tmp:
             raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "database.db"))
     assert info.value.filename == str(tmp_path / "sfm" / "database.db")
+    with pytest.raises(OSError) as info:
+        with atomic_dir(tmp_path / "sfm") as tmp:  # shutil.copyfile names the source first
+            raise OSError(errno.ENOSPC, "No space left on device", "/data/kf_1.jpg", None, str(tmp / "images" / "kf_1.jpg"))
+    assert info.value.filename == str(tmp_path / "sfm" / "images" / "kf_1.jpg")
     assert list(tmp_path.iterdir()) == []

@@ -170,6 +170,8 @@ def _naming(err: OSError, path: Path, tmp: Path) -> OSError:
     """``err`` naming the destination: a failed ``write()`` (disk full) names no file, and the
     temporary name means nothing to a user."""
     name = None if err.filename is None else str(err.filename)
+    if getattr(err, "filename2", None) is not None and str(err.filename2).startswith(str(tmp)):
+        name = str(err.filename2)  # a copy into the temporary folder failed: name the copy
     if name is not None and not name.startswith(str(tmp)):
         return err
     where = str(path) if name is None or name == str(tmp) else str(path) + name[len(str(tmp)):]
