@@ -135,7 +135,7 @@ def test_capture_key_frames_fuse_into_an_accurate_mesh(session):
     sel = choose_keyframes(cap, cfg, indoor=True)
     assert len(sel) >= 8 and len(sel.dropped_blurry) >= 1
     depth, K = keyframe_depth(cap, int(sel.frame_ids[0]), cfg, True)
-    assert K == cap.depth_intrinsics and depth.shape == (96, 128) and depth.max() <= 3.5
+    assert K == cap.depth_intrinsics and depth.shape == (96, 128) and depth.max() <= cfg.depth_trunc_m(True)
     # Geometry check with the true scene-frame poses (the capture's own poses live in a drifting
     # VIO world).
     T_true = gt["T_scene_cam"][sel.frame_ids]
