@@ -105,6 +105,50 @@ class DepthStats:
         return f"every confident pixel is farther than the {trunc_m:g} m truncation"
 
 
+def prefetch(items: Iterator, depth: int = 6) -> Iterator:
+    """Yield ``items`` while a background thread reads ahead up to ``depth`` of them.
+
+    Fusion alternates decoding (video, PNG: C code that releases the GIL) and integration (Open3D);
+    reading the next frames while the current one is integrated overlaps the two. Order is kept,
+    and an error in the reader is raised here, at the item where it happened.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=max(1, depth))
+    done = object()
+    stop = threading.Event()
+
+    def reader() -> None:
+        try:
+            for it in items:
+                while not stop.is_set():
+                    try:
+                        q.put((True, it), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put((True, done))
+        except BaseException as err:  # handed to the consumer, raised there
+            q.put((False, err))
+
+    th = threading.Thread(target=reader, name="fusion-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            ok, it = q.get()
+            if not ok:
+                raise it
+            if it is done:
+                return
+            yield it
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
 def weigh_by_confidence(depth: NDArray[np.float32], confidence: NDArray, weights: NDArray, n: int) -> NDArray[np.float32]:
     """Depth of the ``n``-th fused frame with the pixels whose confidence is not due this frame set
     to 0.

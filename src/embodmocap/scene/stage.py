@@ -35,7 +35,7 @@ from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
 from embodmocap.scene.config import SceneConfig
-from embodmocap.scene.depth import DepthStats, check_depth, fusion_frames
+from embodmocap.scene.depth import DepthStats, check_depth, fusion_frames, prefetch
 from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
 from embodmocap.scene.mesh import clean_mesh, mesh_stats, read_mesh_ply, simplify_mesh, write_mesh_ply
 from embodmocap.scene.sfm import build_sparse_model
@@ -131,7 +131,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         rows = fusion_rows(capture, cfg)[:: max(1, cfg.integrate_every)]
         ids, poses = capture.trajectory.frame_ids[rows], capture.trajectory.T_world_cam[rows]
         stats = DepthStats()
-        frames = fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats)
+        frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats))
         v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {name}: fusing"), cfg.voxel_m(indoor),
                               cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor))
         t_fuse = time.perf_counter() - t0
