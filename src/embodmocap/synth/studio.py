@@ -43,7 +43,6 @@ from embodmocap.synth.render import Renderer
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.scene import build_scene, write_scene_ply
 from embodmocap.synth.sync_event import aim_at_dot, choose_dot, with_dot
-from embodmocap.synth.texture import relight
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +221,7 @@ def _lighting(rng: np.random.Generator) -> tuple[float, np.ndarray]:
 def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, body_verts, faces, laser_on, rng,
                    clock_offset_s, coco_world=None, perception_dir=None, lighting=None):
     """Render and write one capture; for a view also write masks and return GT keypoints.
-    ``lighting`` = (gain, white balance) relights the RGB (:func:`embodmocap.synth.texture.relight`).
+    ``lighting`` = (gain, white balance) relights the scene (:func:`embodmocap.synth.texture.relight`).
 
     Returns ``(gt_px (T,17,2), visibility (T,17), masks_dir)`` for a view, else ``(None, None, None)``.
     """
@@ -235,10 +234,9 @@ def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, bo
     try:
         for i in range(n):
             body = (body_verts[i], faces) if body_verts is not None else None
-            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth)
+            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth, lighting=lighting)
             depth_mm, conf = lidar.simulate_lidar(r.depth_lr_m, rng, lcfg)
-            rgb = r.rgb if lighting is None else relight(r.rgb, *lighting)
-            writer.add_frame(rgb, depth_mm, conf, T_vio_cam[i], clock_offset_s + i / cfg.fps)
+            writer.add_frame(r.rgb, depth_mm, conf, T_vio_cam[i], clock_offset_s + i / cfg.fps)
             if coco_world is not None:
                 T_cam_scene = invert_T(T_scene_cam[i])
                 pc = apply_T(T_cam_scene, coco_world[i])

@@ -184,13 +184,15 @@ def _albedo_chunk(q: NDArray[np.float32], mid: NDArray[np.intp], materials: tupl
     return rgb
 
 
-def relight(rgb: NDArray[np.uint8], gain: float, white_balance) -> NDArray[np.uint8]:
+def relight(rgb: NDArray, gain: float, white_balance) -> NDArray:
     """The same image under other light: an exposure ``gain`` and a per-channel ``white_balance``
     (3,) multiplier, applied to linear light (sRGB decoded, scaled, re-encoded) and clipped like a
-    sensor that saturates. (H, W, 3) uint8 in and out."""
-    x = np.asarray(rgb, dtype=np.float32) / np.float32(255.0)
+    sensor that saturates. (..., 3) uint8 in [0, 255] -> uint8, or float in [0, 1] -> float32."""
+    is_int = np.asarray(rgb).dtype == np.uint8
+    x = np.asarray(rgb, dtype=np.float32) / np.float32(255.0 if is_int else 1.0)
+    x = np.clip(x, 0.0, 1.0)
     lin = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-    lin *= np.float32(gain) * np.asarray(white_balance, dtype=np.float32).reshape(1, 1, 3)
+    lin = lin * (np.float32(gain) * np.asarray(white_balance, dtype=np.float32))
     np.clip(lin, 0.0, 1.0, out=lin)
-    out = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
-    return np.round(out * 255.0).astype(np.uint8)
+    out = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055).astype(np.float32)
+    return np.round(out * 255.0).astype(np.uint8) if is_int else out
