@@ -19,7 +19,7 @@ Targets (issue 3): accuracy <= 1.5 cm indoor, completeness >= 90 %, >= 2,000 SfM
 same capture (the capture's own poses as Stage I uses them, the production voxel and truncation
 band, all depth up to the LiDAR's 5 m, no confidence cut, no clean-up) and reports Stage I's
 completeness and accuracy relative to it (completeness of both over the true surface that all
-frames see within 5 m). ``--old-src DIR`` also runs the key-frame + mesh steps of another checkout
+frames see within 5 m). With ``--plain``, ``--old-src DIR`` also runs the key-frame + mesh steps of another checkout
 (e.g. the code before issue 13) on the same capture, in a child process, for a before/after row.
 ``--zip`` pairs ``--presets`` and ``--seeds`` one to one (preset names: benchmarks/_studio.py).
 ``--old-stage`` times the whole stage of ``--old-src`` too (a hard-linked copy of the session), in
@@ -145,7 +145,7 @@ def evaluate(session: Path) -> dict:
                            dev["T_scene_cam"][kf["frame_ids"]], cap.depth_intrinsics,
                            SceneConfig().depth_trunc_m(indoor), n_samples=200_000)
     extra = {}
-    if PLAIN or OLD_SRC:
+    if PLAIN:
         # Issue 13: against the plain TSDF of all frames, over the surface all frames see <= 5 m.
         seen_T = dev["T_scene_cam"][:: 3]
         meshes = {"ours": (v, f)}
