@@ -13,6 +13,8 @@ def seed_arguments(description: str, default_out: str) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
     ap.add_argument("--preset", default="indoor")
+    ap.add_argument("--presets", nargs="+", default=None,
+                    help="one studio preset per seed (see _studio.py: e.g. large, repetitive+light); overrides --preset")
     ap.add_argument("--seconds", type=float, default=6.0)
     ap.add_argument("--scene-seconds", type=float, default=15.0)
     ap.add_argument("--out", type=Path, default=Path(default_out))
@@ -24,11 +26,14 @@ def run_seeds(one_seed: Callable[..., dict], args: argparse.Namespace, name: str
     row with ``error`` (reported, not hidden). Rows are printed as JSON lines and saved to
     ``OUT/<name>.json``; returns the rows that succeeded."""
     rows = []
-    for seed in args.seeds:
+    presets = getattr(args, "presets", None) or [args.preset] * len(args.seeds)
+    if len(presets) != len(args.seeds):
+        raise SystemExit(f"--presets needs one preset per seed ({len(args.seeds)}), got {len(presets)}")
+    for seed, preset in zip(args.seeds, presets):
         try:
-            row = one_seed(args.out, seed, args.preset, args.seconds, args.scene_seconds)
+            row = one_seed(args.out, seed, preset, args.seconds, args.scene_seconds)
         except Exception as err:  # noqa: BLE001
-            row = {"preset": args.preset, "seed": seed, "error": f"{type(err).__name__}: {err}"}
+            row = {"preset": preset, "seed": seed, "error": f"{type(err).__name__}: {err}"}
         rows.append(row)
         print(json.dumps(row), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,19 @@ Targets (issue 3): accuracy <= 1.5 cm indoor, completeness >= 90 %, >= 2,000 SfM
 <= 1.5 px, poses untouched; a 60 s 30 fps capture in <= 3 minutes.
 
     .venv/bin/python benchmarks/bench_scene.py --seeds 0 1 2 --scene-seconds 60 --out /tmp/bench_scene
+
+``--plain`` (issue 13) also fuses a plain Open3D ``ScalableTSDFVolume`` of *every* frame of the
+same capture (the capture's own poses as Stage I uses them, the production voxel and truncation
+band, all depth up to the LiDAR's 5 m, no confidence cut, no clean-up) and reports Stage I's
+completeness and accuracy relative to it (completeness of both over the true surface that all
+frames see within 5 m). With ``--plain``, ``--old-src DIR`` also runs the key-frame + mesh steps of another checkout
+(e.g. the code before issue 13) on the same capture, in a child process, for a before/after row.
+``--zip`` pairs ``--presets`` and ``--seeds`` one to one (preset names: benchmarks/_studio.py).
+``--old-stage`` times the whole stage of ``--old-src`` too (a hard-linked copy of the session), in
+the same run, for the time ratio.
+
+    .venv/bin/python benchmarks/bench_scene.py --zip --presets indoor large high_ceiling low_texture repetitive \
+        --seeds 0 2 3 4 5 --scene-seconds 15 --out /work/bench/13/calib --plain --old-src /work/bench/13/old/src
 """
 
 from __future__ import annotations
@@ -30,17 +43,79 @@ import numpy as np
 
 
 def synth(out: Path, seed: int, preset: str, scene_seconds: float) -> None:
-    from embodmocap.synth.config import SynthConfig
-    from embodmocap.synth.studio import synthesize
+    from _studio import ensure_session
 
-    if (out / "ground_truth" / "ground_truth.json").is_file():
-        return
-    synthesize(SynthConfig(seed=seed, preset=preset, seconds=0.5, scene_seconds=scene_seconds), out)
+    ensure_session(out, seed, preset, 0.5, scene_seconds)
 
 
-def run_stage(session: Path) -> tuple[float, int]:
-    """Run the stage from scratch in a child process; (wall seconds, peak RSS in MB)."""
-    return run_cli("scene", str(session), "--force")
+def run_stage(session: Path, src: str | None = None) -> tuple[float, int]:
+    """Run the stage from scratch in a child process; (wall seconds, peak RSS in MB). ``src``: the
+    ``src`` folder of another checkout to run instead of this one."""
+    return run_cli("scene", str(session), "--force", src=src)
+
+
+_OLD_MESH = """
+import json, sys, time
+import numpy as np
+from embodmocap.io.captures import open_capture
+from embodmocap.scene.config import SceneConfig
+from embodmocap.scene.depth import fusion_frames
+from embodmocap.scene.keyframes import choose_keyframes
+from embodmocap.scene.mesh import clean_mesh, write_mesh_ply
+from embodmocap.scene.tsdf import fuse_open3d
+cap, indoor, out = open_capture(sys.argv[1]), sys.argv[2] == "1", sys.argv[3]
+cfg = SceneConfig()
+t0 = time.perf_counter()
+sel = choose_keyframes(cap, cfg, indoor)
+T = cap.trajectory.T_world_cam[sel.rows]
+v, f, c = fuse_open3d(fusion_frames(cap, sel.frame_ids, T, cfg, indoor), cfg.voxel_m(indoor), cfg.sdf_trunc_m(indoor),
+                      cfg.depth_trunc_m(indoor))
+v, f, c = clean_mesh(v, f, c, cfg)
+write_mesh_ply(out, v, f, c)
+print(json.dumps({"fused_frames": int(len(sel)), "seconds": time.perf_counter() - t0}))
+"""
+
+
+def old_mesh(session: Path, src: str, out: Path) -> dict:
+    """Key frames + mesh of the checkout at ``src`` on the session's scene capture (child process)."""
+    import os
+
+    lay_capture = session / "captures" / "scene0"
+    info = json.loads((session / "ground_truth" / "ground_truth.json").read_text())
+    env = dict(os.environ, PYTHONPATH=src)
+    proc = subprocess.run([sys.executable, "-c", _OLD_MESH, str(lay_capture), "1" if info["config"]["preset"] == "indoor" else "0",
+                           str(out)], check=True, capture_output=True, text=True, env=env)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def plain_tsdf(session: Path, out: Path) -> dict:
+    """The reference: Open3D ScalableTSDFVolume of every frame (the capture's poses), production
+    voxel and band, depth <= 5 m, no confidence cut, no clean-up."""
+    import time
+
+    from embodmocap.io.captures import open_capture
+    from embodmocap.scene.config import SceneConfig
+    from embodmocap.scene.depth import colour_at_depth_resolution
+    from embodmocap.scene.mesh import write_mesh_ply
+    from embodmocap.scene.tsdf import fuse_open3d
+
+    cap = open_capture(session / "captures" / "scene0")
+    info = json.loads((session / "ground_truth" / "ground_truth.json").read_text())
+    indoor = info["config"]["preset"] == "indoor"
+    cfg = SceneConfig()
+    K = cap.depth_intrinsics
+    traj = cap.trajectory
+
+    def frames():
+        for f, T in zip(traj.frame_ids, traj.T_world_cam):
+            d = np.asarray(cap.frames.depth_m(int(f)), dtype=np.float32)
+            d = np.where(np.isfinite(d) & (d > 0), d, 0).astype(np.float32)
+            yield colour_at_depth_resolution(cap.frames.rgb(int(f)), K), d, K, T
+
+    t0 = time.perf_counter()
+    v, f, c = fuse_open3d(frames(), cfg.voxel_m(indoor), cfg.sdf_trunc_m(indoor), 5.0)
+    write_mesh_ply(out, v, f, c)
+    return {"fused_frames": int(len(traj)), "seconds": time.perf_counter() - t0}
 
 
 def evaluate(session: Path) -> dict:
@@ -69,6 +144,33 @@ def evaluate(session: Path) -> dict:
     m = scene_mesh_metrics(apply_T(dev["T_scene_vio"], v), f, np.asarray(gt.vertices), np.asarray(gt.faces),
                            dev["T_scene_cam"][kf["frame_ids"]], cap.depth_intrinsics,
                            SceneConfig().depth_trunc_m(indoor), n_samples=200_000)
+    extra = {}
+    if PLAIN:
+        # Issue 13: against the plain TSDF of all frames, over the surface all frames see <= 5 m.
+        seen_T = dev["T_scene_cam"][:: 3]
+        meshes = {"ours": (v, f)}
+        if PLAIN:
+            p = plain_tsdf(session, out.root / "plain_tsdf.ply")
+            pv, pf, _ = read_mesh_ply(out.root / "plain_tsdf.ply")
+            meshes["plain"] = (pv, pf)
+            extra["plain_seconds"] = round(p["seconds"], 1)
+        if OLD_SRC:
+            o = old_mesh(session, OLD_SRC, out.root / "old_mesh.ply")
+            ov, of, _ = read_mesh_ply(out.root / "old_mesh.ply")
+            meshes["old"] = (ov, of)
+            extra["old_fused_frames"] = o["fused_frames"]
+        for name, (mv, mf) in meshes.items():
+            mm = scene_mesh_metrics(apply_T(dev["T_scene_vio"], mv), mf, np.asarray(gt.vertices), np.asarray(gt.faces),
+                                    seen_T, cap.depth_intrinsics, 5.0, n_samples=200_000)
+            extra[f"{name}_all_completeness_pct"] = round(100 * mm["completeness"], 2)
+            extra[f"{name}_all_accuracy_cm"] = round(100 * mm["accuracy_m"], 3)
+        if PLAIN:
+            extra["completeness_vs_plain_pct"] = round(100 * extra["ours_all_completeness_pct"]
+                                                       / max(extra["plain_all_completeness_pct"], 1e-9), 2)
+            extra["accuracy_minus_plain_cm"] = round(extra["ours_all_accuracy_cm"] - extra["plain_all_accuracy_cm"], 3)
+            if OLD_SRC:
+                extra["old_completeness_vs_plain_pct"] = round(100 * extra["old_all_completeness_pct"]
+                                                               / max(extra["plain_all_completeness_pct"], 1e-9), 2)
     by_frame = {int(i): T for i, T in zip(kf["frame_ids"], kf["T_world_cam"])}
     pose_change = max(float(np.abs(invert_T(by_frame[int(Path(n).stem.split("_")[1])]) @ T - np.eye(4)).max())
                       for n, T in image_poses(out.sfm_dir).items())
@@ -80,6 +182,8 @@ def evaluate(session: Path) -> dict:
         "sfm_reproj_px": figs["sfm_mean_reproj_error_px"], "sfm_track": figs["sfm_mean_track_length"],
         "max_pose_change": pose_change, "keyframes": figs["keyframes"], "frames": cap.num_frames,
         "mesh_faces": figs["mesh_faces"], "fusion_fps": figs["fusion_fps"], "step_seconds": steps,
+        "fused_frames": figs.get("fused_frames"), "depth_pixels_used_fraction": figs.get("depth_pixels_used_fraction"),
+        **extra,
     }
 
 
@@ -91,16 +195,31 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench_out/scene"))
     ap.add_argument("--tsdf-compare", action="store_true",
                     help="also run benchmarks/bench_tsdf.py (Open3D vs NumPy TSDF) on the first session")
+    ap.add_argument("--zip", action="store_true", help="pair --presets and --seeds one to one")
+    ap.add_argument("--plain", action="store_true", help="compare with a plain Open3D TSDF of every frame")
+    ap.add_argument("--old-src", default=None, help="src folder of another checkout: its key frames + mesh too")
+    ap.add_argument("--old-stage", action="store_true", help="time the whole stage of --old-src too (same run)")
     args = ap.parse_args()
+    global PLAIN, OLD_SRC
+    PLAIN, OLD_SRC = args.plain, args.old_src
+    pairs = list(zip(args.presets, args.seeds)) if args.zip else [(p, s) for p in args.presets for s in args.seeds]
     rows = []
-    for preset in args.presets:
-        for seed in args.seeds:
-            session = args.out / f"{preset}_{seed}"
-            synth(session, seed, preset, args.scene_seconds)
-            wall, rss = run_stage(session)
-            row = {"preset": preset, "seed": seed, "wall_s": round(wall, 1), "peak_rss_mb": rss, **evaluate(session)}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+    for preset, seed in pairs:
+        session = args.out / f"{preset}_{seed}"
+        synth(session, seed, preset, args.scene_seconds)
+        wall, rss = run_stage(session)
+        row = {"preset": preset, "seed": seed, "wall_s": round(wall, 1), "peak_rss_mb": rss}
+        if args.old_stage and args.old_src:
+            copy = args.out / f".old_{preset}_{seed}"
+            if not copy.exists():
+                subprocess.run(["cp", "-al", str(session), str(copy)], check=True)
+            subprocess.run(["rm", "-rf", str(copy / "scenes")], check=True)
+            old_wall, old_rss = run_stage(copy, src=args.old_src)
+            row.update({"old_wall_s": round(old_wall, 1), "old_peak_rss_mb": old_rss,
+                        "time_ratio_new_over_old": round(wall / old_wall, 3)})
+        row.update(evaluate(session))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "bench_scene.json").write_text(json.dumps(rows, indent=2))
     print("\n| preset | seed | frames | key frames | wall (s) | peak RSS (MB) | accuracy (cm) | completeness (%) "
@@ -115,6 +234,8 @@ def main() -> None:
         subprocess.run([sys.executable, str(Path(__file__).with_name("bench_tsdf.py")), "--session", str(first),
                         "--json", str(args.out / "bench_tsdf.json")], check=True)
 
+
+PLAIN, OLD_SRC = False, None
 
 if __name__ == "__main__":
     main()

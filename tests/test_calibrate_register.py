@@ -199,3 +199,35 @@ def test_sample_frames():
     s = sample_frames(1000, 200)
     assert len(s) == 200 and s[0] == 0 and s[-1] == 999 and np.all(np.diff(s) > 0)
     assert len(sample_frames(0, 10)) == 0
+
+
+def test_registration_does_not_depend_on_the_thread_count(views, index):
+    from dataclasses import replace
+
+    frames, K, *_ = views["v2"]
+    one = register_frames(frames[:8], K, index, replace(CFG, workers=1))
+    two = register_frames(frames[:8], K, index, replace(CFG, workers=2))
+    np.testing.assert_array_equal(one.t, two.t)
+    np.testing.assert_array_equal(one.attempted_inliers, two.attempted_inliers)
+    np.testing.assert_array_equal(one.T_world_cam, two.T_world_cam)  # bitwise: same work, same order
+
+
+def test_scene_index_cache_is_reused_and_rebuilt_when_stale(session, index, tmp_path):
+    from embodmocap.calibrate.register import load_or_build_scene_index
+
+    sfm = SessionLayout(session).scene("scene0").sfm_dir
+    cache = tmp_path / "index.npz"
+    built = load_or_build_scene_index(sfm, CFG, cache)
+    assert cache.is_file()
+    loaded = load_or_build_scene_index(sfm, CFG, cache)
+    assert loaded.names == index.names == built.names
+    for a, b in zip(loaded.descriptors, index.descriptors):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(loaded.bow, index.bow)
+    assert set(loaded.xyz_by_id) == set(index.xyz_by_id)
+    # Other vocabulary settings: the cache does not apply; it is rebuilt and rewritten.
+    from dataclasses import replace
+
+    other = load_or_build_scene_index(sfm, replace(CFG, vocabulary_size=64), cache)
+    assert len(other.vocabulary) == 64
+    assert len(load_or_build_scene_index(sfm, replace(CFG, vocabulary_size=64), cache).vocabulary) == 64

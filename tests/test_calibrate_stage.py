@@ -90,3 +90,48 @@ def test_too_few_registered_frames_names_the_view_and_causes(session, tmp_path):
         stage.run(cfg, work)
     msg = str(err.value)
     assert "registered" in msg and "v1" in msg and "texture" in msg
+
+
+def test_vio_check_is_reported_and_rejected_frames_stay_out_of_the_fit(session, done):
+    for v in VIEWS:
+        chk = done.report["views"][v]["vio_check"]
+        assert set(chk) >= {"runs", "rejected_runs", "rejected_frames"}
+        reg = np.load(SessionLayout(session).sequence("seq0").view(v).registration)
+        assert reg["accepted"].shape == reg["t"].shape and chk["rejected_frames"] == int((~reg["accepted"]).sum())
+        init = stage.YawOffset(*_offset_of(done.report["views"][v]["T_world_vio_registration"]))
+        data = stage.build_view_data(CFG, SessionLayout(session), "seq0", v, init, reg)
+        assert not np.isin(np.asarray(data.matches.frames), reg["t"][~reg["accepted"]]).any()
+    assert (SessionLayout(session).scene("scene0").root / "register_index.npz").is_file()  # cached for the next sequence
+
+
+def _offset_of(T):
+    T = np.asarray(T)
+    return float(np.arctan2(T[1, 0], T[0, 0])), T[:3, 3]
+
+
+def test_view_that_disagrees_with_its_vio_is_one_clear_error_and_writes_nothing(session, tmp_path):
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    lay = SessionLayout(work)
+    for v in VIEWS:  # drop Stage III outputs: nothing may appear
+        for p in (lay.sequence("seq0").view(v).registration, lay.sequence("seq0").view(v).cameras_world):
+            p.unlink(missing_ok=True)
+    lay.sequence("seq0").calibration.unlink(missing_ok=True)
+    # The VIO of v1 no longer belongs to its video (each frame turned about Z by a random angle and
+    # moved by up to a metre): registrations, each fine on its own, disagree with the VIO motion
+    # everywhere, as for a sequence filmed in another scene.
+    from embodmocap.geometry.transforms import make_T, rot_z
+
+    cams_path = lay.sequence("seq0").view("v1").cameras
+    cams = dict(np.load(cams_path))
+    rng = np.random.default_rng(0)
+    n = len(cams["T_world_cam"])
+    jumble = make_T(np.stack([rot_z(a) for a in rng.uniform(-np.pi, np.pi, n)]), rng.uniform(-1, 1, (n, 3)))
+    cams["T_world_cam"] = jumble @ cams["T_world_cam"]
+    np.savez(cams_path, **cams)
+    with pytest.raises(InputError) as err:
+        stage.run(CFG, work)
+    msg = str(err.value)
+    assert "v1" in msg and "disagree with its own VIO" in msg and "wrong scene" in msg and len(msg.splitlines()) == 1
+    assert not lay.sequence("seq0").view("v1").registration.is_file()
+    assert not lay.sequence("seq0").calibration.is_file()

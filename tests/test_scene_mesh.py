@@ -33,13 +33,18 @@ def test_clean_removes_a_floater_and_a_small_piece_and_their_vertices():
     c = np.tile([0.2, 0.4, 0.6], (len(v), 1))
     c[: len(v0)] = [0.9, 0.1, 0.1]
     # 72 faces is above the absolute minimum (50) but below 5 % of the largest (160).
-    cfg = SceneConfig(min_component_fraction=0.05, min_component_triangles=50, floater_max_extent_m=0.1)
+    cfg = SceneConfig(min_component_fraction=0.05, min_component_triangles=50, floater_max_extent_m=0.1,
+                      structure_min_extent_m=0.0)
     vc, fc, cc = clean_mesh(v, f, c, cfg)
     assert len(fc) == len(f0) and len(vc) == len(v0)
     np.testing.assert_allclose(cc, [[0.9, 0.1, 0.1]] * len(vc))
     assert vc[:, 2].max() == 0.0
     # With a looser fraction the 0.5 m piece stays and only the 5 cm floater goes.
     vc, fc, _ = clean_mesh(v, f, c, SceneConfig(min_component_fraction=0.01, min_component_triangles=0))
+    assert len(fc) == len(f0) + len(f2)
+    # With the structure rule (default: 0.5 m) the piece is real structure and stays however small
+    # it is next to the largest component; the floater still goes.
+    vc, fc, _ = clean_mesh(v, f, c, SceneConfig(min_component_fraction=0.05, min_component_triangles=50))
     assert len(fc) == len(f0) + len(f2)
 
 

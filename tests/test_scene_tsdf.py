@@ -135,7 +135,7 @@ def test_capture_key_frames_fuse_into_an_accurate_mesh(session):
     sel = choose_keyframes(cap, cfg, indoor=True)
     assert len(sel) >= 8 and len(sel.dropped_blurry) >= 1
     depth, K = keyframe_depth(cap, int(sel.frame_ids[0]), cfg, True)
-    assert K == cap.depth_intrinsics and depth.shape == (96, 128) and depth.max() <= 3.5
+    assert K == cap.depth_intrinsics and depth.shape == (96, 128) and depth.max() <= cfg.depth_trunc_m(True)
     # Geometry check with the true scene-frame poses (the capture's own poses live in a drifting
     # VIO world).
     T_true = gt["T_scene_cam"][sel.frame_ids]
@@ -158,3 +158,34 @@ def test_no_valid_depth_is_an_input_error_naming_the_capture(session):
     T = np.repeat(np.eye(4)[None], 3, axis=0)
     with pytest.raises(InputError, match=r"scene0.*no valid depth in 3 key frames: every confident pixel is farther"):
         list(fusion_frames(cap, ids, T, SceneConfig(depth_trunc_m_indoor=0.01), True))
+
+
+def test_confidence_weights_are_exact_shares_of_the_frames():
+    from embodmocap.scene.depth import weigh_by_confidence
+
+    depth = np.full((2, 3), 2.0, np.float32)
+    conf = np.array([[0, 1, 2], [2, 1, 0]])
+    w = np.array([0.25, 0.5, 1.0])
+    kept = np.stack([weigh_by_confidence(depth, conf, w, n) > 0 for n in range(40)])  # (40, 2, 3)
+    share = kept.mean(axis=0)
+    np.testing.assert_allclose(share, [[0.25, 0.5, 1.0], [1.0, 0.5, 0.25]])
+    # Evenly spread: a weight-0.25 pixel is fused once in every 4 consecutive frames.
+    assert all(kept[i:i + 4, 0, 0].sum() == 1 for i in range(0, 36))
+    assert np.array_equal(weigh_by_confidence(depth, conf, np.ones(3), 7), depth)
+
+
+def test_prefetch_keeps_order_and_raises_where_the_reader_failed():
+    from embodmocap.scene.depth import prefetch
+
+    assert list(prefetch(iter(range(50)), 3)) == list(range(50))
+
+    def reader():
+        yield 1
+        yield 2
+        raise InputError("capture", "broken frame", "fix it")
+
+    got = []
+    with pytest.raises(InputError, match="broken frame"):
+        for x in prefetch(reader()):
+            got.append(x)
+    assert got == [1, 2]

@@ -24,6 +24,7 @@ Pixel convention: ours puts the top-left pixel's centre at (0, 0); COLMAP's at (
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,8 +49,16 @@ class RegisterConfig:
     """Settings of view-frame registration. Defaults register 2 x 200 frames at 640x480 in about a
     minute on 2 CPU cores."""
 
-    num_frames: int = 200
-    """Frames sampled per view (evenly over the sequence) by :func:`sample_frames`."""
+    num_frames: int = 120
+    """Frames sampled per view by :func:`select_frames`: spread over time and over viewpoints
+    (the VIO path and turn), the steadiest frame of each stretch (least blur). A 6 s view has
+    about 175 frames, a 60 s one 1,800: beyond ~100 well spread frames more only cost time."""
+    workers: int = 0
+    """Threads registering frames in parallel (0 = one per CPU core). OpenCV and pycolmap release
+    the GIL; each frame's result does not depend on the thread count or order."""
+    coarse_frames: int = 24
+    """Frames registered first by retrieval; their VIO-consistent poses give a coarse offset from
+    which the other frames get their candidate key frames by pose (:func:`pose_candidates`)."""
     max_features: int = 2048
     """SIFT features kept per query frame (the strongest)."""
     contrast_threshold: float = 0.03
@@ -128,6 +137,26 @@ class Registration:
     candidates: tuple[tuple[str, ...], ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
 
+    def merged(self, other: "Registration") -> "Registration":
+        """This registration and ``other`` (disjoint frames) as one, sorted by frame."""
+        att = np.concatenate([self.attempted, other.attempted])
+        ai = np.concatenate([self.attempted_inliers, other.attempted_inliers])
+        cands = tuple(self.candidates) + tuple(other.candidates)
+        oa = np.argsort(att, kind="stable")
+        t = np.concatenate([self.t, other.t])
+        o = np.argsort(t, kind="stable")
+        corr = tuple(self.correspondences) + tuple(other.correspondences)
+        return Registration(
+            attempted=att[oa], attempted_inliers=ai[oa], t=t[o],
+            T_world_cam=np.concatenate([self.T_world_cam, other.T_world_cam])[o],
+            inliers=np.concatenate([self.inliers, other.inliers])[o],
+            reproj_error_px=np.concatenate([self.reproj_error_px, other.reproj_error_px])[o],
+            correspondences=tuple(corr[i] for i in o),
+            candidates=tuple(cands[i] for i in oa) if len(cands) == len(att) else (),
+            seconds={k: round(self.seconds.get(k, 0.0) + other.seconds.get(k, 0.0), 3)
+                     for k in set(self.seconds) | set(other.seconds)},
+        )
+
     @property
     def registered_fraction(self) -> float:
         """Share of the tried frames that registered (0 when none was tried)."""
@@ -168,12 +197,73 @@ class SceneIndex:
 # Scene index
 
 
+INDEX_VERSION = 1
+
+
+def scene_index_key(sfm_dir: str | Path, cfg: RegisterConfig = RegisterConfig()) -> str:
+    """Fingerprint of what a :class:`SceneIndex` is built from (model, database, vocabulary
+    settings): the key of its cache file."""
+    from embodmocap.io.stage_manifest import fingerprint, path_fingerprint
+
+    sfm_dir = Path(sfm_dir)
+    return fingerprint("scene_index", INDEX_VERSION, path_fingerprint(sfm_dir / "sparse"),
+                       path_fingerprint(sfm_dir / "database.db"), cfg.vocabulary_size, cfg.vocabulary_samples, cfg.seed)
+
+
+def load_or_build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig = RegisterConfig(),
+                              cache: str | Path | None = None) -> SceneIndex:
+    """:func:`build_scene_index`, reusing the copy cached in ``cache`` (an ``.npz``) when it was
+    built from the same model and settings, so every sequence of a scene shares one index.
+    A missing, stale or unreadable cache is rebuilt and rewritten (atomically)."""
+    if cache is None:
+        return build_scene_index(sfm_dir, cfg)
+    cache = Path(cache)
+    key = scene_index_key(sfm_dir, cfg)
+    if cache.is_file():
+        try:
+            with np.load(cache, allow_pickle=False) as z:
+                if str(z["key"]) == key:
+                    return _index_from_arrays(Path(sfm_dir), z)
+        except (OSError, KeyError, ValueError) as err:  # a damaged cache is only a cache
+            log.warning("%s: unreadable scene index cache (%s); rebuilding it", cache, err)
+    index = build_scene_index(sfm_dir, cfg)
+    _save_index(cache, key, index)
+    return index
+
+
+def _save_index(path: Path, key: str, index: SceneIndex) -> None:
+    from embodmocap.io.atomic import write_npz
+
+    K = index.intrinsics
+    ids = np.array(sorted(index.xyz_by_id), dtype=np.int64)
+    write_npz(path, key=np.str_(key), names=np.array(index.names), T_world_cam=index.T_world_cam,
+              intrinsics=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height], dtype=np.float64),
+              counts=np.array([len(d) for d in index.descriptors], dtype=np.int64),
+              descriptors=np.concatenate(index.descriptors), point3D_ids=np.concatenate(index.point3D_ids),
+              xyz_ids=ids, xyz=np.stack([index.xyz_by_id[int(i)] for i in ids]),
+              vocabulary=index.vocabulary, idf=index.idf, bow=index.bow)
+
+
+def _index_from_arrays(sfm_dir: Path, z) -> SceneIndex:
+    fx, fy, cx, cy, w, h = z["intrinsics"]
+    cuts = np.cumsum(z["counts"])[:-1]
+    return SceneIndex(sfm_dir, tuple(str(n) for n in z["names"]), z["T_world_cam"],
+                      Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h)),
+                      tuple(np.split(z["descriptors"], cuts)), tuple(np.split(z["point3D_ids"], cuts)),
+                      {int(i): x for i, x in zip(z["xyz_ids"], z["xyz"])}, z["vocabulary"], z["idf"], z["bow"])
+
+
 def build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig = RegisterConfig()) -> SceneIndex:
     """Read the Stage I model and prepare key frame descriptors and the retrieval vocabulary.
 
     Raises:
         InputError: no model in ``sfm_dir``, or it has no triangulated points.
     """
+    with _opencv_threads(1):
+        return _build_scene_index(sfm_dir, cfg)
+
+
+def _build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig) -> SceneIndex:
     pycolmap = require("pycolmap", "all")
     cv2 = require("cv2", "all")
     sfm_dir = Path(sfm_dir)
@@ -424,9 +514,9 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
     est.ransac.min_inlier_ratio = cfg.min_inlier_ratio
     est.ransac.random_seed = cfg.seed
     predicted = dict(predicted_T_world_cam or {})
-    seconds = {"features": 0.0, "matching": 0.0, "pose": 0.0}
-    attempted, counts, cands, results = [], [], [], []
-    for t, rgb, mask in view_frames:
+
+    def one(frame: ViewFrame):
+        t, rgb, mask = frame
         t = int(t)
         t0 = time.perf_counter()
         xy, desc = detect_background_features(rgb, mask, cfg)
@@ -435,9 +525,29 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
         q_idx, p_ids = match_to_keyframes(index, desc, chosen, cfg.ratio)
         t2 = time.perf_counter()
         res = _absolute_pose(pycolmap, camera, est, xy[q_idx], p_ids, index, cfg) if len(q_idx) >= 4 else None
-        seconds["features"] += t1 - t0
-        seconds["matching"] += t2 - t1
-        seconds["pose"] += time.perf_counter() - t2
+        t3 = time.perf_counter()
+        log.debug("frame %d: %d features, %d matches, %d inliers", t, len(xy), len(q_idx), 0 if res is None else len(res[1]))
+        return t, xy, chosen, q_idx, p_ids, res, (t1 - t0, t2 - t1, t3 - t2)
+
+    # Each frame is registered on its own with a fixed RANSAC seed and single-threaded OpenCV (its
+    # SIFT keeps the strongest features, and with several internal threads the order of equally
+    # strong ones could vary); the pool's map returns results in the frames' order, so the result
+    # does not depend on the thread count or on which thread finishes first.
+    frames = list(view_frames)
+    workers = max(1, min(cfg.workers or (os.cpu_count() or 1), len(frames)))
+    with _opencv_threads(1):
+        if workers > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(workers) as pool:
+                outs = list(pool.map(one, frames))
+        else:
+            outs = [one(f) for f in frames]
+    seconds = {"features": 0.0, "matching": 0.0, "pose": 0.0}
+    attempted, counts, cands, results = [], [], [], []
+    for t, xy, chosen, q_idx, p_ids, res, dt in outs:
+        for k, d in zip(("features", "matching", "pose"), dt):
+            seconds[k] += d
         attempted.append(t)
         cands.append(tuple(index.names[i] for i in chosen))
         n = 0 if res is None else len(res[1])
@@ -445,8 +555,26 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
         if res is not None and n >= cfg.min_inliers:
             T, inl = res
             results.append((len(attempted) - 1, t, T, q_idx[inl], p_ids[inl], xy))
-        log.debug("frame %d: %d features, %d matches, %d inliers", t, len(xy), len(q_idx), n)
     return _collect(attempted, counts, cands, results, index, K, cfg, seconds)
+
+
+class _opencv_threads:
+    """Context manager: OpenCV's internal thread count set to ``n`` inside, restored after."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def __enter__(self):
+        import cv2
+
+        self.prev = cv2.getNumThreads()
+        cv2.setNumThreads(self.n)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import cv2
+
+        cv2.setNumThreads(self.prev)
 
 
 def _choose(index: SceneIndex, desc: NDArray, K: Intrinsics, cfg: RegisterConfig,
@@ -519,6 +647,47 @@ def sample_frames(num_total: int, num: int) -> NDArray[np.int64]:
     if num_total <= num:
         return np.arange(num_total, dtype=np.int64)
     return np.unique(np.linspace(0, num_total - 1, num).round().astype(np.int64))
+
+
+def select_frames(T_vio_cam: NDArray, num: int, step_m: float = 0.05, step_deg: float = 3.0,
+                  step_s: float = 0.2, fps: float = 30.0) -> NDArray[np.int64]:
+    """(<= num,) sequence frames spread over time and over viewpoints, the steadiest of each stretch.
+
+    Every frame gets a "progress" along the recording: ``1/step_s`` per second plus ``1/step_m``
+    per metre of VIO path plus ``1/step_deg`` per degree turned, so a view that stands still
+    spends few samples and one that walks or pans gets more. The progress is cut into ``num``
+    equal stretches and from each the frame turning slowest (least motion blur; VIO rotation
+    rate) is taken. First and last frames are always candidates; no image is read.
+
+    Args:
+        T_vio_cam: (T, 4, 4) VIO camera-to-world of every sequence frame.
+        num: how many frames at most.
+    """
+    T = np.asarray(T_vio_cam, dtype=np.float64)
+    n = len(T)
+    if n == 0 or num <= 0:
+        return np.zeros(0, dtype=np.int64)
+    if n <= num:
+        return np.arange(n, dtype=np.int64)
+    from embodmocap.geometry.transforms import rotation_angle
+
+    ok = np.all(np.isfinite(T.reshape(n, -1)), axis=1)
+    Tf = np.where(ok[:, None, None], T, np.eye(4))
+    dist = np.r_[0.0, np.linalg.norm(np.diff(Tf[:, :3, 3], axis=0), axis=1)]
+    ang = np.r_[0.0, np.degrees(rotation_angle(np.swapaxes(Tf[:-1, :3, :3], -1, -2) @ Tf[1:, :3, :3]))]
+    dist[~ok] = 0.0
+    ang[~ok] = 0.0
+    progress = np.cumsum(1.0 / (step_s * fps) + dist / step_m + ang / step_deg)
+    # Steadiness: turn of the step into and out of each frame (blur comes from rotation).
+    rate = np.maximum(ang, np.r_[ang[1:], 0.0])
+    rate[~ok] = np.inf
+    edges = np.linspace(progress[0], progress[-1], num + 1)
+    bucket = np.clip(np.searchsorted(edges, progress, side="right") - 1, 0, num - 1)
+    order = np.lexsort((np.arange(n), rate, bucket))  # per bucket: steadiest first, then earliest
+    first = np.r_[True, bucket[order][1:] != bucket[order][:-1]]
+    picked = order[first]
+    picked = picked[np.isfinite(rate[picked])]
+    return np.unique(picked).astype(np.int64)
 
 
 def load_view_frames(view_layout, capture, ts: Sequence[int]) -> tuple[list[ViewFrame], Intrinsics, NDArray]:

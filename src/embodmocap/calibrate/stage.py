@@ -27,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from embodmocap.calibrate.offset import RobustOffsetConfig, YawOffset, robust_yaw_offset
+from embodmocap.calibrate.consistency import check_against_vio
+from embodmocap.calibrate.offset import RobustOffsetConfig, YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import RefineConfig, ViewData, refine_offsets
-from embodmocap.calibrate.register import RegisterConfig, build_scene_index, load_view_frames, register_frames, sample_frames
+from embodmocap.calibrate.register import (RegisterConfig, Registration, load_or_build_scene_index, load_view_frames,
+                                           register_frames, select_frames)
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import rotation_angle
 from embodmocap.io.atomic import write_json, write_npz
@@ -61,8 +63,17 @@ class CalibrateConfig:
     ``retry_candidates_factor`` times more candidate key frames."""
     retry_candidates_factor: int = 3
     """How many times more candidate key frames the retry matches against."""
-    min_registered_fraction: float = 0.1
+    min_registered_fraction: float = 0.2
     """Fewer registered frames than this fraction of those tried is an error for the view."""
+    vio_max_disagreement_m: float = 0.10
+    """VIO check (:mod:`embodmocap.calibrate.consistency`): two registered frames whose relative
+    motion differs from the VIO's by more than this (metres) disagree."""
+    vio_max_disagreement_deg: float = 3.0
+    """VIO check: the rotation limit of the same test, degrees."""
+    min_consistent_fraction: float = 0.25
+    """A view whose largest VIO-consistent group of registered frames holds fewer than this share
+    of them (or fewer than ``min_registered_frames``) disagrees with its VIO everywhere: an error
+    (the wrong scene capture, most likely)."""
     min_registered_frames: int = 5
     """Fewer registered frames than this is an error for the view."""
     max_refine_shift_m: float = 0.15
@@ -116,37 +127,33 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     for v in VIEWS:
         vl = out.view(v)
         reg_path = vl.registration
-        fp = fingerprint("register", upstream, path_fingerprint(vl.masks) if vl.masks.is_file() else None, cfg.register)
+        fp = fingerprint("register", REGISTER_VERSION, upstream, path_fingerprint(vl.masks) if vl.masks.is_file() else None,
+                         cfg.register, cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
         if not force and sm.is_current(f"register_{v}", fp):
             skipped.append(f"register_{v}")
         else:
             t0 = time.perf_counter()
-            index = index or build_scene_index(scene.sfm_dir, cfg.register)
+            # One index per scene, cached next to the scene's outputs and reused by every sequence.
+            index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.root / "register_index.npz")
             cams = np.load(vl.cameras)
-            ts = sample_frames(len(cams["raw_frames"]), cfg.register.num_frames)
+            T_vio = np.asarray(cams["T_world_cam"], dtype=np.float64)
+            ts = select_frames(T_vio, cfg.register.num_frames)
             frames, K, _ = load_view_frames(vl, open_capture(entry.views[v].capture), ts)
-            reg = register_frames(frames, K, index, cfg.register)
-            if reg.registered_fraction < cfg.retry_below_fraction:
-                # Retrieval can rank the right key frames low (repetitive texture, distant views):
-                # match against more candidates before giving up on the view.
-                wider = replace(cfg.register, num_candidates=cfg.register.num_candidates * cfg.retry_candidates_factor)
-                log.info("%s %s: %.0f%% registered with %d candidates; retrying with %d", entry.name, v,
-                         100 * reg.registered_fraction, cfg.register.num_candidates, wider.num_candidates)
-                retry = register_frames(frames, K, index, wider)
-                if retry.registered_fraction > reg.registered_fraction:
-                    reg = retry
-            _save_registration(reg_path, reg)
+            reg = _register_view(cfg, frames, K, index, T_vio, f"{entry.name} {v}")
+            check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
+                                      cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
+            _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
+            _save_registration(reg_path, reg, check)
             sm.record(f"register_{v}", fp, [reg_path], time.perf_counter() - t0, {
                 f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
                 f"{v}_registered_fraction": round(reg.registered_fraction, 3),
+                f"{v}_vio_rejected_runs": check.rejected_runs, f"{v}_vio_rejected_frames": check.rejected_frames,
                 f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
             })
-        regs[v] = np.load(reg_path)
-        n_tried, n_reg = len(regs[v]["attempted"]), len(regs[v]["t"])
-        if n_reg < cfg.min_registered_frames or n_reg < cfg.min_registered_fraction * max(n_tried, 1):
-            raise InputError(entry.views[v].capture, f"view {v}: only {n_reg} of {n_tried} sampled frames registered "
-                             "to the scene model", "likely causes: too little background texture, the wrong scene "
-                             "capture, very different lighting, or the performer filling the view")
+        regs[v] = dict(np.load(reg_path))
+        if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
+            regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
+            regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
 
     # 2. Initial yaw-only offsets.
     init: dict[str, YawOffset] = {}
@@ -154,10 +161,18 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     for v in VIEWS:
         cams = np.load(out.view(v).cameras)
         r = regs[v]
-        fit = robust_yaw_offset(cams["T_world_cam"][r["t"], :3, 3], r["T_world_cam"][:, :3, 3], cfg.offset)
+        acc = np.asarray(r["accepted"], dtype=bool)
+        # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
+        fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
         init[v] = fit.offset
+        runs = np.asarray(r["run"])
         init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
+                          "vio_consistent": int(acc.sum()),
                           "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None}
+        init_report[v]["vio_check"] = {
+            "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[~acc]))),
+            "rejected_frames": int((~acc).sum()), "max_disagreement_m": cfg.vio_max_disagreement_m,
+            "max_disagreement_deg": cfg.vio_max_disagreement_deg}
 
     # 3. Joint refinement.
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
@@ -185,14 +200,89 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                             report, tuple(skipped))
 
 
-def _save_registration(path: Path, reg) -> None:
-    """Registered poses and their 2D-3D inlier matches (flattened with a frame column)."""
+REGISTER_VERSION = 2
+
+
+def _register_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.ndarray, name: str) -> Registration:
+    """Register one view's frames: a few by retrieval first, the rest by pose from their coarse,
+    VIO-checked offset; frames that still fail are retried against more retrieval candidates.
+
+    Retrieval ranks key frames by appearance, which repetitive or plain walls fool; once a coarse
+    offset is known, the key frames that see what each VIO camera sees are the right candidates.
+    """
+    rc = cfg.register
+    pick = np.zeros(len(frames), dtype=bool)
+    pick[np.unique(np.linspace(0, len(frames) - 1, min(rc.coarse_frames, len(frames))).round().astype(int))] = True
+    retrieval = replace(rc, candidates="retrieval")
+    first = register_frames([f for f, p in zip(frames, pick) if p], K, index, retrieval)
+    coarse = _coarse_offset(cfg, first, T_vio)
+    if coarse is None:  # retrieval failed on the sample: try it with more candidates
+        wider = replace(retrieval, num_candidates=rc.num_candidates * cfg.retry_candidates_factor)
+        log.info("%s: no VIO-consistent coarse offset from %d frames; retrying with %d candidates", name,
+                 int(pick.sum()), wider.num_candidates)
+        first = register_frames([f for f, p in zip(frames, pick) if p], K, index, wider)
+        coarse = _coarse_offset(cfg, first, T_vio)
+    rest = [f for f, p in zip(frames, pick) if not p]
+    if coarse is None:
+        log.info("%s: still no coarse offset; registering every frame by retrieval", name)
+        reg = first.merged(register_frames(rest, K, index, retrieval))
+    else:
+        predicted = {int(f[0]): coarse.apply(T_vio[int(f[0])]) for f in rest}
+        reg = first.merged(register_frames(rest, K, index, replace(rc, candidates="auto"), predicted))
+    if reg.registered_fraction < cfg.retry_below_fraction:
+        # Rare now: retry only the frames that failed, against more retrieval candidates.
+        failed = set(int(t) for t in reg.attempted) - set(int(t) for t in reg.t)
+        wider = replace(retrieval, num_candidates=rc.num_candidates * cfg.retry_candidates_factor)
+        log.info("%s: %.0f%% registered; retrying %d frames with %d candidates", name, 100 * reg.registered_fraction,
+                 len(failed), wider.num_candidates)
+        retry = register_frames([f for f in frames if int(f[0]) in failed], K, index, wider)
+        keep = ~np.isin(reg.attempted, retry.attempted)
+        reg = Registration(reg.attempted[keep], reg.attempted_inliers[keep], reg.t, reg.T_world_cam, reg.inliers,
+                           reg.reproj_error_px, reg.correspondences, (), reg.seconds).merged(retry)
+    return reg
+
+
+def _coarse_offset(cfg: CalibrateConfig, reg: Registration, T_vio: np.ndarray) -> YawOffset | None:
+    """The offset of the VIO-consistent frames of a first registration, or None when fewer than 3
+    frames agree (or they cannot fix the yaw)."""
+    if len(reg.t) < 3:
+        return None
+    check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers, cfg.vio_max_disagreement_m,
+                              cfg.vio_max_disagreement_deg)
+    if check.accepted.sum() < 3:
+        return None
+    try:
+        return chain_yaw_offset(T_vio[reg.t[check.accepted]], reg.T_world_cam[check.accepted], cfg.offset).offset
+    except ValueError:
+        return None
+
+
+def _check_view(cfg: CalibrateConfig, capture: Path, v: str, reg: Registration, check) -> None:
+    """One clear error for a view that cannot be calibrated (names the capture and the likely cause)."""
+    n_tried, n_reg = len(reg.attempted), len(reg.t)
+    if n_reg < cfg.min_registered_frames or n_reg < cfg.min_registered_fraction * max(n_tried, 1):
+        raise InputError(capture, f"view {v}: only {n_reg} of {n_tried} sampled frames registered to the scene model "
+                         f"(need {100 * cfg.min_registered_fraction:.0f} %)", "likely causes: too little background "
+                         "texture, the wrong scene capture, very different lighting, or the performer filling the view")
+    n_ok = int(check.accepted.sum())
+    if n_ok < cfg.min_registered_frames or n_ok < cfg.min_consistent_fraction * n_reg:
+        raise InputError(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
+                         f"(largest consistent group {n_ok} of {n_reg} frames, {check.runs} runs)",
+                         "likely cause: the sequence was not filmed in this scene (wrong scene capture in "
+                         "session.toml), or the VIO poses are broken")
+
+
+def _save_registration(path: Path, reg, check=None) -> None:
+    """Registered poses and their 2D-3D inlier matches (flattened with a frame column), and the
+    VIO check's verdict per registered frame (``accepted``, ``run``)."""
     fr = np.concatenate([np.full(len(c.xy), c.t) for c in reg.correspondences]) if reg.correspondences else np.zeros(0, int)
     xy = np.concatenate([c.xy for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 2))
     xyz = np.concatenate([c.xyz for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 3))
-    write_npz(path, version=np.int64(1), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers, t=reg.t,
-              T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
-              match_frames=fr, match_xy=xy, match_xyz=xyz)
+    acc = np.ones(len(reg.t), dtype=bool) if check is None else check.accepted
+    run = np.zeros(len(reg.t), dtype=np.int64) if check is None else check.run
+    write_npz(path, version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
+              t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
+              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run)
 
 
 def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, init: YawOffset, reg) -> ViewData:
@@ -214,7 +304,9 @@ def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, 
     # brings 2D-3D matches that are consistent with a wrong pose, and through the VIO pose they
     # reproject hundreds of pixels off (seen: one such frame outweighed every other term).
     agree = np.linalg.norm(init.apply_points(cams["T_world_cam"][reg["t"], :3, 3]) - reg["T_world_cam"][:, :3, 3], axis=1)
-    ok_frames = np.asarray(reg["t"])[agree <= cfg.offset.inlier_threshold_m]
+    accepted = np.asarray(reg["accepted"], dtype=bool) if "accepted" in reg else np.ones(len(reg["t"]), bool)
+    # Frames of runs the VIO check rejected never reach the fit, however close they happen to be.
+    ok_frames = np.asarray(reg["t"])[(agree <= cfg.offset.inlier_threshold_m) & accepted]
     keep = np.isin(reg["match_frames"], ok_frames)
     matches = L.Matches2D3D.from_arrays(reg["match_frames"][keep], reg["match_xy"][keep], reg["match_xyz"][keep])
     return ViewData(T_world_cam=init.apply(cams["T_world_cam"]), K=cams["K"], background=cloud,
@@ -249,6 +341,7 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
             "T_world_vio_registration": T0.tolist(), "T_world_vio": T1.tolist(),
             "refine_shift_m": round(shift, 5), "refine_yaw_deg": round(yaw, 4),
             "registered_fraction": float(len(regs[v]["t"]) / max(len(regs[v]["attempted"]), 1)),
+            "vio_check": init_report[v]["vio_check"],
             "offset_fit": init_report[v],
         }
     if result is not None:

@@ -51,11 +51,23 @@ class SceneConfig:
     tracking)."""
 
     # ------------------------------------------------------------------ depth
-    min_confidence: int = 1
+    min_confidence: int = 0
     """LiDAR pixels with confidence below this are dropped (0 low, 1 medium, 2 high). Captures
-    without a confidence map keep every pixel."""
-    depth_trunc_m_indoor: float = 3.5
-    """Indoor: depth beyond this (metres) is dropped (the paper's effective LiDAR range)."""
+    without a confidence map keep every pixel. 0 keeps every pixel and lets
+    ``confidence_weights`` weigh them instead (low-confidence depth is often the only view of a
+    ceiling or a far wall)."""
+    confidence_weights: tuple[float, float, float] = (0.25, 0.5, 1.0)
+    """Fusion weight of a pixel of confidence 0, 1, 2 (in (0, 1]). The TSDF weighs every
+    observation 1, so a weight w is applied as a share: the pixels of that confidence enter w of
+    the fused frames (evenly spread, deterministic); over the many frames that see a surface this
+    is a weighted average, and a surface seen only at low confidence still gets fused."""
+    min_valid_depth_fraction: float = 0.05
+    """A scene capture whose sampled frames hold fewer valid depth pixels than this share (after
+    ``min_confidence`` and the truncation) is an input error before anything is written."""
+    depth_trunc_m_indoor: float = 5.0
+    """Indoor: depth beyond this (metres) is dropped. The LiDAR's range (about 5 m): a fixed
+    3.5 m cut lost far walls of large rooms and high ceilings; far, noisy pixels come with low
+    confidence and are down-weighted (``confidence_weights``) rather than cut."""
     depth_trunc_m_outdoor: float = 5.0
     """Outdoor: as ``depth_trunc_m_indoor``."""
     depth_refine: Literal["none", "promptda"] = "none"
@@ -73,7 +85,16 @@ class SceneConfig:
     """TSDF truncation distance in voxels (5 voxels = 5 cm indoors). It must exceed the depth
     noise (LiDAR: ~1 % of the depth) or surfaces get holes; larger values round corners."""
     integrate_every: int = 1
-    """Integrate every k-th key frame (1 = all); >1 trades completeness for speed."""
+    """Integrate every k-th fusion frame (1 = all); >1 trades completeness for speed."""
+    fuse_step_m: float = 0.04
+    """Fusion frames (not only the SfM key frames): every trajectory row with a trusted pose (no
+    tracking jump) whose camera moved at least this far (metres) or turned ``fuse_step_deg`` since
+    the last fused frame. Frames closer than that see the same surface again and add only time."""
+    fuse_step_deg: float = 4.0
+    """Fusion frames: the rotation step, degrees (see ``fuse_step_m``)."""
+    fuse_min_valid_fraction: float = 0.02
+    """A frame with fewer valid depth pixels than this share is not fused (a covered sensor, the
+    phone facing the sky)."""
 
     # ------------------------------------------------------------------ mesh clean-up
     min_component_fraction: float = 0.02
@@ -85,6 +106,11 @@ class SceneConfig:
     floater_max_extent_m: float = 0.10
     """Components whose bounding-box diagonal is below this (metres) are floaters and removed,
     however dense (noise blobs in free space). 0 = off."""
+    structure_min_extent_m: float = 0.5
+    """Components with a bounding-box diagonal of at least this (metres) and at least
+    ``min_component_triangles`` faces are real structure and always kept, whatever
+    ``min_component_fraction`` says (a ceiling or far wall seen from a few frames, furniture seen
+    from one side). 0 = off."""
 
     # ------------------------------------------------------------------ simplified mesh
     simplify_voxel_m: float = 0.05
@@ -107,6 +133,12 @@ class SceneConfig:
             (self.jump_neighbours >= 1, "jump_neighbours must be >= 1"),
             (self.min_keyframes >= 2, "min_keyframes must be >= 2"),
             (self.min_confidence in (0, 1, 2), "min_confidence must be 0, 1 or 2"),
+            (len(self.confidence_weights) == 3 and all(0 < w <= 1 for w in self.confidence_weights),
+             "confidence_weights must be three values in (0, 1]"),
+            (0 <= self.min_valid_depth_fraction < 1 and 0 <= self.fuse_min_valid_fraction < 1,
+             "valid depth fractions must be in [0, 1)"),
+            (self.fuse_step_m >= 0 and self.fuse_step_deg >= 0, "fuse steps must be >= 0"),
+            (self.structure_min_extent_m >= 0, "structure_min_extent_m must be >= 0"),
             (self.depth_trunc_m_indoor > 0 and self.depth_trunc_m_outdoor > 0, "depth truncation must be > 0"),
             (self.depth_refine in ("none", "promptda"), "depth_refine must be 'none' or 'promptda'"),
             (self.voxel_m_indoor > 0 and self.voxel_m_outdoor > 0, "voxel sizes must be > 0"),

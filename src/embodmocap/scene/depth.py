@@ -67,16 +67,24 @@ def keyframe_depth(capture: Capture, frame_id: int, cfg: SceneConfig, indoor: bo
 
 @dataclass
 class DepthStats:
-    """Pixel counts over the frames read, to name the cause when nothing valid is left."""
+    """Pixel counts over the frames read, to name the cause when nothing valid is left, and to
+    report how much of the depth the mesh used."""
 
     frames: int = 0
     raw_valid: int = 0
     confident: int = 0
     kept: int = 0
+    pixels: int = 0
+    """All depth pixels of the frames read (valid or not)."""
+    fused: int = 0
+    """Pixels handed to the TSDF (after confidence weighting); ``kept`` counts them before it."""
+    fused_frames: int = 0
+    """Frames handed to the TSDF (frames with too little valid depth are skipped)."""
     per_frame_kept: list[int] = field(default_factory=list)
 
     def add(self, raw: NDArray, conf: NDArray | None, kept: NDArray, min_conf: int) -> None:
         self.frames += 1
+        self.pixels += int(np.size(raw))
         rv = np.isfinite(raw) & (raw > 0)
         self.raw_valid += int(rv.sum())
         self.confident += int((rv & (conf >= min_conf)).sum()) if conf is not None else int(rv.sum())
@@ -84,12 +92,111 @@ class DepthStats:
         self.kept += k
         self.per_frame_kept.append(k)
 
+    @property
+    def used_fraction(self) -> float:
+        """Share of the valid (finite, > 0) depth pixels of the frames read that were fused."""
+        return self.fused / self.raw_valid if self.raw_valid else 0.0
+
     def cause(self, trunc_m: float, min_conf: int) -> str:
         if self.raw_valid == 0:
             return "every depth map is empty (0 or NaN everywhere)"
         if self.confident == 0:
             return f"no pixel has confidence >= {min_conf}"
         return f"every confident pixel is farther than the {trunc_m:g} m truncation"
+
+
+def prefetch(items: Iterator, depth: int = 6) -> Iterator:
+    """Yield ``items`` while a background thread reads ahead up to ``depth`` of them.
+
+    Fusion alternates decoding (video, PNG: C code that releases the GIL) and integration (Open3D);
+    reading the next frames while the current one is integrated overlaps the two. Order is kept,
+    and an error in the reader is raised here, at the item where it happened.
+    """
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=max(1, depth))
+    done = object()
+    stop = threading.Event()
+
+    def reader() -> None:
+        try:
+            for it in items:
+                while not stop.is_set():
+                    try:
+                        q.put((True, it), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put((True, done))
+        except BaseException as err:  # handed to the consumer, raised there
+            q.put((False, err))
+
+    th = threading.Thread(target=reader, name="fusion-reader", daemon=True)
+    th.start()
+    try:
+        while True:
+            ok, it = q.get()
+            if not ok:
+                raise it
+            if it is done:
+                return
+            yield it
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
+def weigh_by_confidence(depth: NDArray[np.float32], confidence: NDArray, weights: NDArray, n: int) -> NDArray[np.float32]:
+    """Depth of the ``n``-th fused frame with the pixels whose confidence is not due this frame set
+    to 0.
+
+    The TSDF weighs every observation 1, so a confidence weight ``w`` is applied as a share of
+    frames: pixels of confidence ``c`` are fused in frame ``n`` when ``floor((n + 1) w_c) >
+    floor(n w_c)``, i.e. in exactly ``w_c`` of the frames, evenly spread (no randomness). Weight 1
+    keeps them in every frame.
+
+    Args:
+        depth: (h, w) filtered depth, 0 = invalid.
+        confidence: (h, w) integer confidence 0, 1, 2.
+        weights: (3,) weight per confidence level, in (0, 1].
+        n: index of the frame among the fused frames.
+    """
+    due = np.floor((n + 1) * weights) > np.floor(n * weights)  # (3,) which levels fuse this frame
+    if due.all():
+        return depth
+    c = np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)
+    return np.where(due[c], depth, np.float32(0.0)).astype(np.float32)
+
+
+def check_depth(capture: Capture, cfg: SceneConfig, indoor: bool, samples: int = 30) -> float:
+    """Share of valid depth pixels (after confidence and truncation) over up to ``samples`` frames
+    spread over the capture; checked before Stage I writes anything.
+
+    Raises:
+        InputError: the share is below ``cfg.min_valid_depth_fraction`` (names the capture, the
+            share and the likely cause).
+    """
+    n = capture.num_frames
+    ids = np.unique(np.linspace(0, n - 1, min(samples, n)).round().astype(np.int64)) if n else np.zeros(0, np.int64)
+    stats = DepthStats()
+    trunc = cfg.depth_trunc_m(indoor)
+    for f in ids:
+        raw = capture.frames.depth_m(int(f))
+        conf = capture.frames.confidence(int(f))
+        stats.add(raw, conf, filter_depth(raw, conf, cfg.min_confidence, trunc), cfg.min_confidence)
+    share = stats.kept / max(stats.pixels, 1)
+    if share < cfg.min_valid_depth_fraction:
+        what = (f"no valid depth in {stats.frames} sampled frames: {stats.cause(trunc, cfg.min_confidence)}"
+                if stats.kept == 0 else
+                f"too little valid depth: {100 * share:.1f} % of the depth pixels of {stats.frames} sampled frames "
+                f"(need {100 * cfg.min_valid_depth_fraction:g} %)")
+        raise InputError(capture.path, what, "the scan needs LiDAR depth of the room (was the depth sensor covered, "
+                         "the capture exported without depth, or the scene out of range?); or lower "
+                         "min_valid_depth_fraction / min_confidence")
+    return share
 
 
 def fusion_frames(capture: Capture, frame_ids: Sequence[int], T_world_cam: NDArray, cfg: SceneConfig, indoor: bool,
@@ -110,15 +217,24 @@ def fusion_frames(capture: Capture, frame_ids: Sequence[int], T_world_cam: NDArr
     stats = DepthStats() if stats is None else stats
     trunc = cfg.depth_trunc_m(indoor)
     K = capture.depth_intrinsics
+    weights = np.asarray(cfg.confidence_weights, dtype=np.float64)
     for i in np.argsort(ids, kind="stable"):
         f = int(ids[i])
-        rgb = capture.frames.rgb(f)
         raw = capture.frames.depth_m(f)
         conf = capture.frames.confidence(f)
+        rgb = None
         if refine is not None:
+            rgb = capture.frames.rgb(f)
             raw = np.asarray(refine(rgb, raw, conf), dtype=np.float32)
         depth = filter_depth(raw, conf, cfg.min_confidence, trunc)
         stats.add(raw, conf, depth, cfg.min_confidence)
+        if stats.per_frame_kept[-1] < cfg.fuse_min_valid_fraction * depth.size:
+            continue  # (the colour is decoded only for frames that are fused)
+        if conf is not None:
+            depth = weigh_by_confidence(depth, conf, weights, stats.fused_frames)
+        stats.fused_frames += 1
+        stats.fused += int((depth > 0).sum())
+        rgb = capture.frames.rgb(f) if rgb is None else rgb
         yield colour_at_depth_resolution(rgb, K), depth, K, T[i]
     if stats.kept == 0:
         raise InputError(capture.path, f"no valid depth in {stats.frames} key frames: "

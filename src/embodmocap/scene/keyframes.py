@@ -189,10 +189,15 @@ def motion_keyframes(trajectory: CameraTrajectory, cfg: SceneConfig, indoor: boo
     """
     T = np.asarray(trajectory.T_world_cam, dtype=np.float64)
     rows = np.arange(len(T)) if excluded is None else np.flatnonzero(~np.asarray(excluded, bool))
+    return _motion_gate(T, rows, cfg.keyframe_step_m(indoor), cfg.keyframe_step_deg)
+
+
+def _motion_gate(T: NDArray, rows: NDArray[np.int64], step_m: float, step_deg: float) -> NDArray[np.int64]:
+    """The subset of ``rows`` (increasing) where the camera of ``T`` (N, 4, 4) has moved
+    ``step_m`` or turned ``step_deg`` since the last row taken; the first row is always taken."""
     if len(rows) == 0:
         return np.zeros(0, dtype=np.int64)
-    step_m = cfg.keyframe_step_m(indoor)
-    cos_step = np.cos(np.radians(cfg.keyframe_step_deg))
+    cos_step = np.cos(np.radians(step_deg))
     C, R = T[rows, :3, 3], T[rows, :3, :3]
     chosen = [0]
     # Greedy and sequential by nature (each choice depends on the previous key frame); the loop
@@ -205,6 +210,17 @@ def motion_keyframes(trajectory: CameraTrajectory, cfg: SceneConfig, indoor: boo
         if moved or turned:
             chosen.append(i)
     return rows[np.asarray(chosen, dtype=np.int64)]
+
+
+def fusion_rows(capture: Capture, cfg: SceneConfig) -> NDArray[np.int64]:
+    """(F,) trajectory rows to fuse into the mesh: every row with a trusted pose (no tracking
+    jump, :func:`detect_jumps`) once the camera moved ``cfg.fuse_step_m`` or turned
+    ``cfg.fuse_step_deg`` since the last one (many more than the SfM key frames; blur does not
+    matter to depth). Frames with too little valid depth are dropped later, when read."""
+    traj = capture.trajectory
+    excluded = detect_jumps(traj, capture.fps, cfg)
+    T = np.asarray(traj.T_world_cam, dtype=np.float64)
+    return _motion_gate(T, np.flatnonzero(~excluded), cfg.fuse_step_m, cfg.fuse_step_deg)
 
 
 def drop_blurriest(sharp: NDArray, window: int) -> NDArray[np.bool_]:

@@ -77,7 +77,9 @@ def clean_mesh(vertices, faces, colours=None, cfg: SceneConfig = SceneConfig()) 
 
     A component (faces connected through shared vertices) is kept when it has at least
     ``max(cfg.min_component_triangles, cfg.min_component_fraction * largest)`` faces and its
-    bounding-box diagonal is at least ``cfg.floater_max_extent_m``. Duplicate vertices are merged
+    bounding-box diagonal is at least ``cfg.floater_max_extent_m``, or when it spans at least
+    ``cfg.structure_min_extent_m`` with at least ``cfg.min_component_triangles`` faces (real
+    structure is never dropped for being small next to the floor). Duplicate vertices are merged
     first so that components are not split where voxel blocks meet.
 
     Returns:
@@ -96,6 +98,10 @@ def clean_mesh(vertices, faces, colours=None, cfg: SceneConfig = SceneConfig()) 
     extent = np.linalg.norm(hi - lo, axis=1)
     min_faces = max(cfg.min_component_triangles, cfg.min_component_fraction * size.max())
     keep_comp = (size >= min_faces) & (extent >= cfg.floater_max_extent_m)
+    if cfg.structure_min_extent_m > 0:
+        # Size relative to the largest piece says nothing about a ceiling seen from a few frames:
+        # anything large enough in space is structure, however few faces it has.
+        keep_comp |= (extent >= cfg.structure_min_extent_m) & (size >= cfg.min_component_triangles)
     if not keep_comp.any():  # never return nothing: keep the largest component at least
         keep_comp[np.argmax(size)] = True
     keep = keep_comp[comp]

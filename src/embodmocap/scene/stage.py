@@ -4,8 +4,10 @@
 
 1. ``keyframes``: key frames by camera motion, the blurriest of each small group dropped, frames
    around tracking jumps excluded (written to ``keyframes.json`` with their poses);
-2. ``mesh``: confidence-filtered, truncated LiDAR depth (optionally refined by a learned model)
-   fused in an Open3D TSDF, colour mesh extracted and cleaned (``mesh_raw.ply``);
+2. ``mesh``: every frame with a trusted pose and enough valid depth (a fine motion step, many more
+   than the key frames), LiDAR depth (optionally refined by a learned model) weighted by its
+   confidence and truncated at the sensor's range, fused in an Open3D TSDF; colour mesh extracted
+   and cleaned without dropping real structure (``mesh_raw.ply``);
 3. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``);
 4. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
    poses and intrinsics held fixed (``sfm/``: database + model for Stage III).
@@ -33,8 +35,8 @@ from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.scene.config import SceneConfig
-from embodmocap.scene.depth import DepthStats, fusion_frames
-from embodmocap.scene.keyframes import choose_keyframes
+from embodmocap.scene.depth import DepthStats, check_depth, fusion_frames, prefetch
+from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
 from embodmocap.scene.mesh import clean_mesh, mesh_stats, read_mesh_ply, simplify_mesh, write_mesh_ply
 from embodmocap.scene.sfm import build_sparse_model
 from embodmocap.scene.tsdf import fuse_open3d
@@ -62,7 +64,8 @@ def _cfg_part(cfg: SceneConfig, prefixes: tuple[str, ...]) -> dict:
 
 
 _KEYFRAME_FIELDS = ("keyframe_", "blur_", "jump_", "min_keyframes")
-_MESH_FIELDS = ("min_confidence", "depth_", "voxel_", "sdf_", "integrate_every", "min_component", "floater_")
+_MESH_FIELDS = ("min_confidence", "depth_", "voxel_", "sdf_", "integrate_every", "min_component", "floater_",
+                "confidence_", "fuse_", "structure_", "jump_")
 _SIMPLIFY_FIELDS = ("simplify_",)
 _SFM_FIELDS = ("sfm",)
 
@@ -88,12 +91,14 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     entry = manifest.scenes[name]
     indoor = entry.indoor
     out = lay.scene(name)
-    out.root.mkdir(parents=True, exist_ok=True)
-    sm = StageManifest(out.manifest, "scene", cfg, inputs=[entry.capture], root=lay.root)
     capture = open_capture(entry.capture)
     skipped: list[str] = []
     log.info("scene %s: %s capture, %d frames, %s", name, capture.format, capture.num_frames,
              "indoor" if indoor else "outdoor")
+    # Bad depth is found before anything is written (not after the key frames and half a mesh).
+    check_depth(capture, cfg, indoor)
+    out.root.mkdir(parents=True, exist_ok=True)
+    sm = StageManifest(out.manifest, "scene", cfg, inputs=[entry.capture], root=lay.root)
 
     # 1. Key frames.
     fp_kf = fingerprint("keyframes", KEYFRAMES_VERSION, path_fingerprint(entry.capture), indoor,
@@ -122,10 +127,12 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         skipped.append("mesh")
     else:
         t0 = time.perf_counter()
-        every = max(1, cfg.integrate_every)
-        ids, poses = frame_ids[::every], T_kf[::every]
+        # Every trusted frame (fine motion step), not only the SfM key frames: coverage of ceilings,
+        # far walls and furniture sides comes from the frames between key frames.
+        rows = fusion_rows(capture, cfg)[:: max(1, cfg.integrate_every)]
+        ids, poses = capture.trajectory.frame_ids[rows], capture.trajectory.T_world_cam[rows]
         stats = DepthStats()
-        frames = fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats)
+        frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats))
         v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {name}: fusing"), cfg.voxel_m(indoor),
                               cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor))
         t_fuse = time.perf_counter() - t0
@@ -137,7 +144,9 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         st = mesh_stats(v, f)
         sm.record("mesh", fp_mesh, [out.mesh_raw], time.perf_counter() - t0, {
             "mesh_vertices": st["vertices"], "mesh_faces": st["faces"], "mesh_area_m2": round(st["area_m2"], 3),
-            "fused_frames": len(ids), "fusion_fps": round(len(ids) / max(t_fuse, 1e-9), 2),
+            "fused_frames": stats.fused_frames, "fusion_candidates": len(ids),
+            "depth_pixels_used_fraction": round(stats.used_fraction, 4),
+            "fusion_fps": round(stats.fused_frames / max(t_fuse, 1e-9), 2),
         })
 
     # 3. Simplified mesh.

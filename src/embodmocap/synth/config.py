@@ -18,6 +18,14 @@ class SynthConfig:
     """Random seed; the same seed gives identical files."""
     preset: Literal["indoor", "outdoor"] = "indoor"
     """Scene kind: a furnished room or a fenced yard."""
+    room: Literal["standard", "large", "high_ceiling", "low_texture", "repetitive"] = "standard"
+    """Indoor studio preset: ``"standard"`` (4.5-7 x 4-6 m, 2.6-3 m ceiling), ``"large"`` (8 x 6 m),
+    ``"high_ceiling"`` (4-4.6 m), ``"low_texture"`` (plain painted walls) or ``"repetitive"``
+    (walls with a repeating wallpaper); see :func:`embodmocap.synth.scene.build_scene`."""
+    lighting_change: bool = False
+    """Film the sequence under other light than the scene capture: each view gets an exposure gain
+    (0.55-0.75 or 1.35-1.7) and a white balance shift (up to 15 % per channel), as when lamps are
+    switched or daylight changes between the scan and the performance."""
     seconds: float = 10.0
     """Length of the performance after the sync event, seconds (views record about this long)."""
     scene_seconds: float = 20.0
@@ -55,6 +63,7 @@ class SynthConfig:
             (self.width % 2 == 0 and self.height % 2 == 0, "RGB width and height must be even (H.264)"),
             (8 <= self.depth_width <= self.width and 8 <= self.depth_height <= self.height, "depth size must be >= 8 and <= the RGB size"),
             (20 < self.hfov_deg < 150, "hfov_deg must be in (20, 150)"),
+            (self.room == "standard" or self.preset == "indoor", "room presets other than 'standard' are indoor only"),
         ]
         bad = [msg for ok, msg in checks if not ok]
         if bad:

@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.synth.scene import BuiltScene
-from embodmocap.synth.texture import LATTICE_ROTATION, albedo_lattice
+from embodmocap.synth.texture import LATTICE_ROTATION, albedo_lattice, relight
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -234,6 +234,7 @@ class Renderer:
         laser_on: bool = False,
         depth_intrinsics: Intrinsics | None = None,
         rng: np.random.Generator | None = None,
+        lighting: tuple[float, NDArray] | None = None,
     ) -> RenderOut:
         """Render one frame.
 
@@ -246,6 +247,9 @@ class Renderer:
             depth_intrinsics: also cast a grid at this (depth sensor) resolution.
             rng: generator for noise and exposure; None = the renderer's own (seeded) one, so a
                 fixed sequence of calls gives identical images.
+            lighting: ``(gain, white_balance (3,))`` of other light on the scene
+                (:func:`embodmocap.synth.texture.relight`); the laser dot, far brighter than any
+                lamp, is drawn after it and still saturates.
         """
         rng = self._rng if rng is None else rng
         T = np.asarray(T_world_cam, dtype=np.float64)
@@ -255,6 +259,8 @@ class Renderer:
         hits = self._hits(intrinsics, T, body_scene, body, shading=True)
         H, W = intrinsics.height, intrinsics.width
         rgb = self._shade(hits, T, body)
+        if lighting is not None:
+            rgb = relight(rgb, *lighting)
         if laser_on:
             self._draw_laser(rgb, hits, intrinsics, T)
         rgb = self._finish(rgb.reshape(H, W, 3), rng)

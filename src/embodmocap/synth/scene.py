@@ -100,8 +100,10 @@ class BuiltScene:
 # Materials
 
 
-def _materials(preset: str, rng: np.random.Generator) -> tuple[Material, ...]:
-    """The palette: colours jittered per scene, so two seeds look different."""
+def _materials(preset: str, rng: np.random.Generator, room: str = "standard") -> tuple[Material, ...]:
+    """The palette: colours jittered per scene, so two seeds look different. ``room`` =
+    ``"low_texture"`` makes walls and ceiling nearly plain paint; ``"repetitive"`` gives the walls
+    a wallpaper pattern that repeats every two cells (many places look alike)."""
 
     def jit(rgb, amount=0.06):
         return tuple(np.clip(np.asarray(rgb) + rng.uniform(-amount, amount, 3), 0.02, 0.98).round(4).tolist())
@@ -123,8 +125,20 @@ def _materials(preset: str, rng: np.random.Generator) -> tuple[Material, ...]:
     if preset == "outdoor":
         mats[0] = ("floor", jit([0.30, 0.45, 0.20]), jit([0.50, 0.48, 0.35]), (0.40, 0.40, 0.40), 0.04, 0.45, 0.0, (0.0, 0.0, 0.0))
         mats[1] = ("wall", jit([0.55, 0.40, 0.28]), jit([0.68, 0.55, 0.40]), (0.12, 0.12, 0.90), 0.04, 0.35, 0.004, (0.15, 0.1, 0.06))
+    period = {}
+    if room == "low_texture":
+        # Plain paint: a barely visible mottle (real painted walls give SIFT almost nothing).
+        wall_rgb = jit([0.80, 0.79, 0.75], 0.03)
+        mats[1] = ("wall", wall_rgb, tuple(np.clip(np.asarray(wall_rgb) - 0.025, 0, 1).round(4).tolist()),
+                   (0.40, 0.40, 0.40), 0.25, 0.04, 0.0, (0.0, 0.0, 0.0))
+        mats[2] = ("ceiling", (0.88, 0.88, 0.86), (0.86, 0.86, 0.84), (0.5, 0.5, 0.5), 0.3, 0.03, 0.0, (0.0, 0.0, 0.0))
+    elif room == "repetitive":
+        mats[1] = ("wall", jit([0.75, 0.72, 0.62]), jit([0.45, 0.52, 0.62]), (0.16, 0.16, 0.16), 0.08, 0.35, 0.004,
+                   (0.25, 0.22, 0.2))
+        period[1] = 2
     return tuple(
-        Material(n, b, a, c, bl, co, g, grgb, seed + 7919 * i) for i, (n, b, a, c, bl, co, g, grgb) in enumerate(mats)
+        Material(n, b, a, c, bl, co, g, grgb, seed + 7919 * i, period.get(i, 0))
+        for i, (n, b, a, c, bl, co, g, grgb) in enumerate(mats)
     )
 
 
@@ -347,21 +361,36 @@ def _shell(preset: str, lo: NDArray, hi: NDArray, wall_h: float) -> list[tuple]:
     return out
 
 
-def build_scene(preset: Literal["indoor", "outdoor"], rng: np.random.Generator) -> BuiltScene:
+#: Indoor room presets (:func:`build_scene`'s ``room``).
+ROOMS = ("standard", "large", "high_ceiling", "low_texture", "repetitive")
+
+
+def build_scene(preset: Literal["indoor", "outdoor"], rng: np.random.Generator, room: str = "standard") -> BuiltScene:
     """Build a random furnished room (``"indoor"``) or fenced yard (``"outdoor"``).
 
     Indoor: 4.5-7 x 4-6 m, walls 2.6-3 m, ceiling, pictures and a shelf. Outdoor: 8-12 m square-ish
     yard with a 1.8-2.2 m fence and posts, no ceiling. Both hold a chair (a bench outdoors), a
     table, a box to step on and a sofa or a bed, placed against the walls without overlap.
+
+    ``room`` (indoor only) picks a harder studio: ``"large"`` an 8 x 6 m room (far walls beyond a
+    3.5 m depth cut), ``"high_ceiling"`` a 4-4.6 m ceiling, ``"low_texture"`` plain painted walls
+    and ceiling with a single picture, ``"repetitive"`` walls with a repeating wallpaper. The
+    ``"standard"`` room draws exactly what it always drew (same seed, same scene).
     """
     if preset not in ("indoor", "outdoor"):
         raise ValueError(f"preset must be 'indoor' or 'outdoor', not {preset!r}")
-    materials = _materials(preset, rng)
+    if room not in ROOMS or (room != "standard" and preset != "indoor"):
+        raise ValueError(f"room must be one of {ROOMS} (non-standard rooms are indoor only), not {room!r}")
+    materials = _materials(preset, rng, room)
     for _ in range(100):
         if preset == "indoor":
             L = np.array([rng.uniform(4.5, 7.0), rng.uniform(4.0, 6.0)])
             wall_h = float(rng.uniform(2.6, 3.0))
             min_walk = np.array([1.8, 1.8])
+            if room == "large":
+                L = np.array([8.0, 6.0]) + rng.uniform(-0.15, 0.15, 2)
+            elif room == "high_ceiling":
+                wall_h = float(rng.uniform(4.0, 4.6))
         else:
             L = rng.uniform(8.0, 12.0, 2)
             wall_h = float(rng.uniform(1.8, 2.2))
@@ -388,7 +417,7 @@ def build_scene(preset: Literal["indoor", "outdoor"], rng: np.random.Generator) 
             wy = f.centre_xy[1] + s * pc[0] + c * pc[1]
             solids.append(((wx, wy, pc[2]), ps, f.yaw, mat, name))
     if preset == "indoor":
-        n_pics = int(rng.integers(3, 6))
+        n_pics = int(rng.integers(3, 6)) if room != "low_texture" else 1
         solids += _pictures(lo, hi, furniture, sides, laser_side, laser_along, wall_h, rng, n_pics)
 
     names = [m.name for m in materials]

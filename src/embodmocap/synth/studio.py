@@ -85,7 +85,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     K, K_depth = cfg.intrinsics(), cfg.depth_intrinsics()
 
     # 1. Scene.
-    built = build_scene(cfg.preset, _rng(cfg.seed, 1))
+    built = build_scene(cfg.preset, _rng(cfg.seed, 1), cfg.room)
 
     # 2. Performer: shape and motion (scene frame).
     write_test_model(lay.body_model)
@@ -155,6 +155,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
             body_verts=verts[span], faces=faces, laser_on=laser_on, rng=_rng(cfg.seed, 40 + k),
             clock_offset_s=float(_rng(cfg.seed, 50 + k).uniform(100, 1000)),
             coco_world=coco[span], perception_dir=lay.perception(cfg.sequence_name, v),
+            lighting=_lighting(_rng(cfg.seed, 80 + k)) if cfg.lighting_change else None,
         )
         frames_rendered += len(span)
         prng = _rng(cfg.seed, 60 + k)
@@ -210,9 +211,17 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     return SynthResult(lay.root, took, frames_rendered, sync_frames)
 
 
+def _lighting(rng: np.random.Generator) -> tuple[float, np.ndarray]:
+    """(exposure gain, (3,) white balance) of a view filmed under other light than the scan."""
+    gain = float(rng.uniform(0.55, 0.75) if rng.random() < 0.5 else rng.uniform(1.35, 1.7))
+    wb = 1.0 + rng.uniform(-0.15, 0.15, 3)
+    return gain, wb / wb.mean()
+
+
 def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, body_verts, faces, laser_on, rng,
-                   clock_offset_s, coco_world=None, perception_dir=None):
+                   clock_offset_s, coco_world=None, perception_dir=None, lighting=None):
     """Render and write one capture; for a view also write masks and return GT keypoints.
+    ``lighting`` = (gain, white balance) relights the scene (:func:`embodmocap.synth.texture.relight`).
 
     Returns ``(gt_px (T,17,2), visibility (T,17), masks_dir)`` for a view, else ``(None, None, None)``.
     """
@@ -225,7 +234,7 @@ def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, bo
     try:
         for i in range(n):
             body = (body_verts[i], faces) if body_verts is not None else None
-            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth)
+            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth, lighting=lighting)
             depth_mm, conf = lidar.simulate_lidar(r.depth_lr_m, rng, lcfg)
             writer.add_frame(r.rgb, depth_mm, conf, T_vio_cam[i], clock_offset_s + i / cfg.fps)
             if coco_world is not None:

@@ -40,6 +40,9 @@ class Material:
         grout_m: width of dark lines on the cell borders, metres (0 = none).
         grout_rgb: (3,) colour of those lines.
         seed: integer mixed into the lattice hash, so materials differ (lower 32 bits used).
+        period: 0 for a non-repeating pattern; k > 0 makes the cell and blob layers repeat every k
+            cells along each lattice axis (wallpaper, tiles: the repetitive walls that confuse
+            feature matching, since many places then look alike).
     """
 
     name: str
@@ -51,6 +54,7 @@ class Material:
     grout_m: float
     grout_rgb: tuple[float, float, float]
     seed: int
+    period: int = 0
 
 
 # A fixed generic rotation (no cell wall parallel to any axis-aligned face).
@@ -87,6 +91,18 @@ def _tables(materials: tuple[Material, ...]) -> tuple[NDArray[np.float32], NDArr
 @lru_cache(maxsize=16)
 def _seeds(materials: tuple[Material, ...]) -> NDArray[np.uint32]:
     return (np.array([m.seed for m in materials], dtype=np.uint64) & 0xFFFFFFFF).astype(np.uint32)
+
+
+@lru_cache(maxsize=16)
+def _periods(materials: tuple[Material, ...]) -> NDArray[np.float32]:
+    return np.array([max(int(m.period), 0) for m in materials], dtype=np.float32)
+
+
+def _wrap(c: NDArray[np.float32], period: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Lattice coordinates folded into ``[0, period)`` where ``period > 0`` (left alone elsewhere),
+    so the hash of ``floor(c)`` repeats every ``period`` cells."""
+    p = np.where(period > 0, period, np.float32(1.0))
+    return np.where(period > 0, c - p * np.floor(c / p), c)
 
 
 def _hash01(x: NDArray[np.float32], y: NDArray[np.float32], z: NDArray[np.float32], seed: NDArray[np.uint32]) -> NDArray[np.float32]:
@@ -139,9 +155,13 @@ def _albedo_chunk(q: NDArray[np.float32], mid: NDArray[np.intp], materials: tupl
     qx, qy, qz = q
     inv_x, inv_y, inv_z, inv_blob, contrast, grout_m = (row[mid] for row in scalars)
 
+    period = _periods(materials)[mid]
+    repeat = bool(period.any())
+
     # Cell layer: per-cell colour mix level, grout on the cell borders.
     cx, cy, cz = qx * inv_x, qy * inv_y, qz * inv_z
-    level = (_hash01(cx, cy, cz, mat_seed) * _LEVELS).astype(np.intp)
+    hx, hy, hz = (_wrap(c, period) for c in (cx, cy, cz)) if repeat else (cx, cy, cz)
+    level = (_hash01(hx, hy, hz, mat_seed) * _LEVELS).astype(np.intp)
     border = None
     for c, inv in ((cx, inv_x), (cy, inv_y), (cz, inv_z)):
         f = c - np.floor(c)
@@ -152,9 +172,27 @@ def _albedo_chunk(q: NDArray[np.float32], mid: NDArray[np.intp], materials: tupl
 
     # Two blob octaves: brightness only, so the colour layer stays readable.
     bx, by, bz = qx * inv_blob, qy * inv_blob, qz * inv_blob
+    if repeat:  # blobs repeat with the cells: one period of cells holds cell/blob of them
+        bp = period * np.maximum(np.round(inv_blob / np.minimum(inv_x, np.minimum(inv_y, inv_z))), 1)
+        bx, by, bz = (_wrap(b, bp) for b in (bx, by, bz))
     k = _hash01(bx, by, bz, mat_seed ^ np.uint32(0x5BD1E995)) - 0.5
     s = np.float32(2.71)
+    # (Folded blob coordinates make this octave repeat with the same period.)
     k += 0.6 * (_hash01(bx * s, by * s, bz * s, mat_seed ^ np.uint32(0x1B873593)) - 0.5)
     rgb *= (1.0 + contrast * k)[:, None]
     np.clip(rgb, 0.0, 1.0, out=rgb)
     return rgb
+
+
+def relight(rgb: NDArray, gain: float, white_balance) -> NDArray:
+    """The same image under other light: an exposure ``gain`` and a per-channel ``white_balance``
+    (3,) multiplier, applied to linear light (sRGB decoded, scaled, re-encoded) and clipped like a
+    sensor that saturates. (..., 3) uint8 in [0, 255] -> uint8, or float in [0, 1] -> float32."""
+    is_int = np.asarray(rgb).dtype == np.uint8
+    x = np.asarray(rgb, dtype=np.float32) / np.float32(255.0 if is_int else 1.0)
+    x = np.clip(x, 0.0, 1.0)
+    lin = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    lin = lin * (np.float32(gain) * np.asarray(white_balance, dtype=np.float32))
+    np.clip(lin, 0.0, 1.0, out=lin)
+    out = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055).astype(np.float32)
+    return np.round(out * 255.0).astype(np.uint8) if is_int else out
