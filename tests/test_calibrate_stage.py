@@ -90,3 +90,18 @@ def test_too_few_registered_frames_names_the_view_and_causes(session, tmp_path):
         stage.run(cfg, work)
     msg = str(err.value)
     assert "registered" in msg and "v1" in msg and "texture" in msg
+
+
+def test_geometric_sync_after_registration(session, done):
+    """sync.json is final and the geometric offset matches the truth (the studio's phones are
+    frame-aligned here, and the laser frames are exact, so the residual is 0)."""
+    import json
+
+    rec = json.loads(SessionLayout(session).sequence("seq0").sync.read_text())
+    assert rec["version"] == 2 and rec["chosen"]["final"]
+    geo = rec["sources"]["geometric"]
+    assert geo["confidence"] > 0.3 and abs(geo["offset_frames"]) < 0.5, geo
+    assert rec["agreement"]["agree"] and rec["chosen"]["source"] == "geometric"
+    assert abs(rec["chosen"]["residual_frames"]) < 0.5
+    cw = np.load(SessionLayout(session).sequence("seq0").view("v2").cameras_world)
+    assert float(cw["time_offset_s"]) == pytest.approx(rec["chosen"]["residual_s"])
