@@ -77,6 +77,146 @@ def prepare(out: Path, seeds: list[int]) -> None:
             shutil.copytree(src, dst)
 
 
+def _stages(session: Path) -> None:
+    """Stages II and III with default settings (skipped when up to date)."""
+    from embodmocap.calibrate import stage as stage3
+    from embodmocap.sequence import stage as stage2
+    from embodmocap.sequence.config import SequenceConfig
+
+    t0 = time.perf_counter()
+    stage2.run(SequenceConfig(), session)
+    stage3.run(stage3.CalibrateConfig(), session)
+    print(json.dumps({"stages_2_3": session.name, "seconds": round(time.perf_counter() - t0, 1)}), flush=True)
+
+
+def true_residual_frames(session: Path) -> float:
+    """View 2's sequence frame minus view 1's for the same instant, given the slicing in sync.json:
+    raw frame j of view v is the motion's instant start_v + j + phase_v."""
+    from embodmocap.io.layout import SessionLayout
+
+    lay = SessionLayout(session)
+    gt = json.loads(lay.ground_truth.info.read_text())
+    rec = json.loads(lay.sequence("seq0").sync.read_text())
+    start, phase = gt["view_motion_start"], gt.get("view_time_offset_frames", {"v1": 0.0, "v2": 0.0})
+    E = {v: rec["views"][v]["frame"] for v in ("v1", "v2")}
+    return (start["v1"] + E["v1"] + phase["v1"]) - (start["v2"] + E["v2"] + phase["v2"])
+
+
+def laser_ignored(session: Path, search_s: float) -> dict:
+    """The geometric sync alone with a window of +-search_s around the slicing (wide enough that
+    the laser's centring does not matter), from Stage III's registration offsets and the keypoints."""
+    from embodmocap.io.layout import VIEWS, SessionLayout
+    from embodmocap.sequence.geosync import geometric_sync
+    from embodmocap.sequence.subframe import frame_times
+
+    sl = SessionLayout(session).sequence("seq0")
+    calib = json.loads(sl.calibration.read_text())
+    fps = float(json.loads(sl.manifest.read_text())["figures"]["fps"])
+    data = []
+    for v in VIEWS:
+        cams = np.load(sl.view(v).cameras)
+        T = np.asarray(calib["views"][v]["T_world_vio_registration"]) @ cams["T_world_cam"]
+        data.append((cams["K"], T, np.load(sl.view(v).keypoints)["keypoints"], frame_times(cams, fps)))
+    t0 = time.perf_counter()
+    r = geometric_sync(*data[0], *data[1], fps=fps, search_s=search_s)
+    return {"offset_frames": r.offset_s * fps, "confidence": r.confidence, "std_frames": r.std_frames,
+            "seconds": time.perf_counter() - t0}
+
+
+def run_geosync(out: Path, seeds: list[int]) -> list[dict]:
+    from embodmocap.io.layout import SessionLayout
+
+    rows = []
+    for s in seeds:
+        session = out / f"normal_{s}"
+        try:
+            _stages(session)
+        except Exception as err:  # noqa: BLE001 - a failed session is a reported row, not hidden
+            rows.append({"session": session.name, "error": f"{type(err).__name__}: {err}"})
+            print(json.dumps(rows[-1]), flush=True)
+            continue
+        rec = json.loads(SessionLayout(session).sequence("seq0").sync.read_text())
+        fps = 30.0
+        truth = true_residual_frames(session)
+        geo = rec["sources"]["geometric"]
+        alone = laser_ignored(session, 5.0)
+        rows.append({
+            "session": session.name, "phone_offset_frames": phone_offset(s), "true_residual_frames": round(truth, 4),
+            "laser_err_frames": round(0.0 - truth, 4),
+            "geometric_err_frames": round(geo["residual_s"] * fps - truth, 4), "geometric_confidence": geo["confidence"],
+            "geometric_std_frames": geo["std_frames"],
+            "alone_5s_err_frames": round(alone["offset_frames"] - truth, 4), "alone_5s_confidence": round(alone["confidence"], 3),
+            "alone_5s_seconds": round(alone["seconds"], 2),
+            "chosen": rec["chosen"]["source"], "chosen_err_frames": round(rec["chosen"]["residual_s"] * fps - truth, 4),
+        })
+        print(json.dumps(rows[-1]), flush=True)
+    ok = [r for r in rows if "error" not in r]
+    for key in ("laser_err_frames", "geometric_err_frames", "alone_5s_err_frames", "chosen_err_frames"):
+        a = np.abs([r[key] for r in ok])
+        if len(a):
+            print(f"{key}: median |err| {np.median(a):.3f}, max {a.max():.3f} frames over {len(a)} sessions")
+    return rows
+
+
+def run_subframe(out: Path, seeds: list[int]) -> list[dict]:
+    """Stage IV with nearest-frame pairing (the laser slicing: sync.json's residual set to 0) and
+    with sub-frame sync (the pipeline's choice), W-MPJPE of each against the truth."""
+    from embodmocap.evaluate.session import sequence_errors
+    from embodmocap.io.atomic import write_json
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.motion import stage as stage4
+
+    rows = []
+    for s in seeds:
+        session = out / f"normal_{s}"
+        _stages(session)
+        lay = SessionLayout(session)
+        path = lay.sequence("seq0").sync
+        rec = json.loads(path.read_text())
+        row = {"session": session.name, "phone_offset_frames": phone_offset(s),
+               "residual_frames": rec["chosen"]["residual_frames"], "true_residual_frames": round(true_residual_frames(session), 3)}
+        nearest = json.loads(json.dumps(rec))
+        nearest["chosen"].update(residual_s=0.0, residual_frames=0.0)
+        try:
+            for name, r in (("nearest", nearest), ("subframe", rec)):
+                write_json(path, r)
+                t0 = time.perf_counter()
+                stage4.run(stage4.MotionConfig(), session, force=True)
+                e = sequence_errors(lay, "scene0", "seq0")
+                row[f"{name}_w_mpjpe_mm"] = e["w_mpjpe_mm"]
+                row[f"{name}_wa_mpjpe_mm"] = e["wa_mpjpe_mm"]
+                row[f"{name}_pa_mpjpe_mm"] = e["pa_mpjpe_mm"]
+                row[f"{name}_seconds"] = round(time.perf_counter() - t0, 1)
+        finally:
+            write_json(path, rec)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    return rows
+
+
+def run_check(out: Path, seeds: list[int]) -> list[dict]:
+    from embodmocap.check.config import CheckConfig
+    from embodmocap.check.core import check_session
+
+    rows = []
+    names = [f"normal_{s}" for s in seeds] + ["fail_sep20", "fail_away", "fail_scene", "long_60"]
+    for name in names:
+        session = out / name
+        if not (session / "session.toml").is_file():
+            continue
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = check_session(CheckConfig(), session)[0]
+        f = res.figures
+        rows.append({"session": name, "verdict": res.verdict, "wall_s": round(time.perf_counter() - t0, 1),
+                     "cpu_s": round(time.process_time() - c0, 1), "seconds_of_capture": f.get("seconds"),
+                     "both_seen": f.get("both_seen_fraction"), "angle_median_deg": (f.get("angle_deg") or {}).get("median"),
+                     "registered": {v: d["registered"] for v, d in f.get("registration", {}).items()},
+                     "geometric_offset_frames": f["sync"].get("geometric_offset_frames"),
+                     "geometric_confidence": f["sync"].get("geometric_confidence"), "reasons": res.reasons})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("mode", choices=["prepare", "geosync", "subframe", "check"])
