@@ -11,8 +11,10 @@ Sessions are synthesised once under OUT and reused (``--prepare`` writes them an
 
 Modes (each prints JSON rows and writes OUT/<mode>.json):
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py prepare --out /work/bench/12b
-    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py geosync --out /work/bench/12b
+    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py prepare --out /work/bench/12b --seeds 0 1 2 3 4 5
+    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py prepare-fail --out /work/bench/12b
+    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py prepare-long --out /work/bench/12b
+    OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py geosync --out /work/bench/12b --seeds 0 1 2 3 4 5
     OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py subframe --out /work/bench/12b --seeds 0 1 2 3
     OMP_NUM_THREADS=1 python benchmarks/bench_geosync.py check --out /work/bench/12b
 """
@@ -28,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-SEEDS = list(range(8))
+SEEDS = list(range(6))
 OUTDOOR = {6, 7}
 
 
@@ -60,21 +62,28 @@ def _scene(path: Path) -> None:
 
 
 def prepare(out: Path, seeds: list[int]) -> None:
+    """The normal sessions of ``seeds`` with Stage I."""
     for s in seeds:
         _synth(out / f"normal_{s}", seed=s, preset="outdoor" if s in OUTDOOR else "indoor", seconds=6.0,
                scene_seconds=15.0, phone_offset_frames=phone_offset(s))
+        _scene(out / f"normal_{s}")
+
+
+def prepare_fail(out: Path) -> None:
+    """The built-to-fail variants of normal_0, with normal_0's Stage I outputs (same scene capture)."""
     base = dict(seed=0, preset="indoor", seconds=6.0, scene_seconds=15.0, phone_offset_frames=phone_offset(0))
     _synth(out / "fail_sep20", **base, view_separation_deg=20.0)
     _synth(out / "fail_away", **base, view2_away_fraction=0.5)
     _synth(out / "fail_scene", **base, view2_other_scene=True)
-    _synth(out / "long_60", seed=100, preset="indoor", seconds=60.0, scene_seconds=15.0, phone_offset_frames=0.2)
-    for s in seeds:
-        _scene(out / f"normal_{s}")
-    _scene(out / "long_60")
     for name in ("fail_sep20", "fail_away", "fail_scene"):
         src, dst = out / "normal_0" / "scenes", out / name / "scenes"
         if src.is_dir() and not dst.is_dir():
             shutil.copytree(src, dst)
+
+
+def prepare_long(out: Path) -> None:
+    _synth(out / "long_60", seed=100, preset="indoor", seconds=60.0, scene_seconds=15.0, phone_offset_frames=0.2)
+    _scene(out / "long_60")
 
 
 def _stages(session: Path) -> None:
@@ -219,13 +228,19 @@ def run_check(out: Path, seeds: list[int]) -> list[dict]:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=["prepare", "geosync", "subframe", "check"])
+    ap.add_argument("mode", choices=["prepare", "prepare-fail", "prepare-long", "geosync", "subframe", "check"])
     ap.add_argument("--out", type=Path, default=Path("/work/bench/12b"))
     ap.add_argument("--seeds", type=int, nargs="*", default=SEEDS)
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.mode == "prepare":
         prepare(args.out, args.seeds)
+        return
+    if args.mode == "prepare-fail":
+        prepare_fail(args.out)
+        return
+    if args.mode == "prepare-long":
+        prepare_long(args.out)
         return
     mod = sys.modules[__name__]
     rows = getattr(mod, f"run_{args.mode}")(args.out, args.seeds)
