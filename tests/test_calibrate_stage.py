@@ -71,7 +71,7 @@ def test_offsets_match_ground_truth(session, done):
 
 def test_second_run_skips_every_step(session, done):
     again = stage.run(CFG, session)
-    assert set(again.skipped) == {"register_v1", "register_v2", "refine"}
+    assert set(again.skipped) == {"register_v1", "register_v2", "geosync", "refine"}
 
 
 def test_missing_stage_outputs_say_which_stage_to_run(session, tmp_path):
