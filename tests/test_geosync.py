@@ -153,9 +153,10 @@ def test_bracket_and_interp_keypoints():
     assert i0.tolist() == [0, 0, 0, 1, 1, 1] and np.allclose(w, [0, 0, 0.25, 0, 1, 1])
     assert ok.tolist() == [False, True, True, True, True, False]
     kp = np.array([[[0.0, 0, 1]], [[10.0, 20, 0.5]], [[20.0, 40, 0.0]]])
-    out = interp_keypoints(kp, t, np.array([0.5, 1.0, 1.5, 3.0]))
+    out = interp_keypoints(kp, t, np.array([0.5, 1.0, 1.2, 1.7, 3.0]))
     assert np.allclose(out[0], [5, 10, 0.5]) and np.allclose(out[1], [10, 20, 0.5])
-    assert out[2, 0, 2] == 0.0 and out[3, 0, 2] == 0.0  # a neighbour unseen; outside the span
+    assert np.allclose(out[2], [10, 20, 0.5])  # only the nearer neighbour saw it: taken as is
+    assert out[3, 0, 2] == 0.0 and out[4, 0, 2] == 0.0  # only the farther one saw it; outside the span
 
 
 def test_interp_poses_matches_a_reference_slerp():

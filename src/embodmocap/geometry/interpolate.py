@@ -9,7 +9,7 @@ view 2's observations are resampled at view 1's times:
   moving a few centimetres per frame it is indistinguishable from the screw motion and cheaper);
 - keypoints (:func:`interp_keypoints`): pixel positions linearly; the confidence of an interpolated
   point is the smaller of its two neighbours' (a point seen in only one neighbour has no partner to
-  interpolate with and gets 0), except at a sample's own time, where the sample is returned as is.
+  interpolate with: it takes the nearer neighbour as is when that one saw it, else 0).
 
 Query times outside the samples' span are flagged invalid (confidence 0 / ``valid`` False); the
 nearest end sample is returned there so the arrays stay finite.
@@ -114,9 +114,9 @@ def interp_keypoints(kp: F, t_src: F, t_query: F) -> F:
         t_query: (M,) query times.
 
     Returns:
-        (M, J, 3): positions interpolated linearly between the bracketing samples; confidence
-        ``min(c0, c1)`` (0 if either neighbour did not see the joint), the sample's own values at
-        its exact time, and 0 outside the samples' span.
+        (M, J, 3): positions interpolated linearly between the bracketing samples, confidence
+        ``min(c0, c1)``; where only one neighbour saw the joint, the nearer neighbour's values if
+        it is that one, else confidence 0; confidence 0 outside the samples' span.
     """
     kp = np.asarray(kp, dtype=np.float64)
     if kp.ndim != 3 or kp.shape[-1] != 3 or len(kp) != len(np.asarray(t_src)):
@@ -127,9 +127,12 @@ def interp_keypoints(kp: F, t_src: F, t_query: F) -> F:
     ww = w[:, None]
     xy = (1.0 - ww[..., None]) * a[..., :2] + ww[..., None] * b[..., :2]
     conf = np.minimum(a[..., 2], b[..., 2])
-    # On a sample (w == 0 or 1) take it whole: its neighbour's absence must not hide it.
-    on_a, on_b = ww <= 1e-9, ww >= 1.0 - 1e-9
-    xy = np.where(on_a[..., None], a[..., :2], np.where(on_b[..., None], b[..., :2], xy))
-    conf = np.where(on_a, a[..., 2], np.where(on_b, b[..., 2], conf))
+    # Seen in one neighbour only: the nearer neighbour as is when it is the seen one (no worse than
+    # nearest-frame pairing; a neighbour's absence must not hide a sample), else not seen.
+    near_a = np.broadcast_to(ww <= 0.5, conf.shape)
+    near = np.where(near_a[..., None], a, b)
+    one = (conf <= 0) & (near[..., 2] > 0)
+    xy = np.where(one[..., None], near[..., :2], xy)
+    conf = np.where(one, near[..., 2], conf)
     conf = np.where(valid[:, None], conf, 0.0)
     return np.concatenate([xy, conf[..., None]], axis=-1)

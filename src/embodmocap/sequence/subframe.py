@@ -73,7 +73,7 @@ def synced_views(out: SequenceLayout, cams: Mapping[str, Mapping], kps: Mapping[
               frame_times(cams[v]) for v in VIEWS)
     t1, t2 = t1[: len(kps[v1])], t2[: len(kps[v2])]
     query = t1 + off
-    if off == 0.0 and len(t1) == len(t2) and np.allclose(t1, t2, atol=1e-6):
+    if off == 0.0 and len(t1) == len(t2) and np.allclose(t1, t2, atol=1e-4):
         return cams, kps
     kp2, T2 = resample_view(kps[v2], np.asarray(cams[v2]["T_world_cam"])[: len(t2)], t2, query)
     lost = int((kp2[..., 2].max(axis=1) == 0).sum() - (kps[v2][..., 2].max(axis=1) == 0).sum())
