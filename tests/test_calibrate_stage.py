@@ -100,8 +100,10 @@ def test_geometric_sync_after_registration(session, done):
     rec = json.loads(SessionLayout(session).sequence("seq0").sync.read_text())
     assert rec["version"] == 2 and rec["chosen"]["final"]
     geo = rec["sources"]["geometric"]
-    assert geo["confidence"] > 0.3 and abs(geo["offset_frames"]) < 0.5, geo
-    assert rec["agreement"]["agree"] and rec["chosen"]["source"] == "geometric"
-    assert abs(rec["chosen"]["residual_frames"]) < 0.5
+    # 2 s after the event the performer is still starting to move: the offset is right, but how
+    # sure it is depends on the motion; the choice must follow that confidence.
+    assert abs(geo["offset_frames"]) < 0.5, geo
+    assert rec["agreement"]["agree"] and abs(rec["chosen"]["residual_frames"]) < 0.5
+    assert rec["chosen"]["source"] == ("geometric" if geo["trusted"] else "laser")
     cw = np.load(SessionLayout(session).sequence("seq0").view("v2").cameras_world)
     assert float(cw["time_offset_s"]) == pytest.approx(rec["chosen"]["residual_s"])
