@@ -13,14 +13,15 @@ moved between the two instants and the rays miss each other by about the distanc
    around the best shift. Interpolating between two noisy samples and scoring the result is
    biased: the average of two samples is less noisy than either, so any score prefers half
    frames. Instead the refinement uses the signed distance ``d`` of view 2's keypoint from the
-   epipolar line of view 1's, at the best shift and at its two neighbours (each with its own
-   camera): ``d(f) ~ d(0) + f (d(+1) - d(-1)) / 2`` is the linear interpolation of view 2's
-   keypoint in time projected on the only direction that timing can change, and its noise does
-   not depend on ``f``. ``f`` is the robust (Huber) least-squares zero of all pairs' lines; if it
-   leaves ``[-0.5, 0.5]`` the centre moves to the neighbour and the fit is repeated.
-3. **Confidence**: how distinct the minimum is (best cost against the best cost more than
-   ``distinct_frames`` away) times how precise the sub-frame fit is (its standard error); a
-   performer standing still gives a flat cost and a low confidence, never a wrong confident answer.
+   epipolar line of view 1's, the only direction that timing can change, in the frames around the
+   best shift (each with its own camera): a line through them, ``d(f) ~ a + b f``, is view 2's
+   keypoint interpolated in time, and ``f`` is the robust instrumental-variable zero of all pairs'
+   lines (unbiased by noise, see the function); if it leaves ``[-0.5, 0.5]`` the centre moves to
+   the neighbour and the fit is repeated.
+3. **Confidence**: how distinct the minimum is (how many standard errors the best cost lies below
+   the best cost ``distinct_s`` or more away) times how precise the sub-frame fit is (its
+   standard error); a performer standing still gives a flat cost and a low confidence, never a
+   wrong confident answer.
 
 The result is an offset in **seconds**: the instant view 1 films at its time ``t`` (seconds after
 its slicing event) is filmed by view 2 at its time ``t + offset_s``.
@@ -38,6 +39,9 @@ from numpy.typing import NDArray
 
 F = NDArray[np.floating]
 
+#: Version of the algorithm (in Stage III's fingerprint: a change redoes the step).
+GEOSYNC_VERSION = 2
+
 
 @dataclass(frozen=True)
 class GeoSyncConfig:
@@ -54,14 +58,20 @@ class GeoSyncConfig:
     """Keypoints below this confidence are not used."""
     clip_px: float = 25.0
     """Reprojection errors are clipped at this many pixels in the cost (robustness)."""
-    huber_px: float = 4.0
+    huber_px: float = 3.0
     """Huber threshold of the sub-frame fit's epipolar residuals, pixels."""
+    window_frames: int = 3
+    """Half-width of the time window through which view 2's keypoints are interpolated in the
+    sub-frame fit (a line through 2W+1 samples), frames; the instrument uses the next W+1."""
     min_pairs: int = 60
     """Fewest joint pairs seen in both views at a shift for that shift to be scored."""
     min_overlap: float = 0.5
     """A shift must pair at least this fraction of the sequence's frames."""
-    distinct_frames: int = 3
-    """The second-best cost is taken at least this many frames from the best (confidence)."""
+    distinct_s: float = 0.2
+    """The second-best cost is taken at least this far from the best, seconds (confidence)."""
+    distinct_sigmas: tuple[float, float] = (2.0, 6.0)
+    """The best cost this many standard errors below the second best gives a distinctness of 0 /
+    1 (linear in between; part of the confidence)."""
     min_confidence: float = 0.3
     """Geometric results below this confidence are reported but never chosen."""
     agree_frames: float = 1.0
@@ -206,7 +216,7 @@ def _pairs(T: int, T2: int, shift: NDArray[np.int64]) -> tuple[NDArray, NDArray,
 
 
 def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg: GeoSyncConfig = GeoSyncConfig(),
-                chunk: int = 16) -> tuple[F, NDArray[np.int64]]:
+                chunk: int = 16, return_var: bool = False):
     """Cost of every integer shift (view 2 frame ``t + s`` paired with view 1 frame ``t``).
 
     Args:
@@ -217,12 +227,14 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
     Returns:
         ``costs`` (S,) mean of ``min(err, clip_px)^2`` over the pairs (NaN where fewer than
         ``cfg.min_pairs`` pairs or less than ``cfg.min_overlap`` of the frames pair up) and
-        ``counts`` (S,) pairs scored.
+        ``counts`` (S,) pairs scored; with ``return_var`` also (S,) the variance of the clipped
+        squared errors (the cost's standard error is ``sqrt(var / counts)``).
     """
     shifts = np.asarray(shifts, dtype=np.int64)
     T, Tv2 = len(kp1), len(kp2)
     costs = np.full(len(shifts), np.nan)
     counts = np.zeros(len(shifts), dtype=np.int64)
+    var = np.full(len(shifts), np.nan)
     for a in range(0, len(shifts), chunk):  # chunks bound memory on long sequences
         sh = shifts[a:a + chunk]
         t1, t2, ok = _pairs(T, Tv2, sh)
@@ -232,64 +244,93 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
         e2 = np.minimum(err, cfg.clip_px) ** 2
         n = use.sum(axis=(1, 2))
         c = np.where(use, e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1)
+        var[a:a + chunk] = np.where(use, e2 * e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1) - c * c
         frames_ok = ok.sum(axis=1) >= cfg.min_overlap * T
         costs[a:a + chunk] = np.where((n >= cfg.min_pairs) & frames_ok, c, np.nan)
         counts[a:a + chunk] = n
-    return costs, counts
+    return (costs, counts, var) if return_var else (costs, counts)
+
+
+def _pair_sq_errors(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int, cfg: GeoSyncConfig) -> F:
+    """(T, J) clipped squared reprojection error of every pair at one shift; NaN where unused."""
+    t1, t2, ok = _pairs(len(kp1), len(kp2), np.array([shift]))
+    k1, k2 = kp1[t1[0]], kp2[t2[0]]
+    use = ok[0][:, None] & (k1[..., 2] >= cfg.min_keypoint_confidence) & (k2[..., 2] >= cfg.min_keypoint_confidence)
+    err = midpoint_reprojection_error(K1, T1[t1[0]][:, None], k1[..., :2], K2, T2[t2[0]][:, None], k2[..., :2])
+    return np.where(use, np.minimum(err, cfg.clip_px) ** 2, np.nan)
 
 
 def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
                    cfg: GeoSyncConfig = GeoSyncConfig(), iterations: int = 8) -> tuple[float, float, int]:
     """Fractional part of the offset around integer ``shift`` (module docstring, step 2).
 
+    For each pair (view 1 frame t, joint), ``d(k)`` is the signed epipolar distance of view 2's
+    keypoint in frame ``t + shift + k``. A straight line through ``d(-W..W)`` (``W`` =
+    ``cfg.window_frames``) gives the value ``a`` and slope ``b`` at ``k = 0``: view 2's keypoint
+    interpolated in time, ``d(f) ~ a + b f``, with the noise of ``a`` cut by ``sqrt(2W + 1)``
+    (symmetric window: ``a`` and ``b`` have independent noise). Noise in ``b`` would shrink a plain
+    least-squares ``f`` towards 0 (badly when the performer moves a pixel a frame against pixels of
+    detector noise), so the zero is an instrumental-variable fit with the slope ``z`` from the
+    samples just outside the window (``W+1..2W+2`` frames away): its noise is independent of ``a``'s
+    and ``b``'s, so ``f = -sum(z a) / sum(z b)`` is unbiased. View 1's noise is common to all the
+    samples of a pair and cancels in the slopes. Huber weights on ``a + f b`` and a screen on each
+    pair's line-fit residual keep outlier detections out.
+
     Returns:
         ``(f, std, pairs)``: the offset is ``shift + f`` frames with ``f`` in [-1, 1]; ``std`` its
         standard error in frames (inf when the performer does not move enough to tell); ``pairs``
         the joint pairs used.
     """
+    W = int(cfg.window_frames)
+    R = 2 * W + 2  # farthest sample of the instrument
     T, Tv2 = len(kp1), len(kp2)
     t = np.arange(T)
     t2 = t + shift
-    ok = (t2 - 2 >= 0) & (t2 + 2 < Tv2)
+    ok = (t2 - R >= 0) & (t2 + R < Tv2)
     t, t2 = t[ok], t2[ok]
     c = cfg.min_keypoint_confidence
     use = kp1[t, :, 2] >= c
-    for k in range(-2, 3):
+    for k in range(-R, R + 1):
         use &= kp2[t2 + k, :, 2] >= c
     if not use.any():
         return 0.0, math.inf, 0
     x1 = kp1[t, :, :2]
-
-    def d(k):
-        return epipolar_distance(K1, T1[t][:, None], x1, K2, T2[k][:, None], kp2[k, :, :2])[use]
-
-    dm2, dm1, d0, dp1, dp2 = (d(t2 + k) for k in range(-2, 3))
-    # The slope of d in time, g, from the two neighbours; noise in g would shrink a plain least
-    # squares answer towards 0 by g^2 / (g^2 + noise) -- badly when the performer moves slowly.
-    # So the zero is found with an instrument z, the slope from the samples two frames away:
-    # its noise is independent of g's and of d0's, so E[z g] is the true slope squared and
-    # f = -sum(z d0) / sum(z g) is unbiased (view 1's noise is common to all five and cancels).
-    g = 0.5 * (dp1 - dm1)
-    z = 0.25 * (dp2 - dm2)
-    good = np.isfinite(d0) & np.isfinite(g) & np.isfinite(z)
-    d0, g, z = d0[good], g[good], z[good]
-    if len(d0) < cfg.min_pairs:
-        return 0.0, math.inf, int(len(d0))
+    ks = np.arange(-R, R + 1)
+    # (n, 2R+1) epipolar distances of every used pair at every sample of its window.
+    D = np.stack([epipolar_distance(K1, T1[t][:, None], x1, K2, T2[t2 + k][:, None], kp2[t2 + k, :, :2])[use]
+                  for k in ks], axis=-1)
+    inner = np.abs(ks) <= W
+    kin = ks[inner].astype(float)
+    a = D[:, inner].mean(axis=1)
+    b = D[:, inner] @ kin / np.sum(kin * kin)
+    outer = ks[ks > W].astype(float)
+    pos, neg = D[:, ks > W], D[:, ks < -W][:, ::-1]  # neg column j is -outer[j]
+    z = (pos - neg) @ outer / (2.0 * np.sum(outer * outer))
+    fit_rms = np.sqrt(np.mean((D[:, inner] - a[:, None] - b[:, None] * kin) ** 2, axis=1))
+    good = np.isfinite(a) & np.isfinite(b) & np.isfinite(z) & np.isfinite(fit_rms)
+    a, b, z, fit_rms = a[good], b[good], z[good], fit_rms[good]
+    if len(a) < cfg.min_pairs:
+        return 0.0, math.inf, int(len(a))
+    # A detection off by tens of pixels in one sample bends the pair's line: leave such pairs out.
+    keep = fit_rms <= 3.0 * max(float(np.median(fit_rms)), 1e-6)
+    a, b, z = a[keep], b[keep], z[keep]
+    if len(a) < cfg.min_pairs:
+        return 0.0, math.inf, int(len(a))
     f = 0.0
-    w = np.ones_like(d0)
+    w = np.ones_like(a)
     for _ in range(iterations):  # iteratively reweighted (Huber) instrumental-variable fit
-        den = float(np.sum(w * z * g))
-        if den <= 1e-9 * max(len(g), 1):
-            return 0.0, math.inf, int(len(d0))
-        f = float(-np.sum(w * z * d0) / den)
-        r = np.abs(d0 + f * g)
+        den = float(np.sum(w * z * b))
+        if den <= 1e-9 * max(len(b), 1):
+            return 0.0, math.inf, int(len(a))
+        f = float(-np.sum(w * z * a) / den)
+        r = np.abs(a + f * b)
         w = np.where(r <= cfg.huber_px, 1.0, cfg.huber_px / np.maximum(r, 1e-12))
-    r = d0 + f * g
+    r = a + f * b
     dof = max(len(r) - 1, 1)
     sigma2 = float(np.sum(w * r * r) / dof)
-    den = float(np.sum(w * z * g))
+    den = float(np.sum(w * z * b))
     std = math.sqrt(sigma2 * float(np.sum(w * w * z * z))) / den if den > 0 else math.inf
-    return float(np.clip(f, -1.0, 1.0)), std, int(len(d0))
+    return float(np.clip(f, -1.0, 1.0)), std, int(len(a))
 
 
 def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, times2_s: F, fps: float,
@@ -314,7 +355,7 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         raise ValueError(f"shapes: kp1 {kp1.shape}, T1 {T1.shape}, kp2 {kp2.shape}, T2 {T2.shape}")
     S = max(int(math.ceil(search_s * fps)), 1)
     shifts = np.arange(-S, S + 1)
-    costs, counts = shift_costs(K1, T1, kp1, K2, T2, kp2, shifts, cfg)
+    costs, counts, var = shift_costs(K1, T1, kp1, K2, T2, kp2, shifts, cfg, return_var=True)
 
     def none(msg: str) -> GeoSyncResult:
         return GeoSyncResult(math.nan, math.nan, 0, 0.0, math.inf, math.nan, 0, shifts, costs, counts, msg)
@@ -323,9 +364,21 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         return none(f"no shift within +-{search_s:g} s pairs {cfg.min_pairs} joints seen in both views")
     i = int(np.nanargmin(costs))
     s = int(shifts[i])
-    far = np.abs(shifts - s) >= cfg.distinct_frames
-    second = np.nanmin(costs[far]) if np.isfinite(costs[far]).any() else np.nan
-    distinct = float(np.clip(1.0 - costs[i] / second, 0.0, 1.0)) if np.isfinite(second) and second > 0 else 0.0
+    far = np.abs(shifts - s) >= max(1, math.ceil(cfg.distinct_s * fps - 1e-9))
+    distinct = 0.0
+    if np.isfinite(costs[far]).any():
+        # How many standard errors the best cost lies below the best one a few frames away: a
+        # performer moving a pixel a frame against pixels of noise still gives a clear minimum
+        # when thousands of joint pairs agree; a still performer gives none.
+        # The two costs share view 1's detections (and most of view 2's), so the difference is
+        # judged pair by pair (same view-1 frame and joint), not from the two costs' own spreads.
+        j = int(np.flatnonzero(far)[np.nanargmin(costs[far])])
+        e_best, e_far = (_pair_sq_errors(K1, T1, kp1, K2, T2, kp2, int(shifts[k]), cfg) for k in (i, j))
+        both = np.isfinite(e_best) & np.isfinite(e_far)
+        diff = (e_far - e_best)[both]
+        se = float(np.std(diff)) / math.sqrt(max(len(diff), 1)) if len(diff) > 1 else math.inf
+        z = float(np.mean(diff)) / max(se, 1e-12) if len(diff) > 1 else 0.0
+        distinct = float(np.clip((z - cfg.distinct_sigmas[0]) / (cfg.distinct_sigmas[1] - cfg.distinct_sigmas[0]), 0.0, 1.0))
     f, std, n = subframe_shift(K1, T1, kp1, K2, T2, kp2, s, cfg)
     for _ in range(2):  # the zero lies nearer a neighbour: centre the linearisation there
         if abs(f) <= 0.5 or not math.isfinite(std):
