@@ -19,9 +19,9 @@ moved between the two instants and the rays miss each other by about the distanc
    lines (unbiased by noise, see the function); if it leaves ``[-0.5, 0.5]`` the centre moves to
    the neighbour and the fit is repeated.
 3. **Confidence**: how distinct the minimum is (how many standard errors the best cost lies below
-   the best cost ``distinct_s`` or more away) times how precise the sub-frame fit is (its
-   standard error); a performer standing still gives a flat cost and a low confidence, never a
-   wrong confident answer.
+   its strongest rival: another local minimum ``distinct_s`` or more away, or the rim of the
+   searched range) times how precise the sub-frame fit is (its standard error); a performer
+   standing still gives a flat, bumpy cost and a low confidence, never a wrong confident answer.
 
 The result is an offset in **seconds**: the instant view 1 films at its time ``t`` (seconds after
 its slicing event) is filmed by view 2 at its time ``t + offset_s``.
@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 F = NDArray[np.floating]
 
 #: Version of the algorithm (in Stage III's fingerprint: a change redoes the step).
-GEOSYNC_VERSION = 2
+GEOSYNC_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,9 @@ class GeoSyncConfig:
     """Reprojection errors are clipped at this many pixels in the cost (robustness)."""
     huber_px: float = 3.0
     """Huber threshold of the sub-frame fit's epipolar residuals, pixels."""
+    consistency_parts: int = 4
+    """The sub-frame fit is repeated on this many consecutive parts of the sequence; parts that
+    disagree beyond their errors (a camera error imitating a time offset) widen the error."""
     window_frames: int = 3
     """Half-width of the time window through which view 2's keypoints are interpolated in the
     sub-frame fit (a line through 2W+1 samples), frames; the instrument uses the next W+1."""
@@ -68,7 +71,8 @@ class GeoSyncConfig:
     min_overlap: float = 0.5
     """A shift must pair at least this fraction of the sequence's frames."""
     distinct_s: float = 0.2
-    """The second-best cost is taken at least this far from the best, seconds (confidence)."""
+    """Rival minima of the cost curve are looked for at least this far from the best, seconds
+    (confidence)."""
     distinct_sigmas: tuple[float, float] = (2.0, 6.0)
     """The best cost this many standard errors below the second best gives a distinctness of 0 /
     1 (linear in between; part of the confidence)."""
@@ -251,6 +255,33 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
     return (costs, counts, var) if return_var else (costs, counts)
 
 
+def _distinctness(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, costs: F, i: int, far_frames: int,
+                  cfg: GeoSyncConfig) -> float:
+    """In [0, 1]: how clearly shift ``i`` beats the strongest rival, the lowest other local minimum of
+    the cost curve at least ``far_frames`` away (another instant the motion repeats, or noise on a
+    flat curve); with no rival (one bowl), the lower rim of the scored range. Judged in standard
+    errors of the pair-by-pair cost difference (both shifts share view 1's detections), mapped
+    linearly from ``distinct_sigmas[0]`` (0) to ``[1]`` (1)."""
+    c = np.where(np.isfinite(costs), costs, np.inf)
+    lower_left = np.r_[True, c[1:] < c[:-1]]
+    lower_right = np.r_[c[:-1] < c[1:], True]
+    minima = np.flatnonzero(lower_left & lower_right & np.isfinite(c) & (np.abs(shifts - shifts[i]) >= far_frames))
+    finite = np.flatnonzero(np.isfinite(costs))
+    rivals = minima if len(minima) else np.array([finite[0], finite[-1]])
+    rivals = rivals[np.abs(shifts[rivals] - shifts[i]) >= far_frames]
+    if not len(rivals):
+        return 0.0  # the scored range is too narrow to tell
+    j = int(rivals[np.argmin(c[rivals])])
+    e_best, e_rival = (_pair_sq_errors(K1, T1, kp1, K2, T2, kp2, int(shifts[k]), cfg) for k in (i, j))
+    both = np.isfinite(e_best) & np.isfinite(e_rival)
+    diff = (e_rival - e_best)[both]
+    if len(diff) < 2:
+        return 0.0
+    z = float(np.mean(diff)) / max(float(np.std(diff)) / math.sqrt(len(diff)), 1e-12)
+    lo, hi = cfg.distinct_sigmas
+    return float(np.clip((z - lo) / (hi - lo), 0.0, 1.0))
+
+
 def _pair_sq_errors(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int, cfg: GeoSyncConfig) -> F:
     """(T, J) clipped squared reprojection error of every pair at one shift; NaN where unused."""
     t1, t2, ok = _pairs(len(kp1), len(kp2), np.array([shift]))
@@ -314,23 +345,48 @@ def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
     # A detection off by tens of pixels in one sample bends the pair's line: leave such pairs out.
     keep = fit_rms <= 3.0 * max(float(np.median(fit_rms)), 1e-6)
     a, b, z = a[keep], b[keep], z[keep]
+    frame = np.broadcast_to(np.arange(len(t))[:, None], use.shape)[use][good][keep]
     if len(a) < cfg.min_pairs:
         return 0.0, math.inf, int(len(a))
+    f, std, w = _iv_fit(a, b, z, cfg.huber_px, iterations)
+    if not math.isfinite(std):
+        return 0.0, math.inf, int(len(a))
+    # A small camera error mimics a time offset while the performer moves one way; when the
+    # motion changes direction the imitation changes. So the fit is repeated on consecutive
+    # parts of the sequence, and parts that disagree beyond their own errors widen the error.
+    parts = np.array_split(np.unique(frame), cfg.consistency_parts)
+    fs, ss = [], []
+    for p in parts:
+        sel = np.isin(frame, p)
+        if sel.sum() >= max(cfg.min_pairs // 2, 10):
+            fp, sp, _ = _iv_fit(a[sel], b[sel], z[sel], cfg.huber_px, iterations)
+            if math.isfinite(sp):
+                fs.append(fp)
+                ss.append(sp)
+    if len(fs) >= 2:
+        fs, ss = np.array(fs), np.array(ss)
+        chi2 = float(np.sum(((fs - f) / ss) ** 2)) / (len(fs) - 1)
+        std *= math.sqrt(max(1.0, chi2))
+    return float(np.clip(f, -1.0, 1.0)), std, int(len(a))
+
+
+def _iv_fit(a: F, b: F, z: F, huber_px: float, iterations: int) -> tuple[float, float, F]:
+    """Zero ``f`` of the lines ``a + b f`` with instrument ``z`` (Huber-reweighted), its standard
+    error and the final weights; ``(0, inf, w)`` when the slopes carry no information."""
     f = 0.0
     w = np.ones_like(a)
-    for _ in range(iterations):  # iteratively reweighted (Huber) instrumental-variable fit
+    for _ in range(iterations):
         den = float(np.sum(w * z * b))
         if den <= 1e-9 * max(len(b), 1):
-            return 0.0, math.inf, int(len(a))
+            return 0.0, math.inf, w
         f = float(-np.sum(w * z * a) / den)
         r = np.abs(a + f * b)
-        w = np.where(r <= cfg.huber_px, 1.0, cfg.huber_px / np.maximum(r, 1e-12))
+        w = np.where(r <= huber_px, 1.0, huber_px / np.maximum(r, 1e-12))
     r = a + f * b
-    dof = max(len(r) - 1, 1)
-    sigma2 = float(np.sum(w * r * r) / dof)
+    sigma2 = float(np.sum(w * r * r) / max(len(r) - 1, 1))
     den = float(np.sum(w * z * b))
     std = math.sqrt(sigma2 * float(np.sum(w * w * z * z))) / den if den > 0 else math.inf
-    return float(np.clip(f, -1.0, 1.0)), std, int(len(a))
+    return f, std, w
 
 
 def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, times2_s: F, fps: float,
@@ -364,21 +420,7 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         return none(f"no shift within +-{search_s:g} s pairs {cfg.min_pairs} joints seen in both views")
     i = int(np.nanargmin(costs))
     s = int(shifts[i])
-    far = np.abs(shifts - s) >= max(1, math.ceil(cfg.distinct_s * fps - 1e-9))
-    distinct = 0.0
-    if np.isfinite(costs[far]).any():
-        # How many standard errors the best cost lies below the best one a few frames away: a
-        # performer moving a pixel a frame against pixels of noise still gives a clear minimum
-        # when thousands of joint pairs agree; a still performer gives none.
-        # The two costs share view 1's detections (and most of view 2's), so the difference is
-        # judged pair by pair (same view-1 frame and joint), not from the two costs' own spreads.
-        j = int(np.flatnonzero(far)[np.nanargmin(costs[far])])
-        e_best, e_far = (_pair_sq_errors(K1, T1, kp1, K2, T2, kp2, int(shifts[k]), cfg) for k in (i, j))
-        both = np.isfinite(e_best) & np.isfinite(e_far)
-        diff = (e_far - e_best)[both]
-        se = float(np.std(diff)) / math.sqrt(max(len(diff), 1)) if len(diff) > 1 else math.inf
-        z = float(np.mean(diff)) / max(se, 1e-12) if len(diff) > 1 else 0.0
-        distinct = float(np.clip((z - cfg.distinct_sigmas[0]) / (cfg.distinct_sigmas[1] - cfg.distinct_sigmas[0]), 0.0, 1.0))
+    distinct = _distinctness(K1, T1, kp1, K2, T2, kp2, shifts, costs, i, max(1, math.ceil(cfg.distinct_s * fps - 1e-9)), cfg)
     f, std, n = subframe_shift(K1, T1, kp1, K2, T2, kp2, s, cfg)
     for _ in range(2):  # the zero lies nearer a neighbour: centre the linearisation there
         if abs(f) <= 0.5 or not math.isfinite(std):
@@ -390,7 +432,9 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         s, f, std, n = s2, f2, std2, n2
     if not math.isfinite(std):
         f, std = 0.0, math.inf
-    precise = math.exp(-((std / 0.25) ** 2)) if math.isfinite(std) else 0.0
+    # Precision on the scale of a laser sync's own error (a uniform frame quantisation: 1/sqrt(12)
+    # ~ 0.29 frame): a geometric offset about as precise as that is worth choosing.
+    precise = math.exp(-((std / 0.3) ** 2)) if math.isfinite(std) else 0.0
     offset_frames = s + f
     # Seconds from the views' own clocks: the paired frames' time difference at the integer shift
     # (dropped frames and unequal rates included), plus the fraction of a frame.
