@@ -203,12 +203,12 @@ def run_subframe(out: Path, seeds: list[int]) -> list[dict]:
     return rows
 
 
-def run_check(out: Path, seeds: list[int]) -> list[dict]:
+def run_check(out: Path, seeds: list[int], only: list[str] | None = None) -> list[dict]:
     from embodmocap.check.config import CheckConfig
     from embodmocap.check.core import check_session
 
     rows = []
-    names = [f"normal_{s}" for s in seeds] + ["fail_sep20", "fail_away", "fail_scene", "long_60"]
+    names = only or [f"normal_{s}" for s in seeds] + ["fail_sep20", "fail_away", "fail_scene", "long_60"]
     for name in names:
         session = out / name
         if not (session / "session.toml").is_file():
@@ -231,6 +231,7 @@ def main(argv=None) -> None:
     ap.add_argument("mode", choices=["prepare", "prepare-fail", "prepare-long", "geosync", "subframe", "check"])
     ap.add_argument("--out", type=Path, default=Path("/work/bench/12b"))
     ap.add_argument("--seeds", type=int, nargs="*", default=SEEDS)
+    ap.add_argument("--only", nargs="*", default=None, help="check: only these session folders")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     if args.mode == "prepare":
@@ -243,7 +244,8 @@ def main(argv=None) -> None:
         prepare_long(args.out)
         return
     mod = sys.modules[__name__]
-    rows = getattr(mod, f"run_{args.mode}")(args.out, args.seeds)
+    fn = getattr(mod, f"run_{args.mode}")
+    rows = fn(args.out, args.seeds, args.only) if args.mode == "check" else fn(args.out, args.seeds)
     (args.out / f"{args.mode}.json").write_text(json.dumps(rows, indent=2))
 
 
