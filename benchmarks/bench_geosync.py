@@ -175,6 +175,48 @@ def run_geosync(out: Path, seeds: list[int]) -> list[dict]:
     return rows
 
 
+def run_nolaser(out: Path, seeds: list[int]) -> list[dict]:
+    """Stages II-III end to end with the laser detector blinded (no event can pass its confidence):
+    the views are sliced from their first frames and Stage III's geometric sync (+-5 s) alone gives
+    the offset. Runs in ``nolaser_<seed>``, which links normal_<seed>'s inputs and Stage I outputs."""
+    from dataclasses import replace
+
+    from embodmocap.calibrate import stage as stage3
+    from embodmocap.errors import InputError
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.sequence import stage as stage2
+    from embodmocap.sequence.config import SequenceConfig
+    from embodmocap.sequence.sync import SyncConfig
+
+    rows = []
+    for s in seeds:
+        src, dst = out / f"normal_{s}", out / f"nolaser_{s}"
+        dst.mkdir(exist_ok=True)
+        for name in ("captures", "perception", "scenes", "ground_truth", "body_model.npz", "session.toml"):
+            if not (dst / name).exists():
+                (dst / name).symlink_to(src / name)
+        t0 = time.perf_counter()
+        stage2.run(SequenceConfig(sync=SyncConfig(min_confidence=1.01)), dst)
+        cfg = stage3.CalibrateConfig()
+        if REGISTER_FRAMES:
+            cfg = replace(cfg, register=replace(cfg.register, num_frames=REGISTER_FRAMES))
+        row = {"session": dst.name, "phone_offset_frames": phone_offset(s)}
+        try:
+            stage3.run(cfg, dst)
+        except InputError as err:
+            row["error"] = str(err)
+        rec = json.loads(SessionLayout(dst).sequence("seq0").sync.read_text())
+        truth = true_residual_frames(dst)
+        geo = rec["sources"].get("geometric", {})
+        row.update({"slicing": rec["slicing"]["source"], "true_residual_frames": round(truth, 3),
+                    "geometric_err_frames": None if geo.get("residual_s") is None else round(geo["residual_s"] * 30.0 - truth, 4),
+                    "geometric_confidence": geo.get("confidence"), "geometric_std_frames": geo.get("std_frames"),
+                    "chosen": rec["chosen"]["source"], "seconds": round(time.perf_counter() - t0, 1)})
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    return rows
+
+
 def run_subframe(out: Path, seeds: list[int]) -> list[dict]:
     """Stage IV with nearest-frame pairing (the laser slicing: sync.json's residual set to 0) and
     with sub-frame sync (the pipeline's choice), W-MPJPE of each against the truth."""
@@ -252,7 +294,7 @@ def run_check(out: Path, seeds: list[int], only: list[str] | None = None) -> lis
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=["prepare", "prepare-fail", "prepare-long", "geosync", "subframe", "check"])
+    ap.add_argument("mode", choices=["prepare", "prepare-fail", "prepare-long", "geosync", "nolaser", "subframe", "check"])
     ap.add_argument("--out", type=Path, default=Path("/work/bench/12b"))
     ap.add_argument("--seeds", type=int, nargs="*", default=SEEDS)
     ap.add_argument("--only", nargs="*", default=None, help="check: only these session folders")
