@@ -142,3 +142,33 @@ def test_views_that_do_not_overlap_after_sync(session, tmp_path):
     write_manifest(replace(m, sequences={"seq0": replace(seq, views=views)}), work / "session.toml")
     with pytest.raises(InputError, match="overlap"):
         stage.run(CFG, work)
+
+
+def test_sync_record_lists_laser_per_view_and_the_slicing(session, done):
+    rec = json.loads(done.layout.sync.read_text())
+    gt = json.loads(SessionLayout(session).ground_truth.info.read_text())["sync_frames"]
+    assert rec["version"] == 2 and rec["slicing"]["source"] == "laser" and not rec["chosen"]["final"]
+    for v in VIEWS:
+        lz = rec["sources"]["laser"]["views"][v]
+        assert lz["found"] and lz["frame"] == gt[v] and lz["contact_sheet"] == f"sync_{v}.png"
+    # Same timestamps clock per capture: the laser offset is the event frames' time difference.
+    cams = {v: np.load(done.layout.view(v).cameras) for v in VIEWS}
+    assert np.allclose(cams["v1"]["frame_times_s"], cams["v1"]["timestamps_s"], atol=1e-5)
+    assert rec["sources"]["laser"]["offset_s"] == pytest.approx(rec["views"]["v2"]["time_s"] - rec["views"]["v1"]["time_s"])
+
+
+def test_without_a_laser_event_the_views_are_sliced_from_their_start(session, tmp_path):
+    from dataclasses import replace
+
+    from embodmocap.errors import InputError
+    from embodmocap.sequence.sync import SyncConfig
+
+    work = _copy(session, tmp_path)
+    blind = replace(CFG, sync=SyncConfig(min_confidence=1.01))  # no event can pass: "no laser"
+    out = stage.run(blind, work)
+    rec = json.loads(out.layout.sync.read_text())
+    assert rec["slicing"]["source"] == "start" and all(rec["views"][v]["frame"] == 0 for v in VIEWS)
+    assert not any(rec["sources"]["laser"]["views"][v]["found"] for v in VIEWS)
+    assert rec["sources"]["laser"]["offset_s"] is None and "geometrically" in rec["chosen"]["reason"]
+    with pytest.raises(InputError, match="no laser-dot sync event"):
+        stage.run(replace(blind, sync_without_laser="error"), _copy(session, tmp_path / "b"))

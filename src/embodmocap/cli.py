@@ -19,6 +19,7 @@ import tyro
 from embodmocap.errors import EmbodMocapError, os_error_line
 from embodmocap.scene.config import SceneConfig
 from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.check.config import CheckConfig
 from embodmocap.evaluate.benchmark import BenchmarkConfig
 from embodmocap.evaluate.report import ReportConfig
 from embodmocap.evaluate.session import EvaluateConfig
@@ -63,6 +64,36 @@ class Inspect:
         text, problems = inspect_path(self.path)
         print(text)
         return 1 if problems else 0
+
+
+@dataclass(frozen=True)
+class Check:
+    """Is each take usable? Sync, performer in both views, angle between the views, registration to
+    the scene and tracking jumps on a sample of frames; verdict usable / usable with warnings /
+    reshoot (exit status 0 / 1 / 2; 2 also for an input error)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml); the scene's Stage I outputs are needed for the
+    registration, view-angle and geometric-sync checks."""
+    seq: str | None = None
+    """Check only this sequence (default: every sequence of the session)."""
+    json: bool = False
+    """Print the result as JSON (for machines) instead of text."""
+    config: Annotated[CheckConfig, tyro.conf.arg(name="")] = CheckConfig()
+    """Check settings."""
+
+    def run(self) -> int:
+        import json as _json
+
+        from embodmocap.check.core import check_session, exit_status, format_text
+
+        results = check_session(self.config, self.session, self.seq)
+        if self.json:
+            print(_json.dumps({"session": str(self.session), "exit_status": exit_status(results),
+                               "sequences": [r.to_json() for r in results]}, indent=2))
+        else:
+            print(format_text(results))
+        return exit_status(results)
 
 
 @dataclass(frozen=True)
@@ -407,6 +438,7 @@ Commands = Union[
     Annotated[Demo, tyro.conf.subcommand("demo")],
     Annotated[Synth, tyro.conf.subcommand("synth")],
     Annotated[Inspect, tyro.conf.subcommand("inspect")],
+    Annotated[Check, tyro.conf.subcommand("check")],
     Annotated[Scene, tyro.conf.subcommand("scene")],
     Annotated[Sequence, tyro.conf.subcommand("sequence")],
     Annotated[Calibrate, tyro.conf.subcommand("calibrate")],

@@ -10,8 +10,11 @@
    track on the performer, Chamfer of each view's background depth against the scene mesh,
    reprojection of the registered matches), Adam and Levenberg-Marquardt on the same residuals,
    the better kept;
-4. outputs: ``calibration.json`` (offsets before/after, residual report, registered fractions,
-   warnings) and ``<view>/cameras_world.npz`` (per-frame cameras in the scene's world).
+   -> ``calibration.json`` (offsets before/after, residual report, registered fractions, warnings);
+4. ``geosync``: with both views in the scene's world (whatever their time offset), the offset at
+   which the two views' keypoint rays meet, to a fraction of a frame; ``sync.json`` gets it, its
+   agreement with the laser and the final choice, which Stage IV applies (sub-frame) ->
+   ``<view>/cameras_world.npz`` (per-frame cameras in the scene's world, with that offset).
 
 A refinement that diverges, or moves a view further from its registration than the configured
 limits, is reported with its numbers (and the registration-only offset is kept when it diverged).
@@ -40,6 +43,7 @@ from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.sequence.geosync import GeoSyncConfig
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +90,8 @@ class CalibrateConfig:
     """Background points per frame for the Chamfer term."""
     scene_points: int = 50000
     """Points sampled on the scene mesh for the Chamfer term."""
+    geosync: GeoSyncConfig = field(default_factory=GeoSyncConfig)
+    """Geometric sync after registration (keypoint rays meeting) and the choice of sync source."""
 
 
 @dataclass(frozen=True)
@@ -174,25 +180,30 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             "rejected_frames": int((~acc).sum()), "max_disagreement_m": cfg.vio_max_disagreement_m,
             "max_disagreement_deg": cfg.vio_max_disagreement_deg}
 
-    # 3. Joint refinement.
+    # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
+    # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
+    slicing = _sync_record(out, entry.name)["slicing"]["source"]
+    use_tracks = slicing != "start"
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
-                         cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame)
+                         cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
+                         use_tracks)
     calib_path = out.calibration
     if not force and sm.is_current("refine", fp_ref):
         skipped.append("refine")
     else:
         t0 = time.perf_counter()
-        report = _refine(cfg, lay, entry, init, regs, init_report)
+        report = _refine(cfg, lay, entry, init, regs, init_report, use_tracks)
         write_json(calib_path, report)
-        outs = [calib_path]
-        for v in VIEWS:
-            cams = np.load(out.view(v).cameras)
-            T = np.asarray(report["views"][v]["T_world_vio"]) @ cams["T_world_cam"]
-            write_npz(out.view(v).cameras_world, version=np.int64(1), K=cams["K"], width=cams["width"],
-                      height=cams["height"], T_world_cam=T, raw_frames=cams["raw_frames"])
-            outs.append(out.view(v).cameras_world)
-        sm.record("refine", fp_ref, outs, time.perf_counter() - t0, {
+        sm.record("refine", fp_ref, [calib_path], time.perf_counter() - t0, {
             f"{v}_{k}": report["views"][v][k] for v in VIEWS for k in ("refine_shift_m", "refine_yaw_deg")})
+    report = json.loads(calib_path.read_text())
+    T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS}
+
+    # 4. Geometric sync: with both views in one world (whatever their time offset), the offset is
+    # where both views' keypoint rays meet (sequence.geosync); sync.json gets the final choice
+    # among laser, manual and geometric (sequence.sync_record); the per-frame world cameras carry
+    # the sub-frame offset Stage IV applies.
+    _geosync_step(cfg, out, entry.name, T_world_vio, path_fingerprint(calib_path), sm, force, skipped)
     report = json.loads(calib_path.read_text())
     for w in report.get("warnings", []):
         log.warning("%s: %s", entry.name, w)
@@ -313,7 +324,70 @@ def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, 
                     matches=matches, T_world_vio_init=init.T)
 
 
-def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: dict, init_report: dict) -> dict:
+def _sync_record(out, seq: str) -> dict:
+    """Stage II's sync.json (version 2), or one clear error."""
+    from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION
+
+    if not out.sync.is_file():
+        raise InputError(out.sync, "Stage II's sync.json is missing", f"run `embodmocap sequence --seq {seq}` first")
+    rec = json.loads(out.sync.read_text())
+    if rec.get("version") != SYNC_RECORD_VERSION:
+        raise InputError(out.sync, f"sync.json is version {rec.get('version')}, this Stage III needs {SYNC_RECORD_VERSION}",
+                         f"rerun `embodmocap sequence --seq {seq}` (it redoes the sync and the slicing)")
+    return rec
+
+
+def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_fp, sm: StageManifest, force: bool,
+                  skipped: list[str]) -> dict:
+    """Geometric sync on the refined cameras; writes the final sync record and ``cameras_world``."""
+    from embodmocap.sequence.geosync import GEOSYNC_VERSION, geometric_sync
+    from embodmocap.sequence.subframe import frame_times
+    from embodmocap.sequence.sync_record import decide
+
+    rec = _sync_record(out, seq)
+    fp = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
+                     rec["sources"].get("manual"), calib_fp, *[path_fingerprint(out.view(v).keypoints) for v in VIEWS],
+                     *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync)
+    if not force and sm.is_current("geosync", fp) and rec.get("chosen", {}).get("final"):
+        skipped.append("geosync")
+        return rec
+    t0 = time.perf_counter()
+    fps = float(json.loads(out.manifest.read_text())["figures"]["fps"])
+    cams = {v: np.load(out.view(v).cameras) for v in VIEWS}
+    world = {v: T_world_vio[v] @ cams[v]["T_world_cam"] for v in VIEWS}
+    geo = None
+    if cfg.geosync.enabled:
+        data = [(cams[v]["K"], world[v], np.load(out.view(v).keypoints)["keypoints"], frame_times(cams[v], fps))
+                for v in VIEWS]
+        search = cfg.geosync.search_s_without_laser if rec["slicing"]["source"] == "start" else cfg.geosync.search_s
+        geo = geometric_sync(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
+        log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", seq,
+                 geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
+    sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
+              if d.get("contact_sheet")}
+    rec = decide(rec, geo, cfg.geosync, fps, sheets, seq)
+    write_json(out.sync, rec)
+    for w in rec["warnings"]:
+        log.warning("%s", w)
+    outs = [out.sync]
+    for v in VIEWS:
+        # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
+        write_npz(out.view(v).cameras_world, version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"],
+                  height=cams[v]["height"], T_world_cam=world[v], raw_frames=cams[v]["raw_frames"],
+                  time_offset_s=np.float64(rec["chosen"]["residual_s"] if v == VIEWS[1] else 0.0))
+        outs.append(out.view(v).cameras_world)
+    ch = rec["chosen"]
+    sm.record("geosync", fp, outs, time.perf_counter() - t0, {
+        "sync_source": ch["source"], "sync_offset_s": round(ch["offset_s"], 6), "sync_residual_frames": ch["residual_frames"],
+        "geometric_offset_frames": None if geo is None or not geo.found else round(geo.offset_frames, 4),
+        "geometric_confidence": None if geo is None else round(geo.confidence, 3),
+        "laser_minus_geometric_frames": (rec["agreement"] or {}).get("laser_minus_geometric_frames"),
+    })
+    return rec
+
+
+def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: dict, init_report: dict,
+            use_tracks: bool = True) -> dict:
     from embodmocap.calibrate import losses as L
     from embodmocap.scene.mesh import read_mesh_ply
 
@@ -323,7 +397,10 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
     if cfg.refine_views:
         mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
         scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
-        tracks = _track_pairs(lay, entry.name)
+        tracks = _track_pairs(lay, entry.name) if use_tracks else None
+        if not use_tracks:
+            warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
+                            "pairs are not used by the refinement")
         result = refine_offsets(views, cfg.refine, scene=scene_pts, tracks=tracks)
         warnings += list(result.warnings)
         if result.diverged:

@@ -39,6 +39,7 @@ from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_al
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
 from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
 from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
+from embodmocap.sequence.subframe import synced_views
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     skipped: list[str] = []
     cams = {v: np.load(out.view(v).cameras_world) for v in VIEWS}
     kps = {v: np.load(out.view(v).keypoints)["keypoints"] for v in VIEWS}
+    # Sub-frame sync: view 2's keypoints and cameras at view 1's instants (cams_raw: each view's own frames).
+    cams_raw, (cams, kps) = cams, synced_views(out, cams, kps)
     T = min(len(kps[v]) for v in VIEWS)
     fps = _fps(out)
 
@@ -214,7 +217,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                   coco17=body.coco17.detach().numpy(), frames=frames)
         outs = [out.smpl_world, out.joints_world]
         for v in VIEWS:
-            c = cams[v]
+            c = cams_raw[v]
             write_npz(out.view(v).cameras_final, version=np.int64(1), K=c["K"], width=c["width"], height=c["height"],
                       T_world_cam=apply_alignment_to_cameras(c["T_world_cam"], T_align), raw_frames=c["raw_frames"])
             outs.append(out.view(v).cameras_final)

@@ -19,6 +19,9 @@ class SequenceConfig:
     """Frame rate of the sliced sequence; None = the lower of the two views' rates."""
     min_overlap_s: float = 1.0
     """Shortest common span of the two views after sync, seconds (shorter = error)."""
+    sync_without_laser: Literal["geometric", "error"] = "geometric"
+    """A view without a laser event (and no sync_frame): slice both views from their first frames
+    and let Stage III's geometric sync find the offset, or stop with an error."""
 
     keypoints: Literal["precomputed", "vitpose", "mediapipe"] = "precomputed"
     """2D keypoint backend: the view's keypoint folder from session.toml, a ViTPose model, or MediaPipe."""

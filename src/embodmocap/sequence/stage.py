@@ -3,7 +3,9 @@
 ``run(config, session, seq)`` reads top to bottom as the recipe:
 
 1. ``sync``: the laser-dot event of each view (session.toml's frames override detection), with a
-   contact sheet per view for a person to confirm (``sync.json``, ``sync_<view>.png``);
+   contact sheet per view for a person to confirm (``sync.json``, ``sync_<view>.png``). Without a
+   laser event the views are sliced from their first frames and Stage III finds the offset from
+   the registered cameras and the keypoints (:mod:`embodmocap.sequence.sync_record`);
 2. ``slice``: one sequence timeline from the event on, mapped to each view's raw frames through
    timestamps (different rates and dropped frames handled); the view's intrinsics and VIO poses
    for those frames (``<view>/frame_map.json``, ``<view>/cameras.npz``);
@@ -37,7 +39,8 @@ from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_finger
 from embodmocap.perception.tracking import performer_keypoints, select_performer_two_views, track_people
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
-from embodmocap.sequence.sync import sync_events_from_json, sync_events_to_json, sync_views, write_contact_sheet
+from embodmocap.sequence.sync import SyncEvent, write_contact_sheet
+from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION, events_from_record, first_record
 from embodmocap.types import Capture
 
 log = logging.getLogger(__name__)
@@ -89,20 +92,32 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
 
     # 1. Sync.
     manual = {v: entry.views[v].sync_frame for v in VIEWS}
-    fp_sync = fingerprint("sync", STAGE_VERSION, {v: path_fingerprint(captures[v].path) for v in VIEWS}, manual, cfg.sync)
+    geometric = cfg.sync_without_laser == "geometric"
+    fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in VIEWS},
+                          manual, cfg.sync, geometric)
     if step("sync", fp_sync):
         t0 = time.perf_counter()
-        events = sync_views(captures, manual, cfg.sync, seq=entry.name)
+        events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name)
         sheets = []
         for v in VIEWS:
-            sheets.append(write_contact_sheet(captures[v], events[v], out.root / f"sync_{v}.png"))
-            log.info("%s %s: sync frame %d (%s, confidence %.2f); check %s", entry.name, v, events[v].frame,
-                     events[v].method, events[v].confidence, sheets[-1])
-        write_json(out.sync, sync_events_to_json(events))
+            # The sheet shows the laser event when there is one (what a person confirms), else the
+            # manual frame; a view sliced from its first frame has nothing to confirm.
+            lz = record["sources"]["laser"]["views"][v]
+            ev = (SyncEvent(lz["frame"], lz["confidence"], tuple(lz["dot_xy_before"]) if lz["dot_xy_before"] else None,
+                            lz["frames_seen"]) if lz["found"] else events[v] if events[v].method == "manual" else None)
+            if ev is None:
+                log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", entry.name, v)
+                continue
+            sheets.append(write_contact_sheet(captures[v], ev, out.root / f"sync_{v}.png"))
+            lz["contact_sheet"] = sheets[-1].name
+            log.info("%s %s: sync frame %d (%s, confidence %.2f); check %s", entry.name, v, ev.frame,
+                     ev.method, ev.confidence, sheets[-1])
+        write_json(out.sync, record)
         sm.record("sync", fp_sync, [out.sync, *sheets], time.perf_counter() - t0, {
             f"{v}_sync_frame": events[v].frame for v in VIEWS} | {
-            f"{v}_sync_confidence": round(events[v].confidence, 3) for v in VIEWS})
-    events = sync_events_from_json(json.loads(out.sync.read_text()), out.sync)
+            f"{v}_sync_confidence": round(events[v].confidence, 3) for v in VIEWS} | {
+            "sync_slicing": record["slicing"]["source"]})
+    events = events_from_record(json.loads(out.sync.read_text()), out.sync)
 
     # 2. Slice.
     fp_slice = fingerprint("slice", fp_sync, cfg.fps, cfg.min_overlap_s)
@@ -177,7 +192,16 @@ def _write_cameras(vl: ViewLayout, cap: Capture, fm: FrameMap) -> None:
     write_npz(vl.cameras, version=np.int64(1), K=K.K, width=np.int64(K.width), height=np.int64(K.height),
               K_depth=Kd.K, depth_width=np.int64(Kd.width), depth_height=np.int64(Kd.height),
               T_world_cam=traj.T_world_cam[row], raw_frames=fm.raw_frames, timestamps_s=fm.seq_times_s,
-              untracked=untracked)
+              frame_times_s=_frame_times(cap, fm), untracked=untracked)
+
+
+def _frame_times(cap: Capture, fm: FrameMap) -> np.ndarray:
+    """(T,) each sliced raw frame's own time after the view's event frame, seconds (equal to the
+    sequence times unless frames were dropped or the rates differ): what sub-frame sync resamples on."""
+    ts = np.asarray(cap.timestamps_s, dtype=np.float64)
+    if len(ts) < cap.num_frames or cap.num_frames == 0:
+        return np.asarray(fm.seq_times_s, dtype=np.float64)
+    return ts[fm.raw_frames] - ts[fm.event_frame]
 
 
 def _chunks(n: int, size: int):

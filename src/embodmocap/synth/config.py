@@ -52,6 +52,19 @@ class SynthConfig:
     """Shortest time a view records before the sync event, seconds."""
     tail_max_s: float = 0.5
     """Longest time a view stops before the end of the motion, seconds (views end at different times)."""
+    phone_offset_frames: float = 0.0
+    """Sub-frame clock offset of the second phone: view 2's frames are exposed this fraction of a
+    frame later than view 1's (negative: earlier), in (-0.5, 0.5). Real phones' frame clocks are
+    never aligned; 0 = the studio's historic exact alignment. The laser sync frame is unchanged."""
+    view_separation_deg: float | None = None
+    """Fixed azimuth separation of the two operators about the performer, degrees; None = the
+    normal 75-105 degrees. A "built to fail" session uses 20 (views nearly parallel)."""
+    view2_away_fraction: float = 0.0
+    """Fraction of the performance (after the sync event, at its end) during which operator 2
+    turns the phone away from the performer ("built to fail": performer out of one view)."""
+    view2_other_scene: bool = False
+    """View 2 is filmed in another room than the scene capture ("built to fail": the view cannot
+    be registered to the scene)."""
 
     def __post_init__(self) -> None:
         from embodmocap.errors import InputError
@@ -64,6 +77,9 @@ class SynthConfig:
             (8 <= self.depth_width <= self.width and 8 <= self.depth_height <= self.height, "depth size must be >= 8 and <= the RGB size"),
             (20 < self.hfov_deg < 150, "hfov_deg must be in (20, 150)"),
             (self.room == "standard" or self.preset == "indoor", "room presets other than 'standard' are indoor only"),
+            (-0.5 < self.phone_offset_frames < 0.5, "phone_offset_frames must be in (-0.5, 0.5)"),
+            (self.view_separation_deg is None or 0 <= self.view_separation_deg <= 180, "view_separation_deg must be in [0, 180]"),
+            (0 <= self.view2_away_fraction < 1, "view2_away_fraction must be in [0, 1)"),
         ]
         bad = [msg for ok, msg in checks if not ok]
         if bad:

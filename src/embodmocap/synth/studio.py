@@ -23,7 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -117,11 +117,21 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     # The operators' paths, and the laser dot: a wall point both see at the event, filmed until
     # shortly after it goes off (the cameras then turn back to the performer).
     pelvis = joints[:, 0]
-    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), trajectory.FollowConfig())
+    follow = trajectory.FollowConfig()
+    if cfg.view_separation_deg is not None:
+        follow = replace(follow, sep_deg=(cfg.view_separation_deg, cfg.view_separation_deg))
+    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), follow)
     dot, normal = choose_dot(built, [T[event] for T in T_v], (verts[event], faces))
     built = with_dot(built, dot, normal)
     T_v = tuple(aim_at_dot(T, dot, event, cfg.fps) for T in T_v)
+    if cfg.view2_away_fraction > 0:
+        T_v = (T_v[0], trajectory.turn_away(T_v[1], int(round(M - cfg.view2_away_fraction * (M - event))), cfg.fps))
     renderer = Renderer(built)
+    renderers = {"v1": renderer, "v2": renderer}
+    if cfg.view2_other_scene:
+        # Another room (other seed), same laser dot coordinates: view 2 cannot register to the scene.
+        other = build_scene(cfg.preset, _rng(cfg.seed + 7919, 1))
+        renderers["v2"] = Renderer(with_dot(other, dot, normal))
 
     # 3. Scene capture.
     frames_rendered = 0
@@ -143,18 +153,22 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     sync_frames = {}
     for k, v in enumerate(VIEWS):
         span = np.arange(starts[v], ends[v])
-        T_scene_cam = T_v[k][span]
+        # Each frame's instant in motion frames: view 2 may run a fraction of a frame off view 1.
+        phase = cfg.phone_offset_frames if v == "v2" else 0.0
+        t_motion = span + phase
+        T_scene_cam = _at_times(T_v[k], t_motion)
+        v_verts, v_coco = (_lerp_frames(a, t_motion) for a in (verts, coco))
         T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 20 + k))
         T_vio_cam = trajectory.add_drift(
             invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
         )
-        laser_on = span < event
+        laser_on = t_motion < event - 0.5  # the laser goes off half-way between motion frames e-1 and e
         log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
         gt_px, vis, masks_dir = _write_capture(
-            cfg, lay.view_capture(cfg.sequence_name, v), renderer, T_scene_cam, T_vio_cam, K, K_depth,
-            body_verts=verts[span], faces=faces, laser_on=laser_on, rng=_rng(cfg.seed, 40 + k),
+            cfg, lay.view_capture(cfg.sequence_name, v), renderers[v], T_scene_cam, T_vio_cam, K, K_depth,
+            body_verts=v_verts, faces=faces, laser_on=laser_on, rng=_rng(cfg.seed, 40 + k),
             clock_offset_s=float(_rng(cfg.seed, 50 + k).uniform(100, 1000)),
-            coco_world=coco[span], perception_dir=lay.perception(cfg.sequence_name, v),
+            coco_world=v_coco, perception_dir=lay.perception(cfg.sequence_name, v),
             lighting=_lighting(_rng(cfg.seed, 80 + k)) if cfg.lighting_change else None,
         )
         frames_rendered += len(span)
@@ -170,7 +184,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         seq_gt.update({
             f"{v}_T_scene_vio": T_scene_vio, f"{v}_T_scene_cam": T_scene_cam, f"{v}_T_vio_cam": T_vio_cam,
             f"{v}_motion_start": np.int64(starts[v]), f"{v}_sync_frame": np.int64(sync_frames[v]),
-            f"{v}_keypoints2d_gt": gt_px, f"{v}_visibility": vis,
+            f"{v}_keypoints2d_gt": gt_px, f"{v}_visibility": vis, f"{v}_time_offset_frames": np.float64(phase),
         })
 
     # 5. Ground truth and manifest.
@@ -187,6 +201,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         "version": GT_VERSION, "config": asdict(cfg), "scene": cfg.scene_name, "sequence": cfg.sequence_name,
         "sync_frames": sync_frames, "motion_frames": M, "event_motion_frame": event,
         "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
+        # Raw frame j of view v is the motion's instant start_v + j + offset_v (motion frames).
+        "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in VIEWS},
         "segments": [{"name": n, "start": s, "end": e} for n, s, e in script.segments],
         "furniture": {n: {"centre_xy": f.centre_xy, "yaw": f.yaw, "size": f.size, "top_z": f.top_z}
                       for n, f in built.spec.furniture.items()},
@@ -216,6 +232,24 @@ def _lighting(rng: np.random.Generator) -> tuple[float, np.ndarray]:
     gain = float(rng.uniform(0.55, 0.75) if rng.random() < 0.5 else rng.uniform(1.35, 1.7))
     wb = 1.0 + rng.uniform(-0.15, 0.15, 3)
     return gain, wb / wb.mean()
+
+
+def _lerp_frames(a: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Per-frame arrays (M, ...) at fractional motion frames t (N,), linearly (clamped to the ends).
+    Exact (a copy of the rows) at integer t; between frames a smooth motion moves almost linearly."""
+    i0 = np.clip(np.floor(t).astype(np.int64), 0, len(a) - 1)
+    i1 = np.minimum(i0 + 1, len(a) - 1)
+    w = np.clip(t - i0, 0.0, 1.0).reshape((-1,) + (1,) * (a.ndim - 1))
+    return (1.0 - w) * a[i0] + w * a[i1]
+
+
+def _at_times(T: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera poses (M, 4, 4) at fractional motion frames t (N,) (slerp + linear; exact at integers)."""
+    from embodmocap.geometry.interpolate import interp_poses
+
+    if np.all(t == np.round(t)):
+        return T[t.astype(np.int64)]
+    return interp_poses(T, np.arange(len(T), dtype=np.float64), np.clip(t, 0, len(T) - 1))[0]
 
 
 def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, body_verts, faces, laser_on, rng,

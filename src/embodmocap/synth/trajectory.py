@@ -333,6 +333,20 @@ def _lagged(x: NDArray, tau_frames: float) -> NDArray:
     return y
 
 
+def turn_away(T_scene_cam: NDArray, from_frame: int, fps: float, angle_deg: float = 120.0,
+              ramp_s: float = 0.7) -> NDArray[np.float64]:
+    """Cameras (T, 4, 4) that turn ``angle_deg`` about the world's Z axis from ``from_frame`` on.
+
+    The turn ramps in smoothly over ``ramp_s`` (an operator looking elsewhere, the "built to fail"
+    session with the performer out of one view); positions are untouched.
+    """
+    T = np.array(T_scene_cam, dtype=np.float64, copy=True)
+    s = np.clip((np.arange(len(T)) - from_frame) / max(ramp_s * fps, 1.0), 0.0, 1.0)
+    yaw = np.deg2rad(angle_deg) * (3 * s**2 - 2 * s**3)
+    T[:, :3, :3] = rot_z(yaw) @ T[:, :3, :3]
+    return T
+
+
 # ------------------------------------------------------------------------------------------------
 # VIO worlds, drift, IMU
 

@@ -1,0 +1,1 @@
+"""`embodmocap check`: the on-the-spot verdict on a capture (:mod:`embodmocap.check.core`)."""
