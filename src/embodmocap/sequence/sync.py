@@ -47,20 +47,43 @@ SYNC_JSON_VERSION = 1
 
 @dataclass(frozen=True)
 class SyncConfig:
-    """Settings of the laser-dot detector. Pixel values are 0-255 RGB."""
+    """Settings of the laser-dot detector. Pixel values are 0-255 RGB; sizes in analysed pixels."""
 
-    min_redness: int = 90
-    """Red excess ``r - max(g, b)`` a pixel needs to belong to a dot blob (core and inner glow)."""
-    min_peak_red: int = 200
-    """Red value the brightest pixel of a blob must reach: a laser dot saturates the sensor."""
+    min_peak_red: int = 215
+    """Red value a dot's pixels must reach: a laser dot saturates (or nearly saturates) red."""
+    min_tophat_red: int = 20
+    """Red a seed pixel must exceed its local background by (white top-hat of the red channel
+    over ``background_px``): the dot is a small spot brighter than what surrounds it."""
+    min_tophat_redness: int = 60
+    """...or red excess ``r - max(g, b)`` by which it must exceed its local background (top-hat):
+    a red core on a bright wall is not brighter in red, but much redder."""
+    background_px: int = 31
+    """Size of the square structuring element of the top-hats (larger than any dot), pixels at
+    640 wide (scaled with the analysed width)."""
+    min_rim_redness: float = 30.0
+    """Red excess a dot's rim needs (80th percentile over the spot and the 2 px around it, less a
+    white centre) above the ring's 90th percentile: the red rim, confined to a small spot. A
+    specular highlight or a lamp has no red rim; the bright part of a red shirt or poster has as
+    red pixels just outside it."""
+    min_core_whitening: float = 50.0
+    """``min(g, b)`` of the brightest core pixel above the ring's median for an over-exposed
+    (white) core."""
+    min_core_redness_gain: float = 110.0
+    """Without a white core: red excess of the reddest pixel above the ring's median. A bright fold
+    of a red shirt is only a little redder than the shirt; a red laser core on any wall is far
+    redder than the wall."""
     min_peak_redness: int = 140
-    """Red excess the most saturated pixel of a blob must reach (dull red paint stays below)."""
-    max_ring_redness: float = 40.0
-    """Largest mean red excess of the ring around a blob: a dot is red on a not-red background,
-    a speck on a red shirt or red furniture is not."""
-    diameter_frac: tuple[float, float] = (0.003, 0.05)
-    """Smallest and largest blob diameter (``2 sqrt(area / pi)``), as fractions of the analysed
-    image width."""
+    """Without a white core: red excess the reddest pixel itself must reach."""
+    rim_px: float = 3.0
+    """Width of the rim around the saturated spot where the red halo is looked for, pixels."""
+    diameter_frac: tuple[float, float] = (0.0, 0.05)
+    """Smallest and largest equivalent diameter (``2 sqrt(area / pi)``) of the saturated spot, as
+    fractions of the analysed image width."""
+    max_extent_frac: float = 0.07
+    """Largest bounding-box side of the saturated spot (a motion-blurred dot is a short streak),
+    as a fraction of the analysed image width."""
+    max_candidates: int = 64
+    """At most this many spots per frame are examined (the most contrasted first)."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
     absent_frames: int = 8
@@ -80,8 +103,9 @@ class SyncConfig:
     search_s: float = 10.0
     """Only events in the first this many seconds of a capture are searched (the laser is
     switched off near the start of a recording)."""
-    max_width: int = 640
-    """Frames wider than this are downscaled (area averaging) to this width before analysis."""
+    max_width: int = 1920
+    """Frames wider than this are downscaled (area averaging) to this width before analysis. A
+    real dot is 2-3 px across: analyse at full resolution whenever possible."""
 
 
 @dataclass(frozen=True)
@@ -109,16 +133,20 @@ class DotCandidates:
     """Dot candidates of one frame, in pixels of the analysed (possibly downscaled) image.
 
     Attributes:
-        xy: (N, 2) blob centroids (x, y).
-        diameter: (N,) equivalent diameters ``2 sqrt(area / pi)``.
-        peak_redness: (N,) largest red excess ``r - max(g, b)`` inside the blob.
-        ring_rgb: (N, 3) mean RGB of the ring around the blob (outside the glow).
+        xy: (N, 2) centroids (x, y) of the saturated spots.
+        diameter: (N,) equivalent diameters ``2 sqrt(area / pi)`` of the saturated spots.
+        peak_redness: (N,) largest red excess ``r - max(g, b)`` in the spot and its rim.
+        ring_rgb: (N, 3) mean RGB of the ring around the spot (outside the halo).
+        strength: (N,) how much the spot stands out from that ring (:func:`spot_strength`).
+        white: (N,) ``min(g, b)`` of the core above the ring's median (> 0: over-exposed core).
     """
 
     xy: NDArray[np.float64]
     diameter: NDArray[np.float64]
     peak_redness: NDArray[np.float64]
     ring_rgb: NDArray[np.float64]
+    strength: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    white: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -127,100 +155,166 @@ class DotCandidates:
 # --------------------------------------------------------------------------- per-frame candidates
 
 
-def _box_sums(integral: NDArray, x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> NDArray:
-    """Sums over boxes [x0, x1) x [y0, y1) of an OpenCV integral image (H+1, W+1[, C])."""
-    return integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+def _channels(img: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]:
+    """Red, red excess ``max(0, r - max(g, b))`` and ``min(g, b)`` of an (H, W, 3) uint8 image."""
+    import cv2
+
+    r = np.ascontiguousarray(img[..., 0])
+    g, b = img[..., 1], img[..., 2]
+    return r, cv2.subtract(r, np.maximum(g, b)), np.minimum(g, b)
 
 
-def _ring_geometry(bx, by, bw, bh, W: int, H: int):
-    """Inner (skipped, covers the glow) and outer boxes of the ring around blob bounding boxes."""
-    size = np.maximum(bw, bh)
-    pad = np.ceil(0.8 * size).astype(int) + 1  # the glow reaches about 2.2 dot radii
-    ring = np.maximum(3, size)
-    inner = (np.clip(bx - pad, 0, W), np.clip(by - pad, 0, H),
-             np.clip(bx + bw + pad, 0, W), np.clip(by + bh + pad, 0, H))
-    outer = (np.clip(bx - pad - ring, 0, W), np.clip(by - pad - ring, 0, H),
-             np.clip(bx + bw + pad + ring, 0, W), np.clip(by + bh + pad + ring, 0, H))
-    return inner, outer
+def _disc(radius: int):
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def _ring_means(integral: NDArray, inner, outer) -> NDArray:
-    """Mean of the integral's channels over outer-minus-inner boxes; (N,) or (N, C)."""
-    area = ((outer[2] - outer[0]) * (outer[3] - outer[1]) - (inner[2] - inner[0]) * (inner[3] - inner[1]))
-    s = _box_sums(integral, *outer) - _box_sums(integral, *inner)
-    area = np.maximum(area, 1).astype(np.float64)
-    return s / (area[:, None] if s.ndim == 2 else area)
+def _spot_features(img, red, white, mask, rim: int, ring: int):
+    """Features of one spot given as a uint8 ``mask`` over a window of ``img`` (window arrays).
+
+    Returns ``(rim_redness, core_redness, core_white, peak_redness, ring_rgb)``: red excess of the
+    spot and the 2 px around it less its white centre (80th percentile) above the ring's 90th
+    percentile; red excess of its reddest pixel and ``min(g, b)`` of its whitest pixel above the
+    ring's medians; the reddest pixel's red excess; the ring's mean RGB.
+    """
+    import cv2
+
+    near = cv2.dilate(mask, _disc(2)).astype(bool)  # the spot and the 2 px around it: the red rim
+    inner = cv2.dilate(mask, _disc(rim + 1)).astype(bool)
+    outer = cv2.dilate(mask, _disc(rim + 1 + ring)).astype(bool)
+    ring_m = outer & ~inner
+    if not ring_m.any():
+        return None
+    bg_red = float(np.median(red[ring_m]))
+    bg_white = float(np.median(white[ring_m]))
+    core = mask.astype(bool)
+    core_white = float(white[core].max()) - bg_white
+    # The rim: the spot and its surroundings less an over-exposed (white) centre, which has no red
+    # excess however red the light is.
+    rim_m = near & ~(core & (white.astype(np.float32) >= bg_white + 0.5 * max(core_white, 0.0) + 25))
+    vals = red[rim_m] if rim_m.any() else red[near]
+    # The rim against the ring's *redder* pixels (90th percentile): the laser's red is confined to
+    # a small spot, while the bright part of a red shirt or poster has as red pixels just outside.
+    rim_red = float(np.percentile(vals, 80)) - float(np.percentile(red[ring_m], 90))
+    return rim_red, float(vals.max()) - bg_red, core_white, float(vals.max()), img[ring_m].reshape(-1, 3).mean(0)
+
+
+def spot_strength(img: NDArray[np.uint8], xy, radius: float, ring: int = 5) -> tuple[float, NDArray]:
+    """How much a laser-like spot near ``xy`` stands out from its surroundings; and the ring's RGB.
+
+    Within ``radius`` px of ``xy``: the largest red excess above the median red excess of a ring
+    (``radius + 2 .. radius + 2 + ring`` px), plus half the largest ``min(g, b)`` above the ring's
+    median (an over-exposed core). The same measure is taken where the dot was last seen and where
+    it would be after the event, so their ratio says how cleanly it went out. ``(0, nan)`` outside
+    the image.
+    """
+    H, W = img.shape[:2]
+    R = int(math.ceil(radius)) + 2 + ring
+    cx, cy = int(round(xy[0])), int(round(xy[1]))
+    x0, x1, y0, y1 = max(0, cx - R), min(W, cx + R + 1), max(0, cy - R), min(H, cy + R + 1)
+    if x0 >= x1 or y0 >= y1:
+        return 0.0, np.full(3, np.nan)
+    patch = img[y0:y1, x0:x1]
+    _, red, white = _channels(patch)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = np.hypot(xx - xy[0], yy - xy[1])
+    inside, ring_m = d <= radius, (d > radius + 2) & (d <= radius + 2 + ring)
+    if not inside.any() or not ring_m.any():
+        return 0.0, np.full(3, np.nan)
+    s_red = float(red[inside].max()) - float(np.median(red[ring_m]))
+    s_white = float(white[inside].max()) - float(np.median(white[ring_m]))
+    return max(0.0, s_red) + 0.5 * max(0.0, s_white), patch[ring_m].reshape(-1, 3).mean(0)
 
 
 def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) -> DotCandidates:
-    """Small, saturated red blobs on a not-red background in one (H, W, 3) uint8 RGB image.
+    """Laser-dot-like spots in one (H, W, 3) uint8 RGB image, at its full resolution.
 
-    No downscaling here: coordinates and sizes are in pixels of ``rgb``.
+    A laser dot as a phone records it is a very small spot whose core saturates red (and, when
+    over-exposed, green and blue too: a white core) with a red rim, on any wall. So:
+
+    1. **seeds**: pixels with ``r >= min_peak_red`` that stand out from their local background
+       (white top-hat over ``background_px``) in red or in red excess;
+    2. **spots**: 8-connected seeds, of a plausible size (``diameter_frac``, ``max_extent_frac``);
+    3. each spot is compared with a ring around it (median, robust to texture): it needs a red rim
+       confined to the spot (``min_rim_redness``: rejects specular highlights, lamps and the
+       bright parts of red clothes and posters) and either an over-exposed
+       white core (``min_core_whitening``) or a core far redder than the ring
+       (``min_core_redness_gain`` and ``min_peak_redness``: rejects bright folds of red clothes
+       and red paint on red walls).
+
+    Coordinates and sizes are in pixels of ``rgb``.
     """
     import cv2
-    from scipy import ndimage
 
     img = np.asarray(rgb)
     H, W = img.shape[:2]
-    r = img[..., 0].astype(np.int16)
-    redness = r - np.maximum(img[..., 1], img[..., 2]).astype(np.int16)
-    mask = (redness >= cfg.min_redness).astype(np.uint8)
-    n, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+    empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    r, red, white = _channels(img)
+    hot = r >= cfg.min_peak_red
+    if not hot.any():
+        return empty
+    k = max(15, int(round(cfg.background_px * W / 640)) | 1)
+    ker = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    # Top-hats only over the rows and columns that hold hot pixels (plus the element's reach).
+    ys, xs = np.nonzero(hot)
+    by0, by1 = max(0, ys.min() - k), min(H, ys.max() + k + 1)
+    bx0, bx1 = max(0, xs.min() - k), min(W, xs.max() + k + 1)
+    sub = (slice(by0, by1), slice(bx0, bx1))
+    contrast = np.maximum(cv2.morphologyEx(r[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_red,
+                          cv2.morphologyEx(red[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_redness)
+    seed = np.zeros((H, W), np.uint8)
+    seed[sub] = (hot[sub] & (contrast >= 0)).astype(np.uint8)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(seed, connectivity=8)
     if n <= 1:
         return empty
     area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
     diam = 2.0 * np.sqrt(area / np.pi)
-    lo, hi = cfg.diameter_frac[0] * W, cfg.diameter_frac[1] * W
-    ids = np.nonzero((diam >= lo) & (diam <= hi))[0] + 1  # label ids of blobs of a plausible size
-    if len(ids) == 0:
+    extent = np.maximum(stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT])
+    ok = (diam >= cfg.diameter_frac[0] * W) & (diam <= cfg.diameter_frac[1] * W) & (extent <= cfg.max_extent_frac * W)
+    ids = np.nonzero(ok)[0] + 1
+    if len(ids) > cfg.max_candidates:
+        from scipy import ndimage
+
+        full = np.zeros((H, W), np.int16)
+        full[sub] = contrast
+        peak = np.asarray(ndimage.maximum(full, labels, ids))
+        ids = ids[np.argsort(-peak, kind="stable")[: cfg.max_candidates]]
+    out = []
+    for lab in ids:
+        x, y, w, h = stats[lab, :4]
+        rim = int(math.ceil(max(cfg.rim_px, 0.5 * max(w, h))))
+        ring = max(4, int(max(w, h)))
+        pad = rim + 2 + ring
+        x0, x1, y0, y1 = max(0, x - pad), min(W, x + w + pad), max(0, y - pad), min(H, y + h + pad)
+        win = (slice(y0, y1), slice(x0, x1))
+        f = _spot_features(img[win], red[win], white[win], (labels[win] == lab).astype(np.uint8), rim, ring)
+        if f is None:
+            continue
+        rim_red, core_red, core_white, peak_red, ring_rgb = f
+        is_dot = rim_red >= cfg.min_rim_redness and (
+            core_white >= cfg.min_core_whitening
+            or (core_red >= cfg.min_core_redness_gain and peak_red >= cfg.min_peak_redness))
+        if is_dot:
+            s, _ = spot_strength(img, cents[lab], _radius(diam[lab - 1]))
+            out.append((cents[lab], diam[lab - 1], peak_red, ring_rgb, s, core_white))
+    if not out:
         return empty
-    peak_r = np.asarray(ndimage.maximum(r, labels, ids), dtype=np.float64)
-    peak_red = np.asarray(ndimage.maximum(redness, labels, ids), dtype=np.float64)
-    keep = (peak_r >= cfg.min_peak_red) & (peak_red >= cfg.min_peak_redness)
-    ids, peak_red = ids[keep], peak_red[keep]
-    if len(ids) == 0:
-        return empty
-    st = stats[ids]
-    inner, outer = _ring_geometry(st[:, 0], st[:, 1], st[:, 2], st[:, 3], W, H)
-    # Integral images make every ring mean O(1) whatever the number of blobs.
-    ring_red = _ring_means(cv2.integral(np.clip(redness, 0, 255).astype(np.uint8)), inner, outer)
-    ring_rgb = _ring_means(cv2.integral(img), inner, outer)
-    ok = ring_red <= cfg.max_ring_redness
-    ids = ids[ok]
-    return DotCandidates(cents[ids].astype(np.float64), diam[ids - 1], peak_red[ok], ring_rgb[ok])
+    # One dot, one candidate: a textured wall or a motion streak can split a spot in two; keep the
+    # strongest of spots whose rims overlap.
+    out.sort(key=lambda c: -c[4])
+    kept: list[tuple] = []
+    for c in out:
+        if all(np.hypot(*(c[0] - k[0])) > max(c[1], k[1]) + 2 * cfg.rim_px for k in kept):
+            kept.append(c)
+    xy, d, pr, rr, st, wh = zip(*kept)
+    return DotCandidates(np.array(xy, np.float64), np.array(d, np.float64), np.array(pr, np.float64),
+                         np.array(rr, np.float64), np.array(st, np.float64), np.array(wh, np.float64))
 
 
-def _local_redness(rgb: NDArray[np.uint8], xy: NDArray, radius: float) -> float:
-    """Largest red excess within ``radius`` px (a square) of ``xy``; 0 when outside the image."""
-    H, W = rgb.shape[:2]
-    x0, x1 = int(max(0, math.floor(xy[0] - radius))), int(min(W, math.ceil(xy[0] + radius) + 1))
-    y0, y1 = int(max(0, math.floor(xy[1] - radius))), int(min(H, math.ceil(xy[1] + radius) + 1))
-    if x0 >= x1 or y0 >= y1:
-        return 0.0
-    patch = rgb[y0:y1, x0:x1].astype(np.int16)
-    return float(max(0, (patch[..., 0] - np.maximum(patch[..., 1], patch[..., 2])).max()))
-
-
-def _ring_rgb_at(rgb: NDArray[np.uint8], xy: NDArray, diameter: float) -> NDArray:
-    """Mean RGB of the ring a blob of ``diameter`` centred at ``xy`` would have."""
-    import cv2
-
-    H, W = rgb.shape[:2]
-    d = max(1, int(round(diameter)))
-    bx = np.array([int(round(xy[0] - d / 2))])
-    by = np.array([int(round(xy[1] - d / 2))])
-    inner, outer = _ring_geometry(bx, by, np.array([d]), np.array([d]), W, H)
-    x0, y0, x1, y1 = (int(v[0]) for v in outer)
-    if x0 >= x1 or y0 >= y1:
-        return np.full(3, np.nan)
-    # Only the outer box's neighbourhood is needed: integrate that crop, not the whole frame.
-    crop = np.ascontiguousarray(rgb[y0:y1, x0:x1])
-
-    def in_crop(box):
-        return tuple(np.array([v[0] - o]) for v, o in zip(box, (x0, y0, x0, y0)))
-
-    return _ring_means(cv2.integral(crop), in_crop(inner), in_crop(outer))[0]
+def _radius(diameter: float) -> float:
+    """Radius within which :func:`spot_strength` looks for a spot of this saturated diameter."""
+    return max(2.0, 0.5 * float(diameter) + 1.0)
 
 
 # --------------------------------------------------------------------------- tracking
@@ -233,9 +327,9 @@ class _Track:
     frames: list[int] = field(default_factory=list)
     xy: list[NDArray] = field(default_factory=list)
     diameter: list[float] = field(default_factory=list)
-    peak: list[float] = field(default_factory=list)
+    strength: list[float] = field(default_factory=list)
     ring: list[NDArray] = field(default_factory=list)
-    after_redness: list[float] = field(default_factory=list)
+    after_strength: list[float] = field(default_factory=list)
     after_ring: NDArray | None = None
 
     def predict(self, frame: int) -> NDArray:
@@ -250,9 +344,9 @@ class _Track:
         self.frames.append(frame)
         self.xy.append(cands.xy[k])
         self.diameter.append(float(cands.diameter[k]))
-        self.peak.append(float(cands.peak_redness[k]))
+        self.strength.append(float(cands.strength[k]))
         self.ring.append(cands.ring_rgb[k])
-        self.after_redness.clear()  # it was only hidden: what follows its new last sighting counts
+        self.after_strength.clear()  # it was only hidden: what follows its new last sighting counts
         self.after_ring = None
 
 
@@ -312,9 +406,10 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
             if ti in matched_t:
                 continue
             p = t.predict(f)
-            t.after_redness.append(_local_redness(img, p, max(3.0, t.diameter[-1])))
+            s, ring = spot_strength(img, p, _radius(t.diameter[-1]) + 1.0)
+            t.after_strength.append(s)
             if t.after_ring is None:
-                t.after_ring = _ring_rgb_at(img, p, t.diameter[-1])
+                t.after_ring = ring
         matched_c = {ci for _, ci in pairs}
         for ci in range(len(cands)):
             if ci not in matched_c:
@@ -330,14 +425,14 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     last = t.frames[-1]
     if len(t.frames) < cfg.min_seen_frames or last + 1 > last_allowed:
         return None
-    if last + cfg.absent_frames >= n_read or len(t.after_redness) < cfg.absent_frames:
+    if last + cfg.absent_frames >= n_read or len(t.after_strength) < cfg.absent_frames:
         return None  # not seen to stay gone (the frames ran out)
     x, y = t.xy[-1]
     m = cfg.border_frac * W
     if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
         return None  # it left the field of view
-    before = float(np.median(t.peak[-3:]))
-    after = max(t.after_redness[: cfg.absent_frames])
+    before = float(np.median(t.strength[-3:]))
+    after = max(t.after_strength[: cfg.absent_frames])
     contrast = float(np.clip((before - after) / max(before, 1.0), 0.0, 1.0))
     ring_before = np.mean(t.ring[-2:], axis=0)
     change = float(np.abs(t.after_ring - ring_before).mean()) if t.after_ring is not None else np.inf

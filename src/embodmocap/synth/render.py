@@ -234,6 +234,8 @@ class Renderer:
         laser_on: bool = False,
         depth_intrinsics: Intrinsics | None = None,
         rng: np.random.Generator | None = None,
+        laser_look=None,
+        post=None,
     ) -> RenderOut:
         """Render one frame.
 
@@ -246,6 +248,10 @@ class Renderer:
             depth_intrinsics: also cast a grid at this (depth sensor) resolution.
             rng: generator for noise and exposure; None = the renderer's own (seeded) one, so a
                 fixed sequence of calls gives identical images.
+            laser_look: a :class:`embodmocap.synth.laser.DotLook`: draw the realistic dot instead of
+                the easy one (only when ``laser_on``).
+            post: called with the linear (H, W, 3) float32 image after the dot, before exposure and
+                noise (occluders, motion blur: :func:`embodmocap.synth.laser.frame_effects`).
         """
         rng = self._rng if rng is None else rng
         T = np.asarray(T_world_cam, dtype=np.float64)
@@ -255,8 +261,14 @@ class Renderer:
         hits = self._hits(intrinsics, T, body_scene, body, shading=True)
         H, W = intrinsics.height, intrinsics.width
         rgb = self._shade(hits, T, body)
-        if laser_on:
+        if laser_on and laser_look is not None:
+            from embodmocap.synth.laser import paint_dot
+
+            paint_dot(rgb, hits.t, hits.body_hit, hits.dirs, intrinsics, T, self.scene.spec.laser_dot, laser_look)
+        elif laser_on:
             self._draw_laser(rgb, hits, intrinsics, T)
+        if post is not None:
+            post(rgb.reshape(H, W, 3))
         rgb = self._finish(rgb.reshape(H, W, 3), rng)
         depth = np.where(np.isfinite(hits.t), hits.t, 0.0).astype(np.float32).reshape(H, W)
         mask = hits.body_hit.reshape(H, W)
