@@ -61,10 +61,14 @@ class SyncConfig:
     """Size of the square structuring element of the top-hats (larger than any dot), pixels at
     640 wide (scaled with the analysed width)."""
     min_rim_redness: float = 30.0
-    """Red excess a dot's rim needs (80th percentile over the spot and the 2 px around it, less a
+    """Red excess the rim of a dot with a red (not white) core needs (80th percentile over the spot and the 2 px around it, less a
     white centre) above the ring's 90th percentile: the red rim, confined to a small spot. A
     specular highlight or a lamp has no red rim; the bright part of a red shirt or poster has as
     red pixels just outside it."""
+    min_rim_redness_white: float = 10.0
+    """The same for a spot with an over-exposed white core, above the ring's 75th percentile: a
+    white spot with a red rim. A specular highlight's rim is as neutral as (or, on a red wall,
+    less red than) the wall."""
     min_core_whitening: float = 50.0
     """``min(g, b)`` of the brightest core pixel above the ring's median for an over-exposed
     (white) core."""
@@ -90,8 +94,17 @@ class SyncConfig:
     """Frames the dot must stay gone after the event; a dot that comes back within this many
     frames at a consistent position was only hidden, not switched off."""
     max_step_frac: float = 0.06
-    """Largest motion of the dot between consecutive frames (camera shake and panning), as a
-    fraction of the image width; the gate grows with the number of frames missed."""
+    """Largest distance of the dot from its constant-velocity prediction in the next frame (camera
+    shake and panning), as a fraction of the image width. After missed frames only the prediction
+    by the image's global motion is used (``max_residual_frac``)."""
+    max_residual_frac: float = 0.02
+    """Largest motion of the dot relative to the image's global motion between consecutive frames
+    (the dot is rigid with the wall), as a fraction of the image width; grows by a quarter per
+    frame missed."""
+    motion_width: int = 160
+    """Frames are reduced to this width to measure the image's global motion (phase correlation)."""
+    min_motion_response: float = 0.05
+    """Phase-correlation peak below which a frame's global motion counts as unknown."""
     border_frac: float = 0.02
     """A track whose last position is within this fraction of the width from the image border
     left the field of view; it is not an event."""
@@ -170,12 +183,12 @@ def _disc(radius: int):
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def _spot_features(img, red, white, mask, rim: int, ring: int):
+def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float):
     """Features of one spot given as a uint8 ``mask`` over a window of ``img`` (window arrays).
 
     Returns ``(rim_redness, core_redness, core_white, peak_redness, ring_rgb)``: red excess of the
     spot and the 2 px around it less its white centre (80th percentile) above the ring's 90th
-    percentile; red excess of its reddest pixel and ``min(g, b)`` of its whitest pixel above the
+    percentile (75th for a white core, ``core_white >= min_white``); red excess of its reddest pixel and ``min(g, b)`` of its whitest pixel above the
     ring's medians; the reddest pixel's red excess; the ring's mean RGB.
     """
     import cv2
@@ -196,7 +209,11 @@ def _spot_features(img, red, white, mask, rim: int, ring: int):
     vals = red[rim_m] if rim_m.any() else red[near]
     # The rim against the ring's *redder* pixels (90th percentile): the laser's red is confined to
     # a small spot, while the bright part of a red shirt or poster has as red pixels just outside.
-    rim_red = float(np.percentile(vals, 80)) - float(np.percentile(red[ring_m], 90))
+    # For a white core the ring's 75th percentile: video's half-resolution chroma dilutes a thin
+    # red rim, and a white spot is no bright part of red cloth.
+    rim80 = float(np.percentile(vals, 80))
+    ring75, ring90 = np.percentile(red[ring_m], [75, 90])
+    rim_red = rim80 - float(ring75 if core_white >= min_white else ring90)
     return rim_red, float(vals.max()) - bg_red, core_white, float(vals.max()), img[ring_m].reshape(-1, 3).mean(0)
 
 
@@ -288,13 +305,15 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
         pad = rim + 2 + ring
         x0, x1, y0, y1 = max(0, x - pad), min(W, x + w + pad), max(0, y - pad), min(H, y + h + pad)
         win = (slice(y0, y1), slice(x0, x1))
-        f = _spot_features(img[win], red[win], white[win], (labels[win] == lab).astype(np.uint8), rim, ring)
+        f = _spot_features(img[win], red[win], white[win], (labels[win] == lab).astype(np.uint8), rim, ring,
+                           cfg.min_core_whitening)
         if f is None:
             continue
         rim_red, core_red, core_white, peak_red, ring_rgb = f
-        is_dot = rim_red >= cfg.min_rim_redness and (
-            core_white >= cfg.min_core_whitening
-            or (core_red >= cfg.min_core_redness_gain and peak_red >= cfg.min_peak_redness))
+        white_dot = core_white >= cfg.min_core_whitening and rim_red >= cfg.min_rim_redness_white
+        red_dot = (core_red >= cfg.min_core_redness_gain and peak_red >= cfg.min_peak_redness
+                   and rim_red >= cfg.min_rim_redness)
+        is_dot = white_dot or red_dot
         if is_dot:
             s, _ = spot_strength(img, cents[lab], _radius(diam[lab - 1]))
             out.append((cents[lab], diam[lab - 1], peak_red, ring_rgb, s, core_white))
@@ -332,13 +351,18 @@ class _Track:
     after_strength: list[float] = field(default_factory=list)
     after_ring: NDArray | None = None
 
-    def predict(self, frame: int) -> NDArray:
-        """Constant-velocity prediction of the position at ``frame``."""
+    def predict(self, frame: int, motion: "_ImageMotion") -> tuple[NDArray | None, NDArray]:
+        """Two guesses of the position at ``frame``: rigid with the image (the last position
+        moved by the image's global motion since; None where that motion is unknown), and
+        constant velocity. A dot on a wall moves with the wall; the second guess covers the
+        frames where the global motion is off (strong motion blur, a large occluder)."""
+        last = self.frames[-1]
+        rigid = self.xy[-1] + motion.shift(last, frame) if motion.known(last, frame) else None
         p = self.xy[-1]
         if len(self.frames) >= 2:
             v = (self.xy[-1] - self.xy[-2]) / (self.frames[-1] - self.frames[-2])
-            p = p + v * (frame - self.frames[-1])
-        return p
+            p = p + v * (frame - last)
+        return rigid, p
 
     def add(self, frame: int, cands: DotCandidates, k: int) -> None:
         self.frames.append(frame)
@@ -348,6 +372,44 @@ class _Track:
         self.ring.append(cands.ring_rgb[k])
         self.after_strength.clear()  # it was only hidden: what follows its new last sighting counts
         self.after_ring = None
+
+
+class _ImageMotion:
+    """The image's global translation between consecutive frames (phase correlation on a small
+    grey copy), accumulated so the shift between any two frames read is a subtraction."""
+
+    def __init__(self, cfg: SyncConfig) -> None:
+        self.cfg = cfg
+        self.cum: list[NDArray] = []  # cumulative shift (x, y) in analysed pixels, per frame
+        self.bad: list[int] = []  # cumulative count of frames whose shift is unknown
+        self._prev = None
+        self._win = None
+
+    def add(self, img: NDArray[np.uint8]) -> None:
+        import cv2
+
+        H, W = img.shape[:2]
+        mw = min(W, self.cfg.motion_width)
+        mh = max(8, int(round(H * mw / W)))
+        g = cv2.resize(cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY), (mw, mh),
+                       interpolation=cv2.INTER_AREA).astype(np.float32)
+        shift, ok = np.zeros(2), False
+        if self._prev is not None and self._prev.shape == g.shape:
+            if self._win is None or self._win.shape != g.shape:
+                self._win = cv2.createHanningWindow((mw, mh), cv2.CV_32F)
+            (dx, dy), resp = cv2.phaseCorrelate(self._prev, g, self._win)
+            if resp >= self.cfg.min_motion_response:
+                shift, ok = np.array([dx, dy]) * (W / mw), True
+        first = not self.cum
+        self.cum.append(shift if first else self.cum[-1] + shift)
+        self.bad.append(0 if first else self.bad[-1] + (0 if ok else 1))
+        self._prev = g
+
+    def known(self, a: int, b: int) -> bool:
+        return self.bad[b] == self.bad[a]
+
+    def shift(self, a: int, b: int) -> NDArray:
+        return self.cum[b] - self.cum[a]
 
 
 def _greedy_pairs(dist: NDArray, ok: NDArray) -> list[tuple[int, int]]:
@@ -380,22 +442,31 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
     """
     active: list[_Track] = []
     done: list[_Track] = []
+    motion = _ImageMotion(cfg)
     n_read, size = 0, (0, 0)
     for f, rgb in enumerate(frames):
         img, _ = _downscale(np.asarray(rgb), cfg.max_width)
         H, W = img.shape[:2]
         size, n_read = (W, H), f + 1
-        step_px = cfg.max_step_frac * W
+        motion.add(img)
         # Tracks unseen for absent_frames frames are finished; the rest may still be matched.
         still = [t for t in active if f - t.frames[-1] < cfg.absent_frames + 1]
         done += [t for t in active if f - t.frames[-1] >= cfg.absent_frames + 1]
         active = still
         cands = find_dot_candidates(img, cfg)
+        preds = [t.predict(f, motion) for t in active]
         if active and len(cands):
-            pred = np.stack([t.predict(f) for t in active])
             gap = np.array([f - t.frames[-1] for t in active], dtype=np.float64)
-            dist = np.linalg.norm(pred[:, None, :] - cands.xy[None, :, :], axis=2)
-            pairs = _greedy_pairs(dist, dist <= step_px * gap[:, None])
+            # Rigid with the image: only a small residual (parallax, the hand holding the pointer),
+            # growing slowly with the frames missed. Constant velocity: the wide gate, next frame only.
+            g_rigid = cfg.max_residual_frac * W * (1 + 0.25 * (gap - 1))
+            cv = np.stack([p for _, p in preds])
+            d = np.linalg.norm(cv[:, None, :] - cands.xy[None, :, :], axis=2) / (cfg.max_step_frac * W)
+            d[gap > 1] = np.inf
+            for ti, (rigid, _) in enumerate(preds):
+                if rigid is not None:
+                    d[ti] = np.minimum(d[ti], np.linalg.norm(cands.xy - rigid, axis=1) / g_rigid[ti])
+            pairs = _greedy_pairs(d, d <= 1.0)
         else:
             pairs = []
         matched_t = {ti for ti, _ in pairs}
@@ -405,7 +476,7 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
         for ti, t in enumerate(active):
             if ti in matched_t:
                 continue
-            p = t.predict(f)
+            p = preds[ti][0] if preds[ti][0] is not None else preds[ti][1]
             s, ring = spot_strength(img, p, _radius(t.diameter[-1]) + 1.0)
             t.after_strength.append(s)
             if t.after_ring is None:
