@@ -44,6 +44,7 @@ _WALLS: dict[str, tuple] = {
 
 #: Clothing colours of the performer in realistic / none sessions; the first is the red one.
 _RED_CLOTHES = (0.78, 0.08, 0.10)
+_MAX_BLUR_PX = 60.0  # longest motion-blur streak drawn, pixels
 _OCCLUDER_RGB = ((0.78, 0.08, 0.10), (0.85, 0.62, 0.50), (0.15, 0.18, 0.35), (0.30, 0.30, 0.30))
 
 
@@ -228,12 +229,19 @@ def frame_effects(look: DotLook, K: Intrinsics, T_prev: NDArray, T: NDArray, T_n
     """Per-frame effects on the linear (H, W, 3) image after the dot is drawn: the occluder (if
     ``frame`` is in ``look.occluded``) and the motion blur of the whole frame (the image motion of
     the dot over the shutter time, from the neighbouring camera poses)."""
-    u, v, _ = project(K, T, dot)
-    up, vp, _ = project(K, T_prev, dot)
-    un, vn, _ = project(K, T_next, dot)
+    u, v, z = project(K, T, dot)
+    up, vp, zp = project(K, T_prev, dot)
+    un, vn, zn = project(K, T_next, dot)
     motion = np.array([un - up, vn - vp]) / 2 * look.shutter  # pixels moved while the shutter is open
-    if not np.all(np.isfinite(motion)):
-        motion = np.zeros(2)
+    if min(z, zp, zn) < 0.1 or not np.all(np.isfinite(motion)) or np.hypot(*motion) > _MAX_BLUR_PX:
+        # The dot is behind or beside the camera (it has turned back to the performer): the image
+        # motion at the image centre, for a point as far as the dot.
+        p = T[:3, 3] + T[:3, 2] * max(float(np.linalg.norm(np.asarray(dot) - T[:3, 3])), 0.5)
+        a, b = np.array(project(K, T_prev, p)[:2]), np.array(project(K, T_next, p)[:2])
+        motion = (b - a) / 2 * look.shutter
+        if not np.all(np.isfinite(motion)):
+            motion = np.zeros(2)
+        motion *= min(1.0, _MAX_BLUR_PX / max(float(np.hypot(*motion)), 1e-9))
 
     def apply(img: NDArray[np.float32]) -> None:
         import cv2
