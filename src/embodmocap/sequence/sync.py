@@ -86,10 +86,16 @@ class SyncConfig:
     max_extent_frac: float = 0.07
     """Largest bounding-box side of the saturated spot (a motion-blurred dot is a short streak),
     as a fraction of the analysed image width."""
-    max_candidates: int = 64
-    """At most this many spots per frame are examined (the most contrasted first)."""
+    min_spot_redness: int = 15
+    """Red excess some pixel of a spot or the 2 px around it must reach to be examined at all."""
+    max_candidates: int = 32
+    """At most this many spots per frame are examined (the reddest first)."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
+    min_seen_fraction: float = 0.6
+    """Share of the frames from a track's first to its last sighting in which it must be seen
+    for full confidence (scaled down below): a dot is seen in nearly every frame it is on,
+    brief occlusions aside."""
     absent_frames: int = 8
     """Frames the dot must stay gone after the event; a dot that comes back within this many
     frames at a consistent position was only hidden, not switched off."""
@@ -177,12 +183,6 @@ def _channels(img: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uin
     return r, cv2.subtract(r, np.maximum(g, b)), np.minimum(g, b)
 
 
-def _disc(radius: int):
-    import cv2
-
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-
-
 def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float):
     """Features of one spot given as a uint8 ``mask`` over a window of ``img`` (window arrays).
 
@@ -193,10 +193,10 @@ def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float)
     """
     import cv2
 
-    near = cv2.dilate(mask, _disc(2)).astype(bool)  # the spot and the 2 px around it: the red rim
-    inner = cv2.dilate(mask, _disc(rim + 1)).astype(bool)
-    outer = cv2.dilate(mask, _disc(rim + 1 + ring)).astype(bool)
-    ring_m = outer & ~inner
+    # Distance of every window pixel to the spot (one transform gives every band).
+    dist = cv2.distanceTransform((mask == 0).astype(np.uint8), cv2.DIST_L2, 3)
+    near = dist <= 2  # the spot and the 2 px around it: the red rim
+    ring_m = (dist > rim + 1) & (dist <= rim + 1 + ring)
     if not ring_m.any():
         return None
     bg_red = float(np.median(red[ring_m]))
@@ -290,13 +290,12 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     extent = np.maximum(stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT])
     ok = (diam >= cfg.diameter_frac[0] * W) & (diam <= cfg.diameter_frac[1] * W) & (extent <= cfg.max_extent_frac * W)
     ids = np.nonzero(ok)[0] + 1
-    if len(ids) > cfg.max_candidates:
-        from scipy import ndimage
-
-        full = np.zeros((H, W), np.int16)
-        full[sub] = contrast
-        peak = np.asarray(ndimage.maximum(full, labels, ids))
-        ids = ids[np.argsort(-peak, kind="stable")[: cfg.max_candidates]]
+    # A cheap first look: some red excess on or right around the spot (a laser always has a red
+    # rim); lamps, windows and white clothes in a bright scene have none. The reddest go first.
+    cheap = np.array([red[max(0, y - 2):y + h + 2, max(0, x - 2):x + w + 2].max()
+                      for x, y, w, h in stats[ids, :4]], dtype=np.float64).reshape(-1)
+    order = np.argsort(-cheap, kind="stable")
+    ids = ids[order][cheap[order] >= cfg.min_spot_redness][: cfg.max_candidates]
     out = []
     for lab in ids:
         x, y, w, h = stats[lab, :4]
@@ -349,6 +348,7 @@ class _Track:
     strength: list[float] = field(default_factory=list)
     ring: list[NDArray] = field(default_factory=list)
     after_strength: list[float] = field(default_factory=list)
+    after_xy: list[NDArray] = field(default_factory=list)
     after_ring: NDArray | None = None
 
     def predict(self, frame: int, motion: "_ImageMotion") -> tuple[NDArray | None, NDArray]:
@@ -371,6 +371,7 @@ class _Track:
         self.strength.append(float(cands.strength[k]))
         self.ring.append(cands.ring_rgb[k])
         self.after_strength.clear()  # it was only hidden: what follows its new last sighting counts
+        self.after_xy.clear()
         self.after_ring = None
 
 
@@ -479,6 +480,7 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
             p = preds[ti][0] if preds[ti][0] is not None else preds[ti][1]
             s, ring = spot_strength(img, p, _radius(t.diameter[-1]) + 1.0)
             t.after_strength.append(s)
+            t.after_xy.append(p)
             if t.after_ring is None:
                 t.after_ring = ring
         matched_c = {ci for _, ci in pairs}
@@ -498,10 +500,10 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
         return None
     if last + cfg.absent_frames >= n_read or len(t.after_strength) < cfg.absent_frames:
         return None  # not seen to stay gone (the frames ran out)
-    x, y = t.xy[-1]
     m = cfg.border_frac * W
-    if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
-        return None  # it left the field of view
+    for x, y in [t.xy[-1], *t.after_xy[: cfg.absent_frames]]:
+        if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
+            return None  # it left the field of view (or would have, moving with the image)
     before = float(np.median(t.strength[-3:]))
     after = max(t.after_strength[: cfg.absent_frames])
     contrast = float(np.clip((before - after) / max(before, 1.0), 0.0, 1.0))
@@ -509,7 +511,11 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     change = float(np.abs(t.after_ring - ring_before).mean()) if t.after_ring is not None else np.inf
     background = float(np.clip(1.0 - change / cfg.background_change, 0.0, 1.0)) if np.isfinite(change) else 0.0
     support = min(1.0, len(t.frames) / (2.0 * cfg.min_seen_frames))
-    return contrast * background * (0.5 + 0.5 * support)
+    # A laser dot is seen in (nearly) every frame it is on; a spot that flickers in and out of the
+    # detector is something else (texture at the detection limit).
+    density = len(t.frames) / (t.frames[-1] - t.frames[0] + 1)
+    steady = min(1.0, density / cfg.min_seen_fraction)
+    return contrast * background * (0.5 + 0.5 * support) * steady
 
 
 def detect_laser_event_in_frames(
