@@ -185,3 +185,31 @@ def test_specular_highlight_and_shirt_fold_are_not_candidates(scene):
     _speculars(0, img)
     _red_shirt(0, img)
     assert len(find_dot_candidates(img)) == 0
+
+
+# --------------------------------------------------------------------------- real video, no laser
+
+
+def test_no_event_in_real_videos_without_a_laser():
+    """Pose2Sim's real 4-camera demo (a person in a lab: lamps, windows, coloured clothes and
+    objects, no laser): no view gives an event."""
+    from shared_data import shared_data
+
+    cv2 = pytest.importorskip("cv2")
+    videos = shared_data("pose2sim_demo") / "videos"
+    if not videos.is_dir():
+        pytest.skip(f"Pose2Sim demo videos not found at {videos}")
+    cfg = SyncConfig(max_width=960)  # 1920 wide: half resolution keeps the test short
+    for path in sorted(videos.glob("cam*.mp4")):
+        cap = cv2.VideoCapture(str(path))
+        frames = []
+        while len(frames) < 40:
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            frames.append(np.ascontiguousarray(bgr[..., ::-1]))
+        cap.release()
+        assert len(frames) == 40, path
+        from embodmocap.sequence.sync import detect_laser_event_in_frames
+
+        assert detect_laser_event_in_frames(frames, cfg) is None, path

@@ -4,22 +4,28 @@ In a session someone shines a laser pointer on a wall both phones film, then swi
 first frame of a view *without* the dot is that view's sync (event) frame. The paper has a person
 read it off; here it is found automatically and a person only confirms it on a contact sheet.
 
-How the detector works, reading each frame once, in order, downscaled:
+How the detector works, reading each frame once, in order, at full resolution (up to
+``max_width``): a real dot is a 2-3 px over-exposed core with a 5-10 px red halo, on any wall.
 
-1. **Candidates** (:func:`find_dot_candidates`): pixels whose red excess ``r - max(g, b)`` is high
-   form connected blobs; a blob is kept if its brightest pixel is near saturation, it is small
-   (size limits relative to the image width) and its surroundings (a ring outside the glow) are not
-   red: a red shirt or a red chair is large or has red surroundings, so it does not count.
-2. **Tracks**: candidates are linked across frames (nearest neighbour within a gate that allows
-   camera motion of tens of pixels per frame, with a constant-velocity prediction). A track may
-   miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a moment by the
-   performer's arm and seen again at a consistent position is the same dot, not an event.
+1. **Candidates** (:func:`find_dot_candidates`): near-saturated red pixels that stand out from
+   their local background (top-hats of red and of red excess ``r - max(g, b)``) form small spots;
+   each spot is compared with a ring around it (robust statistics: median and upper percentiles,
+   so a textured or red wall is its own reference). A dot has a red rim confined to the spot and
+   either an over-exposed white core or a core far redder than the ring: specular highlights and
+   lamps have no red rim, the bright parts of red clothes and posters have as red pixels just
+   outside, red paint is not brighter than its surroundings.
+2. **Tracks**: the image's global motion between frames (phase correlation on a small grey copy)
+   predicts where a dot, fixed on the wall, moves while the phone moves; candidates are linked to
+   that prediction within a small residual gate (or to a constant-velocity guess in the next
+   frame). A track may miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a
+   moment by the performer's arm and seen again at a consistent position is the same dot.
 3. **Events**: a track seen for at least ``min_seen_frames`` that then stays gone for
-   ``absent_frames`` frames, whose last position is not at the image border (a dot that leaves the
-   field of view has not been switched off), ends with an event at the frame after its last sighting.
-4. **Confidence**: how red the dot was just before versus how red that spot is just after (clean
-   switch-off), whether the wall around the spot looks the same after (an occluder changes it),
-   and how long the dot was seen. The best-scoring track wins.
+   ``absent_frames`` frames, whose place stays inside the image (a dot that leaves the field of
+   view has not been switched off), ends with an event at the frame after its last sighting.
+4. **Confidence**: how strongly the spot stood out just before versus how strongly its place
+   (moved with the image) stands out just after (clean switch-off), whether the wall around the
+   spot looks the same after (an occluder changes it), how long and how steadily the dot was seen.
+   The best-scoring track wins.
 """
 
 from __future__ import annotations
@@ -72,6 +78,9 @@ class SyncConfig:
     min_core_whitening: float = 50.0
     """``min(g, b)`` of the brightest core pixel above the ring's median for an over-exposed
     (white) core."""
+    min_core_white_margin: float = 20.0
+    """...and by which it must exceed the ring's 95th percentile of ``min(g, b)``: an over-exposed
+    core is whiter than anything around it."""
     min_core_redness_gain: float = 110.0
     """Without a white core: red excess of the reddest pixel above the ring's median. A bright fold
     of a red shirt is only a little redder than the shirt; a red laser core on any wall is far
@@ -114,11 +123,16 @@ class SyncConfig:
     border_frac: float = 0.02
     """A track whose last position is within this fraction of the width from the image border
     left the field of view; it is not an event."""
+    gone_in_view_frames: int = 3
+    """The spot must be seen gone for this many frames at positions inside the image (its
+    position moved with the image): a spot whose place leaves the view was not switched off."""
     background_change: float = 50.0
     """Mean RGB change of the ring around the dot, from the last frame with it to the first
     without, at which the confidence drops to 0 (something moved in front of the dot)."""
-    min_confidence: float = 0.25
-    """Events scoring below this are not reported (the caller then asks for a manual frame)."""
+    min_confidence: float = 0.4
+    """Events scoring below this are not reported (the caller then asks for a manual frame). A
+    bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
+    realistic synthetic dots score 0.47-0.95."""
     search_s: float = 10.0
     """Only events in the first this many seconds of a capture are searched (the laser is
     switched off near the start of a recording)."""
@@ -183,7 +197,7 @@ def _channels(img: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uin
     return r, cv2.subtract(r, np.maximum(g, b)), np.minimum(g, b)
 
 
-def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float):
+def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float, white_margin: float):
     """Features of one spot given as a uint8 ``mask`` over a window of ``img`` (window arrays).
 
     Returns ``(rim_redness, core_redness, core_white, peak_redness, ring_rgb)``: red excess of the
@@ -202,7 +216,12 @@ def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float)
     bg_red = float(np.median(red[ring_m]))
     bg_white = float(np.median(white[ring_m]))
     core = mask.astype(bool)
-    core_white = float(white[core].max()) - bg_white
+    # An over-exposed core is whiter than anything around it: above the ring's median and, less a
+    # margin, its 95th percentile (a lit edge next to a darker floor is not).
+    whitest = float(white[core].max())
+    core_white = whitest - bg_white
+    if whitest - float(np.percentile(white[ring_m], 95)) < white_margin:
+        core_white = min(core_white, 0.0)
     # The rim: the spot and its surroundings less an over-exposed (white) centre, which has no red
     # excess however red the light is.
     rim_m = near & ~(core & (white.astype(np.float32) >= bg_white + 0.5 * max(core_white, 0.0) + 25))
@@ -305,7 +324,7 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
         x0, x1, y0, y1 = max(0, x - pad), min(W, x + w + pad), max(0, y - pad), min(H, y + h + pad)
         win = (slice(y0, y1), slice(x0, x1))
         f = _spot_features(img[win], red[win], white[win], (labels[win] == lab).astype(np.uint8), rim, ring,
-                           cfg.min_core_whitening)
+                           cfg.min_core_whitening, cfg.min_core_white_margin)
         if f is None:
             continue
         rim_red, core_red, core_white, peak_red, ring_rgb = f
@@ -501,7 +520,7 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     if last + cfg.absent_frames >= n_read or len(t.after_strength) < cfg.absent_frames:
         return None  # not seen to stay gone (the frames ran out)
     m = cfg.border_frac * W
-    for x, y in [t.xy[-1], *t.after_xy[: cfg.absent_frames]]:
+    for x, y in [t.xy[-1], *t.after_xy[: cfg.gone_in_view_frames]]:
         if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
             return None  # it left the field of view (or would have, moving with the image)
     before = float(np.median(t.strength[-3:]))
