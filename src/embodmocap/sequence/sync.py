@@ -56,13 +56,16 @@ class SyncConfig:
     """Settings of the laser-dot detector. Pixel values are 0-255 RGB; sizes in analysed pixels."""
 
     min_peak_red: int = 215
-    """Red value a dot's pixels must reach: a laser dot saturates (or nearly saturates) red."""
+    """Red value a dot's pixels must reach: a laser dot saturates red."""
     min_tophat_red: int = 20
-    """Red a seed pixel must exceed its local background by (white top-hat of the red channel
+    """...and by which they must exceed their local background (white top-hat of the red channel
     over ``background_px``): the dot is a small spot brighter than what surrounds it."""
+    min_peak_red_redcore: int = 185
+    """Red value pixels of a red (not white) core must reach: video's half-resolution chroma
+    pulls a small pure-red core down to ~200."""
     min_tophat_redness: int = 60
-    """...or red excess ``r - max(g, b)`` by which it must exceed its local background (top-hat):
-    a red core on a bright wall is not brighter in red, but much redder."""
+    """...and by which their red excess ``r - max(g, b)`` must exceed its local background
+    (top-hat): a red core on a bright wall is not brighter in red, but much redder."""
     background_px: int = 31
     """Size of the square structuring element of the top-hats (larger than any dot), pixels at
     640 wide (scaled with the analysed width)."""
@@ -97,8 +100,8 @@ class SyncConfig:
     as a fraction of the analysed image width."""
     min_spot_redness: int = 15
     """Red excess some pixel of a spot or the 2 px around it must reach to be examined at all."""
-    max_candidates: int = 32
-    """At most this many spots per frame are examined (the reddest first)."""
+    max_candidates: int = 48
+    """At most this many spots per frame are examined (those standing out most first)."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
     min_seen_fraction: float = 0.6
@@ -270,7 +273,8 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     over-exposed, green and blue too: a white core) with a red rim, on any wall. So:
 
     1. **seeds**: pixels with ``r >= min_peak_red`` that stand out from their local background
-       (white top-hat over ``background_px``) in red or in red excess;
+       (white top-hat over ``background_px``) in red, or with ``r >= min_peak_red_redcore`` that
+       stand out in red excess;
     2. **spots**: 8-connected seeds, of a plausible size (``diameter_frac``, ``max_extent_frac``);
     3. each spot is compared with a ring around it (median, robust to texture): it needs a red rim
        confined to the spot (``min_rim_redness``: rejects specular highlights, lamps and the
@@ -287,7 +291,7 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     H, W = img.shape[:2]
     empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
     r, red, white = _channels(img)
-    hot = r >= cfg.min_peak_red
+    hot = r >= min(cfg.min_peak_red, cfg.min_peak_red_redcore)
     if not hot.any():
         return empty
     k = max(15, int(round(cfg.background_px * W / 640)) | 1)
@@ -297,10 +301,14 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     by0, by1 = max(0, ys.min() - k), min(H, ys.max() + k + 1)
     bx0, bx1 = max(0, xs.min() - k), min(W, xs.max() + k + 1)
     sub = (slice(by0, by1), slice(bx0, bx1))
-    contrast = np.maximum(cv2.morphologyEx(r[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_red,
-                          cv2.morphologyEx(red[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_redness)
+    rs = r[sub]
+    c_red = cv2.morphologyEx(rs, cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_red
+    c_redness = cv2.morphologyEx(red[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_redness
+    c_red[rs < cfg.min_peak_red] = -1
+    c_redness[rs < cfg.min_peak_red_redcore] = -1
+    contrast = np.maximum(c_red, c_redness)
     seed = np.zeros((H, W), np.uint8)
-    seed[sub] = (hot[sub] & (contrast >= 0)).astype(np.uint8)
+    seed[sub] = (contrast >= 0).astype(np.uint8)
     n, labels, stats, cents = cv2.connectedComponentsWithStats(seed, connectivity=8)
     if n <= 1:
         return empty
@@ -310,11 +318,16 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     ok = (diam >= cfg.diameter_frac[0] * W) & (diam <= cfg.diameter_frac[1] * W) & (extent <= cfg.max_extent_frac * W)
     ids = np.nonzero(ok)[0] + 1
     # A cheap first look: some red excess on or right around the spot (a laser always has a red
-    # rim); lamps, windows and white clothes in a bright scene have none. The reddest go first.
-    cheap = np.array([red[max(0, y - 2):y + h + 2, max(0, x - 2):x + w + 2].max()
-                      for x, y, w, h in stats[ids, :4]], dtype=np.float64).reshape(-1)
-    order = np.argsort(-cheap, kind="stable")
-    ids = ids[order][cheap[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    # rim); lamps, windows and white clothes in a bright scene have none. The spots that stand
+    # out most from their background (top-hat) go first.
+    boxes = stats[ids, :4]
+    reddest = np.array([red[max(0, y - 2):y + h + 2, max(0, x - 2):x + w + 2].max() for x, y, w, h in boxes],
+                       dtype=np.float64).reshape(-1)
+    full = np.zeros((H, W), np.int16)
+    full[sub] = contrast
+    standout = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
+    order = np.argsort(-standout, kind="stable")
+    ids = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
     out = []
     for lab in ids:
         x, y, w, h = stats[lab, :4]
