@@ -135,7 +135,7 @@ class SyncConfig:
     min_confidence: float = 0.4
     """Events scoring below this are not reported (the caller then asks for a manual frame). A
     bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
-    realistic synthetic dots score 0.47-0.95."""
+    the benchmark's realistic dots score 0.51-0.93, of its easy dots 0.70-0.89."""
     search_s: float = 10.0
     """Only events in the first this many seconds of a capture are searched (the laser is
     switched off near the start of a recording)."""
