@@ -4,22 +4,28 @@ In a session someone shines a laser pointer on a wall both phones film, then swi
 first frame of a view *without* the dot is that view's sync (event) frame. The paper has a person
 read it off; here it is found automatically and a person only confirms it on a contact sheet.
 
-How the detector works, reading each frame once, in order, downscaled:
+How the detector works, reading each frame once, in order, at full resolution (up to
+``max_width``): a real dot is a 2-3 px over-exposed core with a 5-10 px red halo, on any wall.
 
-1. **Candidates** (:func:`find_dot_candidates`): pixels whose red excess ``r - max(g, b)`` is high
-   form connected blobs; a blob is kept if its brightest pixel is near saturation, it is small
-   (size limits relative to the image width) and its surroundings (a ring outside the glow) are not
-   red: a red shirt or a red chair is large or has red surroundings, so it does not count.
-2. **Tracks**: candidates are linked across frames (nearest neighbour within a gate that allows
-   camera motion of tens of pixels per frame, with a constant-velocity prediction). A track may
-   miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a moment by the
-   performer's arm and seen again at a consistent position is the same dot, not an event.
+1. **Candidates** (:func:`find_dot_candidates`): near-saturated red pixels that stand out from
+   their local background (top-hats of red and of red excess ``r - max(g, b)``) form small spots;
+   each spot is compared with a ring around it (robust statistics: median and upper percentiles,
+   so a textured or red wall is its own reference). A dot has a red rim confined to the spot and
+   either an over-exposed white core or a core far redder than the ring: specular highlights and
+   lamps have no red rim, the bright parts of red clothes and posters have as red pixels just
+   outside, red paint is not brighter than its surroundings.
+2. **Tracks**: the image's global motion between frames (phase correlation on a small grey copy)
+   predicts where a dot, fixed on the wall, moves while the phone moves; candidates are linked to
+   that prediction within a small residual gate (or to a constant-velocity guess in the next
+   frame). A track may miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a
+   moment by the performer's arm and seen again at a consistent position is the same dot.
 3. **Events**: a track seen for at least ``min_seen_frames`` that then stays gone for
-   ``absent_frames`` frames, whose last position is not at the image border (a dot that leaves the
-   field of view has not been switched off), ends with an event at the frame after its last sighting.
-4. **Confidence**: how red the dot was just before versus how red that spot is just after (clean
-   switch-off), whether the wall around the spot looks the same after (an occluder changes it),
-   and how long the dot was seen. The best-scoring track wins.
+   ``absent_frames`` frames, whose place stays inside the image (a dot that leaves the field of
+   view has not been switched off), ends with an event at the frame after its last sighting.
+4. **Confidence**: how strongly the spot stood out just before versus how strongly its place
+   (moved with the image) stands out just after (clean switch-off), whether the wall around the
+   spot looks the same after (an occluder changes it), how long and how steadily the dot was seen.
+   The best-scoring track wins.
 """
 
 from __future__ import annotations
@@ -47,41 +53,95 @@ SYNC_JSON_VERSION = 1
 
 @dataclass(frozen=True)
 class SyncConfig:
-    """Settings of the laser-dot detector. Pixel values are 0-255 RGB."""
+    """Settings of the laser-dot detector. Pixel values are 0-255 RGB; sizes in analysed pixels."""
 
-    min_redness: int = 90
-    """Red excess ``r - max(g, b)`` a pixel needs to belong to a dot blob (core and inner glow)."""
-    min_peak_red: int = 200
-    """Red value the brightest pixel of a blob must reach: a laser dot saturates the sensor."""
+    min_peak_red: int = 215
+    """Red value a dot's pixels must reach: a laser dot saturates red."""
+    min_tophat_red: int = 20
+    """...and by which they must exceed their local background (white top-hat of the red channel
+    over ``background_px``): the dot is a small spot brighter than what surrounds it."""
+    min_peak_red_redcore: int = 185
+    """Red value pixels of a red (not white) core must reach: video's half-resolution chroma
+    pulls a small pure-red core down to ~200."""
+    min_tophat_redness: int = 60
+    """...and by which their red excess ``r - max(g, b)`` must exceed its local background
+    (top-hat): a red core on a bright wall is not brighter in red, but much redder."""
+    background_px: int = 31
+    """Size of the square structuring element of the top-hats (larger than any dot), pixels at
+    640 wide (scaled with the analysed width)."""
+    min_rim_redness: float = 30.0
+    """Red excess the rim of a dot with a red (not white) core needs (80th percentile over the spot and the 2 px around it, less a
+    white centre) above the ring's 90th percentile: the red rim, confined to a small spot. A
+    specular highlight or a lamp has no red rim; the bright part of a red shirt or poster has as
+    red pixels just outside it."""
+    min_rim_redness_white: float = 10.0
+    """The same for a spot with an over-exposed white core, above the ring's 75th percentile: a
+    white spot with a red rim. A specular highlight's rim is as neutral as (or, on a red wall,
+    less red than) the wall."""
+    min_core_whitening: float = 50.0
+    """``min(g, b)`` of the brightest core pixel above the ring's median for an over-exposed
+    (white) core."""
+    min_core_white_margin: float = 20.0
+    """...and by which it must exceed the ring's 95th percentile of ``min(g, b)``: an over-exposed
+    core is whiter than anything around it."""
+    min_core_redness_gain: float = 110.0
+    """Without a white core: red excess of the reddest pixel above the ring's median. A bright fold
+    of a red shirt is only a little redder than the shirt; a red laser core on any wall is far
+    redder than the wall."""
     min_peak_redness: int = 140
-    """Red excess the most saturated pixel of a blob must reach (dull red paint stays below)."""
-    max_ring_redness: float = 40.0
-    """Largest mean red excess of the ring around a blob: a dot is red on a not-red background,
-    a speck on a red shirt or red furniture is not."""
-    diameter_frac: tuple[float, float] = (0.003, 0.05)
-    """Smallest and largest blob diameter (``2 sqrt(area / pi)``), as fractions of the analysed
-    image width."""
+    """Without a white core: red excess the reddest pixel itself must reach."""
+    rim_px: float = 3.0
+    """Width of the rim around the saturated spot where the red halo is looked for, pixels."""
+    diameter_frac: tuple[float, float] = (0.0, 0.05)
+    """Smallest and largest equivalent diameter (``2 sqrt(area / pi)``) of the saturated spot, as
+    fractions of the analysed image width."""
+    max_extent_frac: float = 0.07
+    """Largest bounding-box side of the saturated spot (a motion-blurred dot is a short streak),
+    as a fraction of the analysed image width."""
+    min_spot_redness: int = 15
+    """Red excess some pixel of a spot or the 2 px around it must reach to be examined at all."""
+    max_candidates: int = 48
+    """At most this many spots per frame are examined (those standing out most first)."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
+    min_seen_fraction: float = 0.6
+    """Share of the frames from a track's first to its last sighting in which it must be seen
+    for full confidence (scaled down below): a dot is seen in nearly every frame it is on,
+    brief occlusions aside."""
     absent_frames: int = 8
     """Frames the dot must stay gone after the event; a dot that comes back within this many
     frames at a consistent position was only hidden, not switched off."""
     max_step_frac: float = 0.06
-    """Largest motion of the dot between consecutive frames (camera shake and panning), as a
-    fraction of the image width; the gate grows with the number of frames missed."""
+    """Largest distance of the dot from its constant-velocity prediction in the next frame (camera
+    shake and panning), as a fraction of the image width. After missed frames only the prediction
+    by the image's global motion is used (``max_residual_frac``)."""
+    max_residual_frac: float = 0.02
+    """Largest motion of the dot relative to the image's global motion between consecutive frames
+    (the dot is rigid with the wall), as a fraction of the image width; grows by a quarter per
+    frame missed."""
+    motion_width: int = 160
+    """Frames are reduced to this width to measure the image's global motion (phase correlation)."""
+    min_motion_response: float = 0.05
+    """Phase-correlation peak below which a frame's global motion counts as unknown."""
     border_frac: float = 0.02
     """A track whose last position is within this fraction of the width from the image border
     left the field of view; it is not an event."""
+    gone_in_view_frames: int = 3
+    """The spot must be seen gone for this many frames at positions inside the image (its
+    position moved with the image): a spot whose place leaves the view was not switched off."""
     background_change: float = 50.0
     """Mean RGB change of the ring around the dot, from the last frame with it to the first
     without, at which the confidence drops to 0 (something moved in front of the dot)."""
-    min_confidence: float = 0.25
-    """Events scoring below this are not reported (the caller then asks for a manual frame)."""
+    min_confidence: float = 0.4
+    """Events scoring below this are not reported (the caller then asks for a manual frame). A
+    bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
+    the benchmark's realistic dots score 0.51-0.93, of its easy dots 0.70-0.89."""
     search_s: float = 10.0
     """Only events in the first this many seconds of a capture are searched (the laser is
     switched off near the start of a recording)."""
-    max_width: int = 640
-    """Frames wider than this are downscaled (area averaging) to this width before analysis."""
+    max_width: int = 1920
+    """Frames wider than this are downscaled (area averaging) to this width before analysis. A
+    real dot is 2-3 px across: analyse at full resolution whenever possible."""
 
 
 @dataclass(frozen=True)
@@ -109,16 +169,20 @@ class DotCandidates:
     """Dot candidates of one frame, in pixels of the analysed (possibly downscaled) image.
 
     Attributes:
-        xy: (N, 2) blob centroids (x, y).
-        diameter: (N,) equivalent diameters ``2 sqrt(area / pi)``.
-        peak_redness: (N,) largest red excess ``r - max(g, b)`` inside the blob.
-        ring_rgb: (N, 3) mean RGB of the ring around the blob (outside the glow).
+        xy: (N, 2) centroids (x, y) of the saturated spots.
+        diameter: (N,) equivalent diameters ``2 sqrt(area / pi)`` of the saturated spots.
+        peak_redness: (N,) largest red excess ``r - max(g, b)`` in the spot and its rim.
+        ring_rgb: (N, 3) mean RGB of the ring around the spot (outside the halo).
+        strength: (N,) how much the spot stands out from that ring (:func:`spot_strength`).
+        white: (N,) ``min(g, b)`` of the core above the ring's median (> 0: over-exposed core).
     """
 
     xy: NDArray[np.float64]
     diameter: NDArray[np.float64]
     peak_redness: NDArray[np.float64]
     ring_rgb: NDArray[np.float64]
+    strength: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    white: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -127,100 +191,180 @@ class DotCandidates:
 # --------------------------------------------------------------------------- per-frame candidates
 
 
-def _box_sums(integral: NDArray, x0: NDArray, y0: NDArray, x1: NDArray, y1: NDArray) -> NDArray:
-    """Sums over boxes [x0, x1) x [y0, y1) of an OpenCV integral image (H+1, W+1[, C])."""
-    return integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+def _channels(img: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8], NDArray[np.uint8]]:
+    """Red, red excess ``max(0, r - max(g, b))`` and ``min(g, b)`` of an (H, W, 3) uint8 image."""
+    import cv2
+
+    r = np.ascontiguousarray(img[..., 0])
+    g, b = img[..., 1], img[..., 2]
+    return r, cv2.subtract(r, np.maximum(g, b)), np.minimum(g, b)
 
 
-def _ring_geometry(bx, by, bw, bh, W: int, H: int):
-    """Inner (skipped, covers the glow) and outer boxes of the ring around blob bounding boxes."""
-    size = np.maximum(bw, bh)
-    pad = np.ceil(0.8 * size).astype(int) + 1  # the glow reaches about 2.2 dot radii
-    ring = np.maximum(3, size)
-    inner = (np.clip(bx - pad, 0, W), np.clip(by - pad, 0, H),
-             np.clip(bx + bw + pad, 0, W), np.clip(by + bh + pad, 0, H))
-    outer = (np.clip(bx - pad - ring, 0, W), np.clip(by - pad - ring, 0, H),
-             np.clip(bx + bw + pad + ring, 0, W), np.clip(by + bh + pad + ring, 0, H))
-    return inner, outer
+def _spot_features(img, red, white, mask, rim: int, ring: int, min_white: float, white_margin: float):
+    """Features of one spot given as a uint8 ``mask`` over a window of ``img`` (window arrays).
+
+    Returns ``(rim_redness, core_redness, core_white, peak_redness, ring_rgb)``: red excess of the
+    spot and the 2 px around it less its white centre (80th percentile) above the ring's 90th
+    percentile (75th for a white core, ``core_white >= min_white``); red excess of its reddest pixel and ``min(g, b)`` of its whitest pixel above the
+    ring's medians; the reddest pixel's red excess; the ring's mean RGB.
+    """
+    import cv2
+
+    # Distance of every window pixel to the spot (one transform gives every band).
+    dist = cv2.distanceTransform((mask == 0).astype(np.uint8), cv2.DIST_L2, 3)
+    near = dist <= 2  # the spot and the 2 px around it: the red rim
+    ring_m = (dist > rim + 1) & (dist <= rim + 1 + ring)
+    if not ring_m.any():
+        return None
+    bg_red = float(np.median(red[ring_m]))
+    bg_white = float(np.median(white[ring_m]))
+    core = mask.astype(bool)
+    # An over-exposed core is whiter than anything around it: above the ring's median and, less a
+    # margin, its 95th percentile (a lit edge next to a darker floor is not).
+    whitest = float(white[core].max())
+    core_white = whitest - bg_white
+    if whitest - float(np.percentile(white[ring_m], 95)) < white_margin:
+        core_white = min(core_white, 0.0)
+    # The rim: the spot and its surroundings less an over-exposed (white) centre, which has no red
+    # excess however red the light is.
+    rim_m = near & ~(core & (white.astype(np.float32) >= bg_white + 0.5 * max(core_white, 0.0) + 25))
+    vals = red[rim_m] if rim_m.any() else red[near]
+    # The rim against the ring's *redder* pixels (90th percentile): the laser's red is confined to
+    # a small spot, while the bright part of a red shirt or poster has as red pixels just outside.
+    # For a white core the ring's 75th percentile: video's half-resolution chroma dilutes a thin
+    # red rim, and a white spot is no bright part of red cloth.
+    rim80 = float(np.percentile(vals, 80))
+    ring75, ring90 = np.percentile(red[ring_m], [75, 90])
+    rim_red = rim80 - float(ring75 if core_white >= min_white else ring90)
+    return rim_red, float(vals.max()) - bg_red, core_white, float(vals.max()), img[ring_m].reshape(-1, 3).mean(0)
 
 
-def _ring_means(integral: NDArray, inner, outer) -> NDArray:
-    """Mean of the integral's channels over outer-minus-inner boxes; (N,) or (N, C)."""
-    area = ((outer[2] - outer[0]) * (outer[3] - outer[1]) - (inner[2] - inner[0]) * (inner[3] - inner[1]))
-    s = _box_sums(integral, *outer) - _box_sums(integral, *inner)
-    area = np.maximum(area, 1).astype(np.float64)
-    return s / (area[:, None] if s.ndim == 2 else area)
+def spot_strength(img: NDArray[np.uint8], xy, radius: float, ring: int = 5) -> tuple[float, NDArray]:
+    """How much a laser-like spot near ``xy`` stands out from its surroundings; and the ring's RGB.
+
+    Within ``radius`` px of ``xy``: the largest red excess above the median red excess of a ring
+    (``radius + 2 .. radius + 2 + ring`` px), plus half the largest ``min(g, b)`` above the ring's
+    median (an over-exposed core). The same measure is taken where the dot was last seen and where
+    it would be after the event, so their ratio says how cleanly it went out. ``(0, nan)`` outside
+    the image.
+    """
+    H, W = img.shape[:2]
+    R = int(math.ceil(radius)) + 2 + ring
+    cx, cy = int(round(xy[0])), int(round(xy[1]))
+    x0, x1, y0, y1 = max(0, cx - R), min(W, cx + R + 1), max(0, cy - R), min(H, cy + R + 1)
+    if x0 >= x1 or y0 >= y1:
+        return 0.0, np.full(3, np.nan)
+    patch = img[y0:y1, x0:x1]
+    _, red, white = _channels(patch)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = np.hypot(xx - xy[0], yy - xy[1])
+    inside, ring_m = d <= radius, (d > radius + 2) & (d <= radius + 2 + ring)
+    if not inside.any() or not ring_m.any():
+        return 0.0, np.full(3, np.nan)
+    s_red = float(red[inside].max()) - float(np.median(red[ring_m]))
+    s_white = float(white[inside].max()) - float(np.median(white[ring_m]))
+    return max(0.0, s_red) + 0.5 * max(0.0, s_white), patch[ring_m].reshape(-1, 3).mean(0)
 
 
 def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) -> DotCandidates:
-    """Small, saturated red blobs on a not-red background in one (H, W, 3) uint8 RGB image.
+    """Laser-dot-like spots in one (H, W, 3) uint8 RGB image, at its full resolution.
 
-    No downscaling here: coordinates and sizes are in pixels of ``rgb``.
+    A laser dot as a phone records it is a very small spot whose core saturates red (and, when
+    over-exposed, green and blue too: a white core) with a red rim, on any wall. So:
+
+    1. **seeds**: pixels with ``r >= min_peak_red`` that stand out from their local background
+       (white top-hat over ``background_px``) in red, or with ``r >= min_peak_red_redcore`` that
+       stand out in red excess;
+    2. **spots**: 8-connected seeds, of a plausible size (``diameter_frac``, ``max_extent_frac``);
+    3. each spot is compared with a ring around it (median, robust to texture): it needs a red rim
+       confined to the spot (``min_rim_redness``: rejects specular highlights, lamps and the
+       bright parts of red clothes and posters) and either an over-exposed
+       white core (``min_core_whitening``) or a core far redder than the ring
+       (``min_core_redness_gain`` and ``min_peak_redness``: rejects bright folds of red clothes
+       and red paint on red walls).
+
+    Coordinates and sizes are in pixels of ``rgb``.
     """
     import cv2
-    from scipy import ndimage
 
     img = np.asarray(rgb)
     H, W = img.shape[:2]
-    r = img[..., 0].astype(np.int16)
-    redness = r - np.maximum(img[..., 1], img[..., 2]).astype(np.int16)
-    mask = (redness >= cfg.min_redness).astype(np.uint8)
-    n, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+    empty = DotCandidates(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    r, red, white = _channels(img)
+    hot = r >= min(cfg.min_peak_red, cfg.min_peak_red_redcore)
+    if not hot.any():
+        return empty
+    k = max(15, int(round(cfg.background_px * W / 640)) | 1)
+    ker = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    # Top-hats only over the rows and columns that hold hot pixels (plus the element's reach).
+    ys, xs = np.nonzero(hot)
+    by0, by1 = max(0, ys.min() - k), min(H, ys.max() + k + 1)
+    bx0, bx1 = max(0, xs.min() - k), min(W, xs.max() + k + 1)
+    sub = (slice(by0, by1), slice(bx0, bx1))
+    rs = r[sub]
+    c_red = cv2.morphologyEx(rs, cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_red
+    c_redness = cv2.morphologyEx(red[sub], cv2.MORPH_TOPHAT, ker).astype(np.int16) - cfg.min_tophat_redness
+    c_red[rs < cfg.min_peak_red] = -1
+    c_redness[rs < cfg.min_peak_red_redcore] = -1
+    contrast = np.maximum(c_red, c_redness)
+    seed = np.zeros((H, W), np.uint8)
+    seed[sub] = (contrast >= 0).astype(np.uint8)
+    n, labels, stats, cents = cv2.connectedComponentsWithStats(seed, connectivity=8)
     if n <= 1:
         return empty
     area = stats[1:, cv2.CC_STAT_AREA].astype(np.float64)
     diam = 2.0 * np.sqrt(area / np.pi)
-    lo, hi = cfg.diameter_frac[0] * W, cfg.diameter_frac[1] * W
-    ids = np.nonzero((diam >= lo) & (diam <= hi))[0] + 1  # label ids of blobs of a plausible size
-    if len(ids) == 0:
+    extent = np.maximum(stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT])
+    ok = (diam >= cfg.diameter_frac[0] * W) & (diam <= cfg.diameter_frac[1] * W) & (extent <= cfg.max_extent_frac * W)
+    ids = np.nonzero(ok)[0] + 1
+    # A cheap first look: some red excess on or right around the spot (a laser always has a red
+    # rim); lamps, windows and white clothes in a bright scene have none. The spots that stand
+    # out most from their background (top-hat) go first.
+    boxes = stats[ids, :4]
+    reddest = np.array([red[max(0, y - 2):y + h + 2, max(0, x - 2):x + w + 2].max() for x, y, w, h in boxes],
+                       dtype=np.float64).reshape(-1)
+    full = np.zeros((H, W), np.int16)
+    full[sub] = contrast
+    standout = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
+    order = np.argsort(-standout, kind="stable")
+    ids = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    out = []
+    for lab in ids:
+        x, y, w, h = stats[lab, :4]
+        rim = int(math.ceil(max(cfg.rim_px, 0.5 * max(w, h))))
+        ring = max(4, int(max(w, h)))
+        pad = rim + 2 + ring
+        x0, x1, y0, y1 = max(0, x - pad), min(W, x + w + pad), max(0, y - pad), min(H, y + h + pad)
+        win = (slice(y0, y1), slice(x0, x1))
+        f = _spot_features(img[win], red[win], white[win], (labels[win] == lab).astype(np.uint8), rim, ring,
+                           cfg.min_core_whitening, cfg.min_core_white_margin)
+        if f is None:
+            continue
+        rim_red, core_red, core_white, peak_red, ring_rgb = f
+        white_dot = core_white >= cfg.min_core_whitening and rim_red >= cfg.min_rim_redness_white
+        red_dot = (core_red >= cfg.min_core_redness_gain and peak_red >= cfg.min_peak_redness
+                   and rim_red >= cfg.min_rim_redness)
+        is_dot = white_dot or red_dot
+        if is_dot:
+            s, _ = spot_strength(img, cents[lab], _radius(diam[lab - 1]))
+            out.append((cents[lab], diam[lab - 1], peak_red, ring_rgb, s, core_white))
+    if not out:
         return empty
-    peak_r = np.asarray(ndimage.maximum(r, labels, ids), dtype=np.float64)
-    peak_red = np.asarray(ndimage.maximum(redness, labels, ids), dtype=np.float64)
-    keep = (peak_r >= cfg.min_peak_red) & (peak_red >= cfg.min_peak_redness)
-    ids, peak_red = ids[keep], peak_red[keep]
-    if len(ids) == 0:
-        return empty
-    st = stats[ids]
-    inner, outer = _ring_geometry(st[:, 0], st[:, 1], st[:, 2], st[:, 3], W, H)
-    # Integral images make every ring mean O(1) whatever the number of blobs.
-    ring_red = _ring_means(cv2.integral(np.clip(redness, 0, 255).astype(np.uint8)), inner, outer)
-    ring_rgb = _ring_means(cv2.integral(img), inner, outer)
-    ok = ring_red <= cfg.max_ring_redness
-    ids = ids[ok]
-    return DotCandidates(cents[ids].astype(np.float64), diam[ids - 1], peak_red[ok], ring_rgb[ok])
+    # One dot, one candidate: a textured wall or a motion streak can split a spot in two; keep the
+    # strongest of spots whose rims overlap.
+    out.sort(key=lambda c: -c[4])
+    kept: list[tuple] = []
+    for c in out:
+        if all(np.hypot(*(c[0] - k[0])) > max(c[1], k[1]) + 2 * cfg.rim_px for k in kept):
+            kept.append(c)
+    xy, d, pr, rr, st, wh = zip(*kept)
+    return DotCandidates(np.array(xy, np.float64), np.array(d, np.float64), np.array(pr, np.float64),
+                         np.array(rr, np.float64), np.array(st, np.float64), np.array(wh, np.float64))
 
 
-def _local_redness(rgb: NDArray[np.uint8], xy: NDArray, radius: float) -> float:
-    """Largest red excess within ``radius`` px (a square) of ``xy``; 0 when outside the image."""
-    H, W = rgb.shape[:2]
-    x0, x1 = int(max(0, math.floor(xy[0] - radius))), int(min(W, math.ceil(xy[0] + radius) + 1))
-    y0, y1 = int(max(0, math.floor(xy[1] - radius))), int(min(H, math.ceil(xy[1] + radius) + 1))
-    if x0 >= x1 or y0 >= y1:
-        return 0.0
-    patch = rgb[y0:y1, x0:x1].astype(np.int16)
-    return float(max(0, (patch[..., 0] - np.maximum(patch[..., 1], patch[..., 2])).max()))
-
-
-def _ring_rgb_at(rgb: NDArray[np.uint8], xy: NDArray, diameter: float) -> NDArray:
-    """Mean RGB of the ring a blob of ``diameter`` centred at ``xy`` would have."""
-    import cv2
-
-    H, W = rgb.shape[:2]
-    d = max(1, int(round(diameter)))
-    bx = np.array([int(round(xy[0] - d / 2))])
-    by = np.array([int(round(xy[1] - d / 2))])
-    inner, outer = _ring_geometry(bx, by, np.array([d]), np.array([d]), W, H)
-    x0, y0, x1, y1 = (int(v[0]) for v in outer)
-    if x0 >= x1 or y0 >= y1:
-        return np.full(3, np.nan)
-    # Only the outer box's neighbourhood is needed: integrate that crop, not the whole frame.
-    crop = np.ascontiguousarray(rgb[y0:y1, x0:x1])
-
-    def in_crop(box):
-        return tuple(np.array([v[0] - o]) for v, o in zip(box, (x0, y0, x0, y0)))
-
-    return _ring_means(cv2.integral(crop), in_crop(inner), in_crop(outer))[0]
+def _radius(diameter: float) -> float:
+    """Radius within which :func:`spot_strength` looks for a spot of this saturated diameter."""
+    return max(2.0, 0.5 * float(diameter) + 1.0)
 
 
 # --------------------------------------------------------------------------- tracking
@@ -233,27 +377,72 @@ class _Track:
     frames: list[int] = field(default_factory=list)
     xy: list[NDArray] = field(default_factory=list)
     diameter: list[float] = field(default_factory=list)
-    peak: list[float] = field(default_factory=list)
+    strength: list[float] = field(default_factory=list)
     ring: list[NDArray] = field(default_factory=list)
-    after_redness: list[float] = field(default_factory=list)
+    after_strength: list[float] = field(default_factory=list)
+    after_xy: list[NDArray] = field(default_factory=list)
     after_ring: NDArray | None = None
 
-    def predict(self, frame: int) -> NDArray:
-        """Constant-velocity prediction of the position at ``frame``."""
+    def predict(self, frame: int, motion: "_ImageMotion") -> tuple[NDArray | None, NDArray]:
+        """Two guesses of the position at ``frame``: rigid with the image (the last position
+        moved by the image's global motion since; None where that motion is unknown), and
+        constant velocity. A dot on a wall moves with the wall; the second guess covers the
+        frames where the global motion is off (strong motion blur, a large occluder)."""
+        last = self.frames[-1]
+        rigid = self.xy[-1] + motion.shift(last, frame) if motion.known(last, frame) else None
         p = self.xy[-1]
         if len(self.frames) >= 2:
             v = (self.xy[-1] - self.xy[-2]) / (self.frames[-1] - self.frames[-2])
-            p = p + v * (frame - self.frames[-1])
-        return p
+            p = p + v * (frame - last)
+        return rigid, p
 
     def add(self, frame: int, cands: DotCandidates, k: int) -> None:
         self.frames.append(frame)
         self.xy.append(cands.xy[k])
         self.diameter.append(float(cands.diameter[k]))
-        self.peak.append(float(cands.peak_redness[k]))
+        self.strength.append(float(cands.strength[k]))
         self.ring.append(cands.ring_rgb[k])
-        self.after_redness.clear()  # it was only hidden: what follows its new last sighting counts
+        self.after_strength.clear()  # it was only hidden: what follows its new last sighting counts
+        self.after_xy.clear()
         self.after_ring = None
+
+
+class _ImageMotion:
+    """The image's global translation between consecutive frames (phase correlation on a small
+    grey copy), accumulated so the shift between any two frames read is a subtraction."""
+
+    def __init__(self, cfg: SyncConfig) -> None:
+        self.cfg = cfg
+        self.cum: list[NDArray] = []  # cumulative shift (x, y) in analysed pixels, per frame
+        self.bad: list[int] = []  # cumulative count of frames whose shift is unknown
+        self._prev = None
+        self._win = None
+
+    def add(self, img: NDArray[np.uint8]) -> None:
+        import cv2
+
+        H, W = img.shape[:2]
+        mw = min(W, self.cfg.motion_width)
+        mh = max(8, int(round(H * mw / W)))
+        g = cv2.resize(cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY), (mw, mh),
+                       interpolation=cv2.INTER_AREA).astype(np.float32)
+        shift, ok = np.zeros(2), False
+        if self._prev is not None and self._prev.shape == g.shape:
+            if self._win is None or self._win.shape != g.shape:
+                self._win = cv2.createHanningWindow((mw, mh), cv2.CV_32F)
+            (dx, dy), resp = cv2.phaseCorrelate(self._prev, g, self._win)
+            if resp >= self.cfg.min_motion_response:
+                shift, ok = np.array([dx, dy]) * (W / mw), True
+        first = not self.cum
+        self.cum.append(shift if first else self.cum[-1] + shift)
+        self.bad.append(0 if first else self.bad[-1] + (0 if ok else 1))
+        self._prev = g
+
+    def known(self, a: int, b: int) -> bool:
+        return self.bad[b] == self.bad[a]
+
+    def shift(self, a: int, b: int) -> NDArray:
+        return self.cum[b] - self.cum[a]
 
 
 def _greedy_pairs(dist: NDArray, ok: NDArray) -> list[tuple[int, int]]:
@@ -286,22 +475,31 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
     """
     active: list[_Track] = []
     done: list[_Track] = []
+    motion = _ImageMotion(cfg)
     n_read, size = 0, (0, 0)
     for f, rgb in enumerate(frames):
         img, _ = _downscale(np.asarray(rgb), cfg.max_width)
         H, W = img.shape[:2]
         size, n_read = (W, H), f + 1
-        step_px = cfg.max_step_frac * W
+        motion.add(img)
         # Tracks unseen for absent_frames frames are finished; the rest may still be matched.
         still = [t for t in active if f - t.frames[-1] < cfg.absent_frames + 1]
         done += [t for t in active if f - t.frames[-1] >= cfg.absent_frames + 1]
         active = still
         cands = find_dot_candidates(img, cfg)
+        preds = [t.predict(f, motion) for t in active]
         if active and len(cands):
-            pred = np.stack([t.predict(f) for t in active])
             gap = np.array([f - t.frames[-1] for t in active], dtype=np.float64)
-            dist = np.linalg.norm(pred[:, None, :] - cands.xy[None, :, :], axis=2)
-            pairs = _greedy_pairs(dist, dist <= step_px * gap[:, None])
+            # Rigid with the image: only a small residual (parallax, the hand holding the pointer),
+            # growing slowly with the frames missed. Constant velocity: the wide gate, next frame only.
+            g_rigid = cfg.max_residual_frac * W * (1 + 0.25 * (gap - 1))
+            cv = np.stack([p for _, p in preds])
+            d = np.linalg.norm(cv[:, None, :] - cands.xy[None, :, :], axis=2) / (cfg.max_step_frac * W)
+            d[gap > 1] = np.inf
+            for ti, (rigid, _) in enumerate(preds):
+                if rigid is not None:
+                    d[ti] = np.minimum(d[ti], np.linalg.norm(cands.xy - rigid, axis=1) / g_rigid[ti])
+            pairs = _greedy_pairs(d, d <= 1.0)
         else:
             pairs = []
         matched_t = {ti for ti, _ in pairs}
@@ -311,10 +509,12 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
         for ti, t in enumerate(active):
             if ti in matched_t:
                 continue
-            p = t.predict(f)
-            t.after_redness.append(_local_redness(img, p, max(3.0, t.diameter[-1])))
+            p = preds[ti][0] if preds[ti][0] is not None else preds[ti][1]
+            s, ring = spot_strength(img, p, _radius(t.diameter[-1]) + 1.0)
+            t.after_strength.append(s)
+            t.after_xy.append(p)
             if t.after_ring is None:
-                t.after_ring = _ring_rgb_at(img, p, t.diameter[-1])
+                t.after_ring = ring
         matched_c = {ci for _, ci in pairs}
         for ci in range(len(cands)):
             if ci not in matched_c:
@@ -330,20 +530,24 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     last = t.frames[-1]
     if len(t.frames) < cfg.min_seen_frames or last + 1 > last_allowed:
         return None
-    if last + cfg.absent_frames >= n_read or len(t.after_redness) < cfg.absent_frames:
+    if last + cfg.absent_frames >= n_read or len(t.after_strength) < cfg.absent_frames:
         return None  # not seen to stay gone (the frames ran out)
-    x, y = t.xy[-1]
     m = cfg.border_frac * W
-    if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
-        return None  # it left the field of view
-    before = float(np.median(t.peak[-3:]))
-    after = max(t.after_redness[: cfg.absent_frames])
+    for x, y in [t.xy[-1], *t.after_xy[: cfg.gone_in_view_frames]]:
+        if x < m or y < m or x > W - 1 - m or y > H - 1 - m:
+            return None  # it left the field of view (or would have, moving with the image)
+    before = float(np.median(t.strength[-3:]))
+    after = max(t.after_strength[: cfg.absent_frames])
     contrast = float(np.clip((before - after) / max(before, 1.0), 0.0, 1.0))
     ring_before = np.mean(t.ring[-2:], axis=0)
     change = float(np.abs(t.after_ring - ring_before).mean()) if t.after_ring is not None else np.inf
     background = float(np.clip(1.0 - change / cfg.background_change, 0.0, 1.0)) if np.isfinite(change) else 0.0
     support = min(1.0, len(t.frames) / (2.0 * cfg.min_seen_frames))
-    return contrast * background * (0.5 + 0.5 * support)
+    # A laser dot is seen in (nearly) every frame it is on; a spot that flickers in and out of the
+    # detector is something else (texture at the detection limit).
+    density = len(t.frames) / (t.frames[-1] - t.frames[0] + 1)
+    steady = min(1.0, density / cfg.min_seen_fraction)
+    return contrast * background * (0.5 + 0.5 * support) * steady
 
 
 def detect_laser_event_in_frames(

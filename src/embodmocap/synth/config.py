@@ -10,6 +10,58 @@ import numpy as np
 from embodmocap.types import Intrinsics
 
 
+WallLook = Literal["scene", "reddish", "magenta", "beige", "grey", "textured"]
+"""Wall appearance presets for the laser dot's walls (``"scene"``: the scene's own wall colour)."""
+
+
+@dataclass(frozen=True)
+class LaserConfig:
+    """How the laser dot of the sync event looks in the two views.
+
+    ``"easy"`` is the studio's original dot: a saturated red disc of at least 2.5 px radius with a
+    red glow, on the scene's calm wall. ``"realistic"`` renders what a phone records of a real
+    pointer at 2-6 m: a small spot whose over-exposed core is ``core_px`` across with a red halo of
+    ``halo_px``, every look drawn per seed from the ranges below (wall colour and texture,
+    exposure, lens blur, motion blur from the phone moving, a brief occlusion). ``"none"`` films
+    the same wall with no laser at all (false-event tests); the ground truth still names the frame
+    where the event would have been.
+    """
+
+    mode: Literal["easy", "realistic", "none"] = "easy"
+    """Which dot: the original easy one, the realistic range, or no laser."""
+    core_px: tuple[float, float] = (2.0, 6.0)
+    """Range of the over-exposed core's diameter at the event, pixels (realistic mode). One
+    physical spot size is drawn per session; each view sees it at its own distance (clipped to
+    this range, as a phone's exposure sets how much of the spot saturates)."""
+    halo_px: tuple[float, float] = (5.0, 10.0)
+    """Range of the red halo's diameter (lens and sensor bloom), pixels; at least core + 2 px."""
+    walls: tuple[WallLook, ...] = ("scene", "reddish", "magenta", "beige", "grey", "textured")
+    """Wall looks drawn from (one per session, applied to every wall of the room or fence)."""
+    gain: tuple[float, float] = (3.0, 10.0)
+    """Range of the spot's brightness relative to a white wall (>1: the core over-exposes)."""
+    whiteness: tuple[float, float] = (0.25, 0.7)
+    """Range of the green/blue response to the spot relative to red (sensor crosstalk): with the
+    gain, how white the saturated core gets."""
+    psf_sigma_px: tuple[float, float] = (0.4, 0.8)
+    """Range of the lens blur (Gaussian sigma), pixels."""
+    shutter: tuple[float, float] = (0.1, 0.8)
+    """Range of the exposure time as a fraction of the frame interval: the image moves this
+    fraction of its per-frame motion while the shutter is open (motion blur of the whole frame)."""
+    shake_deg: tuple[float, float] = (1.0, 5.0)
+    """Range of the amplitude of the operator's hand wobble (the aim wanders around the dot and
+    the performer), degrees: the dot moves in the image and is motion-blurred."""
+    shake_hz: tuple[float, float] = (0.5, 2.0)
+    """Range of the wobble's main frequency, hertz."""
+    occlusion_prob: float = 0.5
+    """Chance that, in a view, something (the performer's arm) passes in front of the dot for a
+    few frames while it is on."""
+    occlusion_frames: tuple[int, int] = (1, 4)
+    """Range of the length of that occlusion, frames."""
+    red_clothes_prob: float = 0.35
+    """Chance that the performer wears red (a red distractor for the detector), realistic and
+    none modes."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """Settings of one synthetic session."""
@@ -65,6 +117,8 @@ class SynthConfig:
     view2_other_scene: bool = False
     """View 2 is filmed in another room than the scene capture ("built to fail": the view cannot
     be registered to the scene)."""
+    laser: LaserConfig = LaserConfig()
+    """The laser dot of the sync event: easy (default), realistic range, or none."""
 
     def __post_init__(self) -> None:
         from embodmocap.errors import InputError
@@ -80,6 +134,12 @@ class SynthConfig:
             (-0.5 < self.phone_offset_frames < 0.5, "phone_offset_frames must be in (-0.5, 0.5)"),
             (self.view_separation_deg is None or 0 <= self.view_separation_deg <= 180, "view_separation_deg must be in [0, 180]"),
             (0 <= self.view2_away_fraction < 1, "view2_away_fraction must be in [0, 1)"),
+            (all(0 < r[0] <= r[1] for r in (self.laser.core_px, self.laser.halo_px, self.laser.gain,
+                                             self.laser.psf_sigma_px, self.laser.shutter, self.laser.whiteness,
+                                             self.laser.shake_deg, self.laser.shake_hz))
+             and len(self.laser.walls) > 0 and 0 <= self.laser.occlusion_frames[0] <= self.laser.occlusion_frames[1]
+             and 0 <= self.laser.occlusion_prob <= 1 and 0 <= self.laser.red_clothes_prob <= 1,
+             "laser ranges must be (low, high) with 0 < low <= high, walls not empty, probabilities in [0, 1]"),
         ]
         bad = [msg for ok, msg in checks if not ok]
         if bad:

@@ -235,6 +235,8 @@ class Renderer:
         depth_intrinsics: Intrinsics | None = None,
         rng: np.random.Generator | None = None,
         lighting: tuple[float, NDArray] | None = None,
+        laser_look=None,
+        post=None,
     ) -> RenderOut:
         """Render one frame.
 
@@ -250,6 +252,10 @@ class Renderer:
             lighting: ``(gain, white_balance (3,))`` of other light on the scene
                 (:func:`embodmocap.synth.texture.relight`); the laser dot, far brighter than any
                 lamp, is drawn after it and still saturates.
+            laser_look: a :class:`embodmocap.synth.laser.DotLook`: draw the realistic dot instead of
+                the easy one (only when ``laser_on``).
+            post: called with the linear (H, W, 3) float32 image after the dot, before exposure and
+                noise (occluders, motion blur: :func:`embodmocap.synth.laser.frame_effects`).
         """
         rng = self._rng if rng is None else rng
         T = np.asarray(T_world_cam, dtype=np.float64)
@@ -261,8 +267,14 @@ class Renderer:
         rgb = self._shade(hits, T, body)
         if lighting is not None:
             rgb = relight(rgb, *lighting)
-        if laser_on:
+        if laser_on and laser_look is not None:
+            from embodmocap.synth.laser import paint_dot
+
+            paint_dot(rgb, hits.t, hits.body_hit, hits.dirs, intrinsics, T, self.scene.spec.laser_dot, laser_look)
+        elif laser_on:
             self._draw_laser(rgb, hits, intrinsics, T)
+        if post is not None:
+            post(rgb.reshape(H, W, 3))
         rgb = self._finish(rgb.reshape(H, W, 3), rng)
         depth = np.where(np.isfinite(hits.t), hits.t, 0.0).astype(np.float32).reshape(H, W)
         mask = hits.body_hit.reshape(H, W)

@@ -39,7 +39,8 @@ from embodmocap.io.manifest import SceneEntry, SequenceEntry, SessionManifest, V
 from embodmocap.io.openpose import write_openpose_json
 from embodmocap.synth import lidar, perception, trajectory
 from embodmocap.synth.motion import MotionConfig, script_motion
-from embodmocap.synth.render import Renderer
+from embodmocap.synth import laser as laser_look
+from embodmocap.synth.render import Renderer, RenderConfig
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.scene import build_scene, write_scene_ply
 from embodmocap.synth.sync_event import aim_at_dot, choose_dot, with_dot
@@ -84,8 +85,14 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     lay.root.mkdir(parents=True, exist_ok=True)
     K, K_depth = cfg.intrinsics(), cfg.depth_intrinsics()
 
-    # 1. Scene.
+    # 1. Scene (realistic laser sessions repaint the walls: the dot's background is part of the test).
     built = build_scene(cfg.preset, _rng(cfg.seed, 1), cfg.room)
+    # The preset is part of the laser's seed: an indoor and an outdoor session of one seed draw
+    # different dots (the benchmark's 40 views are 40 draws, not 20 seen twice).
+    lrng = _rng(cfg.seed, 70 if cfg.preset == "indoor" else 71)
+    wall_look = str(cfg.laser.walls[int(lrng.integers(len(cfg.laser.walls)))])
+    if cfg.laser.mode != "easy":
+        built = laser_look.with_wall_look(built, wall_look, lrng)
 
     # 2. Performer: shape and motion (scene frame).
     write_test_model(lay.body_model)
@@ -126,12 +133,20 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     T_v = tuple(aim_at_dot(T, dot, event, cfg.fps) for T in T_v)
     if cfg.view2_away_fraction > 0:
         T_v = (T_v[0], trajectory.turn_away(T_v[1], int(round(M - cfg.view2_away_fraction * (M - event))), cfg.fps))
-    renderer = Renderer(built)
+    clothes = laser_look.clothes_rgb(cfg.laser, lrng)
+    rcfg = RenderConfig() if clothes is None else RenderConfig(body_rgb=clothes)
+    renderer = Renderer(built, rcfg)
     renderers = {"v1": renderer, "v2": renderer}
     if cfg.view2_other_scene:
         # Another room (other seed), same laser dot coordinates: view 2 cannot register to the scene.
         other = build_scene(cfg.preset, _rng(cfg.seed + 7919, 1))
-        renderers["v2"] = Renderer(with_dot(other, dot, normal))
+        renderers["v2"] = Renderer(with_dot(other, dot, normal), rcfg)
+    looks: dict = {v: None for v in VIEWS}
+    if cfg.laser.mode != "easy":  # the operators' hands wobble while they aim
+        T_v = tuple(laser_look.hand_wobble(T, cfg.fps, cfg.laser, lrng) for T in T_v)
+    if cfg.laser.mode == "realistic":
+        dists = {v: laser_look.project(K, T_v[k][event], dot)[2] for k, v in enumerate(VIEWS)}
+        looks = laser_look.draw_looks(cfg.laser, lrng, dists, K.fx, {v: event - starts[v] for v in VIEWS})
 
     # 3. Scene capture.
     frames_rendered = 0
@@ -162,7 +177,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         T_vio_cam = trajectory.add_drift(
             invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
         )
-        laser_on = t_motion < event - 0.5  # the laser goes off half-way between motion frames e-1 and e
+        # The laser goes off half-way between motion frames e-1 and e.
+        laser_on = (t_motion < event - 0.5) & (cfg.laser.mode != "none")
         log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
         gt_px, vis, masks_dir = _write_capture(
             cfg, lay.view_capture(cfg.sequence_name, v), renderers[v], T_scene_cam, T_vio_cam, K, K_depth,
@@ -170,6 +186,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
             clock_offset_s=float(_rng(cfg.seed, 50 + k).uniform(100, 1000)),
             coco_world=v_coco, perception_dir=lay.perception(cfg.sequence_name, v),
             lighting=_lighting(_rng(cfg.seed, 80 + k)) if cfg.lighting_change else None,
+            look=looks[v], dot=dot,
         )
         frames_rendered += len(span)
         prng = _rng(cfg.seed, 60 + k)
@@ -203,6 +220,9 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
         # Raw frame j of view v is the motion's instant start_v + j + offset_v (motion frames).
         "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in VIEWS},
+        "laser": {"mode": cfg.laser.mode, "wall": wall_look if cfg.laser.mode != "easy" else "scene",
+                  "red_clothes": clothes is not None,
+                  "views": {v: (asdict(looks[v]) if looks[v] is not None else None) for v in VIEWS}},
         "segments": [{"name": n, "start": s, "end": e} for n, s, e in script.segments],
         "furniture": {n: {"centre_xy": f.centre_xy, "yaw": f.yaw, "size": f.size, "top_z": f.top_z}
                       for n, f in built.spec.furniture.items()},
@@ -253,7 +273,7 @@ def _at_times(T: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, body_verts, faces, laser_on, rng,
-                   clock_offset_s, coco_world=None, perception_dir=None, lighting=None):
+                   clock_offset_s, coco_world=None, perception_dir=None, lighting=None, look=None, dot=None):
     """Render and write one capture; for a view also write masks and return GT keypoints.
     ``lighting`` = (gain, white balance) relights the scene (:func:`embodmocap.synth.texture.relight`).
 
@@ -268,7 +288,12 @@ def _write_capture(cfg, out, renderer, T_scene_cam, T_vio_cam, K, K_depth, *, bo
     try:
         for i in range(n):
             body = (body_verts[i], faces) if body_verts is not None else None
-            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth, lighting=lighting)
+            post = None
+            if look is not None:  # realistic dot: occluder and motion blur of this frame
+                post = laser_look.frame_effects(look, K, T_scene_cam[max(i - 1, 0)], T_scene_cam[i],
+                                                T_scene_cam[min(i + 1, n - 1)], dot, i)
+            r = renderer.render(K, T_scene_cam[i], body, bool(laser_on[i]), K_depth, lighting=lighting,
+                                laser_look=look, post=post)
             depth_mm, conf = lidar.simulate_lidar(r.depth_lr_m, rng, lcfg)
             writer.add_frame(r.rgb, depth_mm, conf, T_vio_cam[i], clock_offset_s + i / cfg.fps)
             if coco_world is not None:
