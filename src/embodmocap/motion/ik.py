@@ -152,6 +152,43 @@ def betas_from_bone_lengths(sk: RestSkeleton, lengths: NDArray, n_betas: int = 1
     return np.clip(b, -4.0, 4.0)
 
 
+#: (parent, child) COCO-17 points along the limbs, parents first.
+_LIMB_BONES: tuple[tuple[int, int], ...] = (
+    (_LSHO, _LELB), (_RSHO, _RELB), (_LHIP, _LKNE), (_RHIP, _RKNE),
+    (_LELB, _LWRI), (_RELB, _RWRI), (_LKNE, _LANK), (_RKNE, _RANK),
+)
+
+
+def implausible_points(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.bool_],
+                       tol: float = 0.3) -> NDArray[np.bool_]:
+    """(T, 17) limb points whose bone to the parent point is more than ``tol`` (relative) longer
+    or shorter than the body's (shape ``b``).
+
+    With two views a detector's left/right confusion or a wrong guess along the epipolar line
+    triangulates without a reprojection error, at the wrong depth: the bone lengths give it away.
+    A point whose parent is itself implausible is judged against the grandparent (the sum of the
+    two bones, as an upper bound only).
+    """
+    P = sk.keypoints(b)
+    bad = np.zeros(seen.shape, dtype=bool)
+    parent_of = {c: p for p, c in _LIMB_BONES}
+    with np.errstate(invalid="ignore"):
+        for par, child in _LIMB_BONES:
+            L = np.linalg.norm(P[child] - P[par])
+            d = np.linalg.norm(points[:, child] - points[:, par], axis=-1)
+            ok_par = seen[:, par] & ~bad[:, par]
+            wrong = ok_par & seen[:, child] & (np.abs(d - L) > tol * L)
+            gp = parent_of.get(par)
+            if gp is not None:
+                # The parent unusable: the grandparent bounds the reach.
+                reach = L + np.linalg.norm(P[par] - P[gp])
+                dg = np.linalg.norm(points[:, child] - points[:, gp], axis=-1)
+                use_gp = ~ok_par & seen[:, gp] & ~bad[:, gp] & seen[:, child]
+                wrong |= use_gp & (dg > (1 + tol) * reach)
+            bad[:, child] = wrong
+    return bad
+
+
 def _kabsch(q: NDArray, p: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:
     """Per frame, the rotation R (T, 3, 3) and translation t (T, 3) minimising
     ``sum_i w_ti |R q_i + t - p_ti|^2`` for model points q (N, 3), targets p (T, N, 3), weights
@@ -305,8 +342,8 @@ def limb_ik(sk: RestSkeleton, b: NDArray, R_local: NDArray, pelvis: NDArray, poi
     return R_local
 
 
-def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_conf: float = 0.1
-            ) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
+def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_conf: float = 0.1,
+            bone_tol: float | None = None) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
     """The whole starting body from triangulated keypoints.
 
     Args:
@@ -314,6 +351,8 @@ def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_c
         points: (T, 17, 3) COCO-17-ordered keypoints of ``layout`` in the world (Z up), metres, NaN
             where missing.
         conf: (T, 17) their confidence; below ``min_conf`` counts as missing.
+        bone_tol: when given, limb points whose bone length is off by more than this fraction
+            (:func:`implausible_points`) are not used (interpolated from their neighbours).
 
     Returns:
         betas (B,), global_orient (T, 3), body_pose (T, 69), transl (T, 3), placed (T,) bool
@@ -330,6 +369,8 @@ def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_c
     seen = _seen(points, conf, min_conf)
     sk = rest_skeleton(model, layout)
     b = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
+    if bone_tol is not None:
+        seen = seen & ~implausible_points(sk, b, points, seen, bone_tol)
     root, pelvis, spine, placed = place_torso(sk, b, points, seen)
     R_local = np.broadcast_to(np.eye(3), (T, 24, 3, 3)).copy()
     R_local[:, 0] = Rotation.from_rotvec(root).as_matrix()

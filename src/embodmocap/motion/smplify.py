@@ -85,6 +85,10 @@ class SmplifyConfig:
     used only when a prior pose is given."""
     w_joint_limits: float = 1.0
     """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
+    w_rest_pose: float = 0.0
+    """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
+    hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
+    what the keypoints cannot see stays plausible instead of drifting."""
     w_joint_range: float = 1.0
     """Weight of the per-axis anatomical ranges of every joint (per rad^2 outside the range,
     :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
@@ -180,6 +184,9 @@ class SmplifyResult:
 #: SMPL joints freed in the torso stage (spine, neck, collars, head) and the limbs stage.
 TORSO_JOINTS: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15)
 LIMB_JOINTS: tuple[int, ...] = (1, 2, 4, 5, 7, 8, 16, 17, 18, 19, 20, 21)
+#: SMPL joints whose rotation moves no COCO-17 keypoint (or only the face): feet, wrists, hands,
+#: collars, neck, head.
+UNPINNED_JOINTS: tuple[int, ...] = (10, 11, 20, 21, 22, 23, 13, 14, 12, 15)
 #: COCO-17 keypoints of the trunk and head (face, shoulders, hips): the only ones the global and
 #: torso stages fit.
 _TRUNK_KEYPOINTS = np.array([1.0] * 7 + [0.0] * 4 + [1.0] * 2 + [0.0] * 4)
@@ -394,6 +401,9 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
             cfg.reproj_kernel, cfg.reproj_scale_px)
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
+    elif cfg.w_rest_pose > 0:
+        idx = [3 * (j - 1) + a for j in UNPINNED_JOINTS for a in range(3)]
+        out["rest_pose"] = cfg.w_rest_pose * (s.pose[:, idx] ** 2).sum(-1).mean()
     out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
     out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
     return out

@@ -74,6 +74,14 @@ class MotionConfig:
     """A frame where fewer joints are triangulated, or fewer than two of the hips and shoulders,
     cannot place the body: it is fitted from its neighbours but flagged ``valid = False`` in
     ``smpl_world.npz``."""
+    bone_tol: float = 0.3
+    """Triangulated limb points whose bone to the parent point is off by more than this fraction
+    of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
+    (a left/right confusion in one view triangulates at the wrong depth with no reprojection
+    error); 0 = keep every point."""
+    init_median_frames: int = 0
+    """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
+    many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
     prior_disagree_m: float = 0.08
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
@@ -153,7 +161,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, layout,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
+                         cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          model.source)
     if step("fit", fp_fit):
@@ -165,9 +174,20 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
                  for i, v in enumerate(VIEWS)]
         min_conf = cfg.smplify.min_conf
+        points, conf3 = k3["points"], k3["conf"]
+        if cfg.bone_tol > 0:
+            from embodmocap.motion.ik import betas_from_bone_lengths, implausible_points, observed_bone_lengths, rest_skeleton
+
+            sk = rest_skeleton(model, layout)
+            seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
+            gated = implausible_points(sk, betas_from_bone_lengths(sk, observed_bone_lengths(points, seen)), points,
+                                       seen, cfg.bone_tol)
+            conf3 = np.where(gated, 0.0, conf3)
+        else:
+            gated = np.zeros(points.shape[:2], dtype=bool)
         try:
-            kp_init = init_from_keypoints(model, k3["points"], k3["conf"], fps, manifest.gender or "neutral",
-                                          min_conf, layout)
+            kp_init = init_from_keypoints(model, running_median(points, cfg.init_median_frames), conf3, fps,
+                                          manifest.gender or "neutral", min_conf, layout)
         except ValueError as err:
             kp_init = None
             if not priors:
@@ -180,12 +200,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             prior, has = priors[v_best]
             init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, manifest.gender or "neutral")
             # The prior's depth can be far off; start where the triangulation says the body is.
-            init = snap_to_keypoints(model, init, k3["points"], k3["conf"])
+            init = snap_to_keypoints(model, init, points, conf3)
             prior_pose = init.body_pose
             if kp_init is not None:
                 # Where the prior disagrees with the triangulation (a flipped body, limbs elsewhere),
                 # the triangulation wins: start there from the keypoints, and do not pull to the prior.
-                init, worse = prefer_keypoints(model, init, kp_init, k3["points"], k3["conf"], min_conf,
+                init, worse = prefer_keypoints(model, init, kp_init, points, conf3, min_conf,
                                                cfg.prior_disagree_m, layout)
                 prior_w, n_replaced = (~worse).astype(np.float64), int(worse.sum())
             log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)",
@@ -193,13 +213,14 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         else:
             init = kp_init
         init = _with_fps(init, fps, manifest.gender)
-        res = fit_world_smpl(model, k3["points"], k3["conf"], views, init, prior_pose, cfg.smplify, layout=layout,
+        res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                              prior_weight=prior_w)
         write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender), valid=valid)
         sm.record("fit", fp_fit, [out.smpl_fit], time.perf_counter() - t0, {
             "init": f"body prior {v_best}" if v_best else "keypoints",
             "init_frames_from_keypoints": n_replaced if v_best else int(T),
             "keypoint_layout": layout,
+            "points_dropped_bone_length": int(gated.sum()),
             "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
             "terms_before": res.terms_before, "terms_after": res.terms_after,
             **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
@@ -263,6 +284,25 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
     return found[0]
 
 
+def running_median(points: NDArray, frames: int) -> NDArray:
+    """(T, J, 3) points through a centred running median of ``frames`` frames per coordinate,
+    ignoring NaN (a point stays NaN where it was NaN: only the seen ones are replaced)."""
+    if frames <= 1:
+        return points
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    h = frames // 2
+    pad = np.concatenate([np.full((h,) + points.shape[1:], np.nan), points, np.full((h,) + points.shape[1:], np.nan)])
+    win = sliding_window_view(pad, 2 * h + 1, axis=0)  # (T, J, 3, w)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(win, axis=-1)
+    return np.where(np.isfinite(points), med, np.nan)
+
+
 def placeable_frames(path: Path, seq: str, points: NDArray, conf: NDArray, cfg: MotionConfig) -> NDArray[np.bool_]:
     """(T,) frames where the body can be placed (see :attr:`MotionConfig.min_valid_joints`).
 
@@ -270,7 +310,9 @@ def placeable_frames(path: Path, seq: str, points: NDArray, conf: NDArray, cfg: 
         InputError: more than ``cfg.max_poor_fraction`` of the frames have fewer than
             ``cfg.min_frame_joints`` triangulated joints.
     """
-    seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= cfg.smplify.min_conf)
+    # Any triangulated point counts (the triangulation already ignored weak detections); points
+    # filled over short gaps count too: they are what the fit follows there.
+    seen = np.isfinite(points).all(-1)
     n = seen.sum(1)
     poor = float((n < cfg.min_frame_joints).mean()) if len(n) else 1.0
     if poor > cfg.max_poor_fraction:
@@ -298,9 +340,13 @@ def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_c
         with torch.no_grad():
             out = model.from_params(p, dtype=torch.float64)
             kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
-        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), np.nan)
-        with np.errstate(all="ignore"):
-            return np.nan_to_num(np.nanmedian(d, axis=1), nan=0.0)
+        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
+        n = seen.sum(1)
+        # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).
+        d = np.sort(np.where(seen, d, np.inf), axis=1)
+        mid = np.take_along_axis(d, np.clip((n - 1) // 2, 0, None)[:, None], 1)[:, 0]
+        mid2 = np.take_along_axis(d, np.clip(n // 2, 0, None)[:, None], 1)[:, 0]
+        return np.where(n > 0, 0.5 * (mid + np.where(n > 0, mid2, 0.0)), 0.0)
 
     kp_same_shape = replace(kp_init, betas=init.betas,
                             transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))
