@@ -85,7 +85,7 @@ class SmplifyConfig:
     used only when a prior pose is given."""
     w_joint_limits: float = 1.0
     """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
-    w_rest_pose: float = 0.0
+    w_rest_pose: float = 0.01
     """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
     hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
     what the keypoints cannot see stays plausible instead of drifting."""
@@ -111,10 +111,14 @@ class SmplifyConfig:
     """Iterations of phase 1 (Adam steps, or L-BFGS outer iterations)."""
     phase1_lr: float = 0.03
     """Adam learning rate of phase 1 (radians / metres / beta units per step at the start)."""
-    torso_iterations: int = 30
-    """Iterations of the torso stage (between phase 1 and the limbs)."""
-    limbs_iterations: int = 60
-    """Iterations of the limbs stage (between the torso and phase 2)."""
+    torso_iterations: int = 0
+    """Iterations of the torso stage (between phase 1 and the limbs); 0 = skipped. Off by default:
+    after the keypoint start (whose own steps are global, torso, limbs) it changed nothing on the
+    hard benchmark, and from a start perturbed everywhere it slowed phase 2's convergence."""
+    limbs_iterations: int = 0
+    """Iterations of the limbs stage (between the torso and phase 2); 0 = skipped (see above)."""
+    stage_pose_lr: float = 0.03
+    """Adam learning rate of the pose in the torso and limbs stages."""
     phase2_iterations: int = 300
     """Iterations of phase 2."""
     phase2_lr: float = 0.03
@@ -456,7 +460,7 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
         mask = torch.zeros(23, 3, dtype=s.pose.dtype, device=s.pose.device)
         mask[[j - 1 for j in joints]] = 1.0
         hook = s.pose.register_hook(lambda g, m=mask.reshape(69): g * m)
-        _optimise(p1 + [s.pose], lr1 + [cfg.phase2_lr], total(phase), iters, cfg)
+        _optimise(p1 + [s.pose], lr1 + [cfg.stage_pose_lr], total(phase), iters, cfg)
         hook.remove()
     t1 = time.perf_counter()
     p2 = p1 + [s.pose]
