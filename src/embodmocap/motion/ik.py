@@ -258,7 +258,8 @@ def place_torso(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.
     w = seen[:, idx] * _TORSO_W[None]
     placed = seen[:, idx].sum(1) >= 3
     if not placed.any():
-        raise ValueError("no frame has three of the hips and shoulders triangulated: cannot place the body")
+        raise ValueError("no frame has both hips and both shoulders (or three of the four) triangulated: "
+                         "cannot place the body")
     P = sk.keypoints(b)
     J = sk.joints(b)
     q = P[idx] - J[0]  # torso points relative to the rest pelvis

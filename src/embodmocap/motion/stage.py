@@ -191,7 +191,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         except ValueError as err:
             kp_init = None
             if not priors:
-                raise InputError(out.keypoints3d, f"sequence {entry.name}: cannot place a starting body: {err}",
+                raise InputError(out.keypoints3d, f"cannot place a starting body in sequence {entry.name}: {err}",
                                  "both views must see the hips and shoulders in some frames; or give a body prior "
                                  "(body_prior in session.toml)") from err
         prior_pose, v_best, prior_w, n_replaced = None, None, None, 0
