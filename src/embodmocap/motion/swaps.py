@@ -154,7 +154,8 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
     (see :attr:`SwapConfig.bone_tol`); marks ``swapped`` in place; returns the keypoints and how
     many frames were changed."""
     bones = _LIMB_BONES[name]
-    L = np.array([np.nanmedian(np.linalg.norm(X0[:, a] - X0[:, b], axis=-1)) for a, b in bones])
+    d = [np.linalg.norm(X0[:, a] - X0[:, b], axis=-1) for a, b in bones]
+    L = np.array([np.median(x[np.isfinite(x)]) if np.isfinite(x).any() else np.nan for x in d])
     if not np.isfinite(L).all():
         return kp, 0
     joints = [j for pair in pairs for j in pair]
