@@ -50,10 +50,36 @@ FACE_KEYPOINT_NAMES: tuple[str, ...] = ("nose", "reye", "leye", "rear", "lear")
 #: smplx lists them. SMPL's left is +X; the lower id of each symmetric pair is the left one.
 SMPL_FACE_VERTEX_IDS: dict[str, int] = {"nose": 332, "reye": 6260, "leye": 2800, "rear": 4071, "lear": 583}
 
-#: Fraction of the pelvis -> hip vector added to the SMPL hip joint (outward and down).
+#: Fraction of the pelvis -> hip vector added to the SMPL hip joint (outward and down), COCO hips.
 HIP_OUTWARD: float = 0.3
-#: Fraction of the hip -> knee vector added to the SMPL hip joint (down the thigh).
+#: Fraction of the hip -> knee vector added to the SMPL hip joint (down the thigh), COCO hips.
 HIP_DOWN: float = 0.1
+
+#: Where each keypoint layout's hips sit on the SMPL body: layout -> (outward, down) fractions of
+#: ``hip_kp = hip + outward * (hip - pelvis) + down * (knee - hip)`` (all other COCO-17 points are
+#: the same SMPL joints / face vertices for every layout). The one table the 2D and 3D keypoint
+#: terms of Stage IV use, chosen by the layout that produced the keypoints (``keypoints2d.npz``'s
+#: ``layout``). Why three different points:
+#:
+#: ============ ========= ====== ===============================================================
+#: layout       outward   down   the detector's hip
+#: ============ ========= ====== ===============================================================
+#: ``COCO17``   0.30      0.10   COCO annotators mark the hip at the greater trochanter: lower
+#:                               and further out than the centre of the femoral head
+#: ``COCO18``   0.30      0.10   OpenPose's COCO model, trained on those annotations
+#: ``BODY_25B`` 0.30      0.10   openpose_train's BODY_25B, COCO annotations for the hips
+#: ``BODY_25``  0.10      0.00   OpenPose BODY_25 (trained with a mid-hip point on a different
+#:                               hip definition): close to SMPL's hip joint, slightly outward,
+#:                               not down the thigh
+#: ``SMPL``     0.00      0.00   SMPL's own hip joints (keypoints made from SMPL / mocap joints)
+#: ============ ========= ====== ===============================================================
+HIP_DEFINITIONS: dict[str, tuple[float, float]] = {
+    "COCO17": (HIP_OUTWARD, HIP_DOWN),
+    "COCO18": (HIP_OUTWARD, HIP_DOWN),
+    "BODY_25B": (HIP_OUTWARD, HIP_DOWN),
+    "BODY_25": (0.1, 0.0),
+    "SMPL": (0.0, 0.0),
+}
 
 # COCO keypoint -> SMPL joint taken as is.
 _COCO_FROM_JOINT: dict[str, int] = {
@@ -74,12 +100,20 @@ if TYPE_CHECKING:
 Array = Any  # NDArray[np.floating] or torch.Tensor
 
 
-def coco17_matrix() -> NDArray[np.float64]:
+def coco17_matrix(layout: str = "COCO17") -> NDArray[np.float64]:
     """The (17, 29) matrix mapping [24 SMPL joints; 5 face vertices] to COCO-17 keypoints.
 
     Columns 0-23 are SMPL joints, 24-28 the face vertices in :data:`FACE_KEYPOINT_NAMES` order.
-    Every row sums to 1 (the mapping commutes with rigid motions and translations).
+    Every row sums to 1 (the mapping commutes with rigid motions and translations). ``layout``
+    picks the hip definition of the detector that produced the keypoints
+    (:data:`HIP_DEFINITIONS`; the points are in COCO-17 order whatever the layout).
+
+    Raises:
+        ValueError: an unknown layout.
     """
+    if layout not in HIP_DEFINITIONS:
+        raise ValueError(f"no SMPL keypoint definition for layout {layout!r}; known: {sorted(HIP_DEFINITIONS)}")
+    outward, down = HIP_DEFINITIONS[layout]
     A = np.zeros((17, 29))
     for k, name in enumerate(COCO17_NAMES):
         if name in _COCO_FROM_JOINT:
@@ -88,9 +122,9 @@ def coco17_matrix() -> NDArray[np.float64]:
             A[k, 24 + FACE_KEYPOINT_NAMES.index(_COCO_FROM_FACE[name])] = 1.0
         else:
             hip, knee = _COCO_HIPS[name]
-            A[k, hip] += 1.0 + HIP_OUTWARD - HIP_DOWN
-            A[k, 0] -= HIP_OUTWARD
-            A[k, knee] += HIP_DOWN
+            A[k, hip] += 1.0 + outward - down
+            A[k, 0] -= outward
+            A[k, knee] += down
     return A
 
 
@@ -111,14 +145,15 @@ def face_vertex_ids(vertex_ids: Mapping[str, int] | Sequence[int]) -> NDArray[np
     return ids
 
 
-def smpl_to_coco17(joints24: Array, vertices: Array, vertex_ids: Mapping[str, int] | Sequence[int]) -> Array:
+def smpl_to_coco17(joints24: Array, vertices: Array, vertex_ids: Mapping[str, int] | Sequence[int],
+                   layout: str = "COCO17") -> Array:
     """COCO-17 keypoints (..., 17, 3) from SMPL joints (..., 24, 3) and vertices (..., V, 3).
 
     Works on numpy arrays or torch tensors (differentiable; dtype and device kept). The result
-    lives in whatever frame the inputs are in.
+    lives in whatever frame the inputs are in. ``layout``: whose hips (:data:`HIP_DEFINITIONS`).
     """
     ids = face_vertex_ids(vertex_ids)
-    A = coco17_matrix()
+    A = coco17_matrix(layout)
     # A tensor can only exist once torch is imported; checking sys.modules keeps this module (and
     # the test-model generator that uses it) free of the torch import.
     torch = sys.modules.get("torch")

@@ -14,6 +14,14 @@ and RTE against the truth:
   (reprojection + smoothness + prior; no triangulation is possible);
 - ``dual``: the full pipeline.
 
+Two more dimensions of that table (issue 11): ``perception`` (``clean``: the studio's default
+detector; ``hard``: every adversity of real detectors, ``embodmocap synth --perception hard``; or
+``both``: each seed synthesised both ways, the hard sessions named ``<preset>_<seed>_hard``) and
+the body prior: every row above uses the camera-space prior (``realistic``); ``dual`` is also
+fitted without it (``prior = none``: the start from the keypoints alone, no pose prior), on the
+same observations and cameras. Monocular and single-view rows need the prior (without it a single
+view has nothing to start from), so they exist for ``prior = realistic`` only.
+
 Loss ablation (the paper's optimisation table), quality metrics (mask IoU, reprojection error,
 depth error, jitter) and W-MPJPE: Stage III without the track / Chamfer / reprojection term, Stage IV
 without smoothness / 3D keypoints, and all terms.
@@ -27,6 +35,7 @@ import logging
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -58,6 +67,10 @@ class BenchmarkConfig:
     """Also run the loss ablation (about 2 minutes per seed)."""
     frames_per_view: int = 15
     """Frames per view rendered for the quality metrics of the ablation."""
+    perception: Literal["clean", "hard", "both"] = "clean"
+    """The studio's detector: ``clean``, ``hard`` (every adversity of real detectors) or ``both``."""
+    no_prior: bool = True
+    """Also fit the dual view without the camera-space body prior (the ``prior = none`` rows)."""
 
 
 def _preset(cfg: BenchmarkConfig, seed: int) -> str:
@@ -72,23 +85,26 @@ def run_benchmark(out: str | Path, cfg: BenchmarkConfig = BenchmarkConfig()) -> 
 
     out = Path(out)
     rows: list[dict] = []
+    kinds = ("clean", "hard") if cfg.perception == "both" else (cfg.perception,)
     for seed in range(cfg.seeds):
         preset = _preset(cfg, seed)
-        session = out / f"{preset}_{seed}"
-        t0 = time.perf_counter()
-        try:
-            if not (session / "ground_truth" / "ground_truth.json").is_file():
-                synthesize(SynthConfig(seed=seed, preset=preset, seconds=cfg.seconds, scene_seconds=cfg.scene_seconds), session)
-            res = run_session(PipelineConfig(), session)
-            if not res.ok:
-                raise RuntimeError("; ".join(f"{r.target} {r.stage}: {r.error}" for r in res.failed()))
-            row = {"seed": seed, "preset": preset, **_one_session(session, cfg)}
-        except Exception as err:  # noqa: BLE001 - a failed seed is reported in the tables, not hidden
-            log.warning("seed %d failed: %s", seed, err)
-            row = {"seed": seed, "preset": preset, "error": f"{type(err).__name__}: {err}"}
-        row["seconds"] = round(time.perf_counter() - t0, 1)
-        rows.append(row)
-        log.info("benchmark seed %d (%s) done in %.0f s", seed, preset, row["seconds"])
+        for perception in kinds:
+            session = out / (f"{preset}_{seed}" if perception == "clean" else f"{preset}_{seed}_hard")
+            t0 = time.perf_counter()
+            try:
+                if not (session / "ground_truth" / "ground_truth.json").is_file():
+                    synthesize(SynthConfig(seed=seed, preset=preset, seconds=cfg.seconds, scene_seconds=cfg.scene_seconds,
+                                           perception=perception), session)
+                res = run_session(PipelineConfig(), session)
+                if not res.ok:
+                    raise RuntimeError("; ".join(f"{r.target} {r.stage}: {r.error}" for r in res.failed()))
+                row = {"seed": seed, "preset": preset, "perception": perception, **_one_session(session, cfg)}
+            except Exception as err:  # noqa: BLE001 - a failed seed is reported in the tables, not hidden
+                log.warning("seed %d (%s) failed: %s", seed, perception, err)
+                row = {"seed": seed, "preset": preset, "perception": perception, "error": f"{type(err).__name__}: {err}"}
+            row["seconds"] = round(time.perf_counter() - t0, 1)
+            rows.append(row)
+            log.info("benchmark seed %d (%s, %s) done in %.0f s", seed, preset, perception, row["seconds"])
     result = {"version": 1, "config": cfg.__dict__, "rows": rows}
     write_json(out / "benchmark.json", result)
     write_text(out / "benchmark.md", tables_markdown(rows))
@@ -122,6 +138,9 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
         params = ctx.fit(single_view=v, cameras={v: cams})
         methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth)
     result = {"methods": methods}
+    if cfg.no_prior:
+        params = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False)
+        result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth)}
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -209,9 +228,12 @@ class _Context:
 
     # -- Stage IV variants
 
-    def fit(self, cameras: dict[str, np.ndarray], single_view: str | None = None, variant: str = "all"):
+    def fit(self, cameras: dict[str, np.ndarray], single_view: str | None = None, variant: str = "all",
+            prior: bool = True):
         """The motion fitted with ``cameras``: dual view (triangulation + both views), or one view
-        (reprojection + smoothness + prior only); ``variant`` switches Stage IV terms off."""
+        (reprojection + smoothness + prior only); ``variant`` switches Stage IV terms off;
+        ``prior=False`` (dual view only) starts from the keypoints alone, as Stage IV does without
+        a body prior."""
         from embodmocap.geometry.triangulation import projection_matrices, triangulate
         from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
         from embodmocap.motion.stage import MotionConfig
@@ -236,14 +258,25 @@ class _Context:
             scfg = replace(scfg, w_joint_vel=0.0, w_joint_acc=0.0, w_transl_vel=0.0, w_transl_acc=0.0)
         elif variant == "no_kp3d":
             scfg = replace(scfg, w_kp3d=0.0)
+        from embodmocap.motion.stage import keypoint_layout
+
+        layout = keypoint_layout(self.sl, self.seq)
+        obs = [ViewObservations(K=K[v], T_world_cam=cameras[v][:T], keypoints=kps[v], name=v) for v in views]
+        if not prior:
+            if single_view:
+                raise ValueError("a single view cannot be fitted without a body prior")
+            from embodmocap.motion.init import init_from_keypoints
+            from embodmocap.motion.stage import _fps
+
+            init = init_from_keypoints(self.model, points, conf, _fps(self.sl), min_conf=scfg.min_conf, layout=layout)
+            return fit_world_smpl(self.model, points, conf, obs, init, None, scfg, layout=layout).params
         prior_view = single_view or "v1"
         init = self.prior_in_world(prior_view, cameras[prior_view])
         if not single_view:  # as Stage IV does: start where the triangulation puts the body
             from embodmocap.motion.init import snap_to_keypoints
 
             init = snap_to_keypoints(self.model, init, points, conf)
-        obs = [ViewObservations(K=K[v], T_world_cam=cameras[v][:T], keypoints=kps[v], name=v) for v in views]
-        return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, scfg).params
+        return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, scfg, layout=layout).params
 
 
 def tables_markdown(rows: list[dict]) -> str:
@@ -252,10 +285,19 @@ def tables_markdown(rows: list[dict]) -> str:
     lines = [f"Seeds: {len(ok)} of {len(rows)} succeeded"
              + "".join(f"; seed {r['seed']} ({r['preset']}) failed: {r['error']}" for r in rows if "error" in r), ""]
     lines += ["### Capture methods (W-/WA-MPJPE in mm at chunk 100 / 500 / 1000, RTE in %)", "",
-              "| method | " + " | ".join(_ERR_KEYS) + " |", "|---|" + "---|" * len(_ERR_KEYS)]
-    for m in CAPTURE_METHODS:
-        vals = [np.mean([r["methods"][m][k] for r in ok]) if ok else float("nan") for k in _ERR_KEYS]
-        lines.append(f"| {m} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
+              "| method | prior | perception | sessions | " + " | ".join(_ERR_KEYS) + " |",
+              "|---|---|---|---|" + "---|" * len(_ERR_KEYS)]
+    for perception in ("clean", "hard"):
+        sel = [r for r in ok if r.get("perception", "clean") == perception]
+        if not sel:
+            continue
+        for m in CAPTURE_METHODS:
+            vals = [np.mean([r["methods"][m][k] for r in sel]) for k in _ERR_KEYS]
+            lines.append(f"| {m} | realistic | {perception} | {len(sel)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
+        nop = [r for r in sel if "methods_no_prior" in r]
+        if nop:
+            vals = [np.mean([r["methods_no_prior"]["dual"][k] for r in nop]) for k in _ERR_KEYS]
+            lines.append(f"| dual | none | {perception} | {len(nop)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
     abl = [r for r in ok if "ablation" in r]
     if abl:
         lines += ["", "### Loss ablation (quality metrics; W-MPJPE in mm at chunk 100)", "",
@@ -278,4 +320,8 @@ def summary(result: dict) -> str:
         beats_mono = all(mean("dual", k) < mean("monocular", k) for k in ("w_mpjpe_mm", "w_mpjpe_mm_c500", "w_mpjpe_mm_c1000"))
         text += (f"\nDual view vs the better single view, W-MPJPE chunk 1000: {ratio:.2f}x more accurate; "
                  f"dual better than monocular at every chunk size: {beats_mono}\n")
+        nop = [r for r in rows if "methods_no_prior" in r]
+        if nop:
+            q = [r["methods_no_prior"]["dual"]["w_mpjpe_mm"] / max(r["methods"]["dual"]["w_mpjpe_mm"], 1e-9) for r in nop]
+            text += f"Dual view without / with the body prior, W-MPJPE chunk 100, median over sessions: {np.median(q):.2f}\n"
     return text

@@ -215,9 +215,13 @@ def _project(K, T_world_cam: NDArray, points: NDArray) -> NDArray:
 
 def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=None) -> dict:
     """Errors of one fitted sequence against the synthetic truth (Stage I's world)."""
+    from embodmocap.io.smpl_file import read_smpl_valid
+
     _, params, frames, body = _fitted(lay, seq, body_model_path)
     truth = sequence_truth(lay, scene, seq)
-    out = motion_errors(body.joints.numpy(), frames, truth)
+    out = motion_errors(body.joints.numpy(), frames, truth, read_smpl_valid(lay.sequence(seq).smpl_world))
+    if lay.sequence(seq).keypoints3d.is_file():
+        out.update(keypoint_errors(lay, scene, seq, body_model_path))
     calib = json.loads(lay.sequence(seq).calibration.read_text()) if lay.sequence(seq).calibration.is_file() else None
     sync = json.loads(lay.sequence(seq).sync.read_text())["views"] if lay.sequence(seq).sync.is_file() else {}
     mm = lay.sequence(seq).motion_manifest
@@ -235,12 +239,16 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     return out
 
 
-def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth) -> dict:
+def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth, valid: NDArray | None = None) -> dict:
     """W-/WA-MPJPE (chunks 100, 500, 1000), PA-MPJPE and RTE of world joints (T, 24, 3) at sequence
-    ``frames`` against the truth (frames outside the scripted motion are left out)."""
+    ``frames`` against the truth (frames outside the scripted motion are left out). Frames the fit
+    flagged invalid (``valid`` (T,) False: the body could not be placed) are left out too and
+    counted in ``invalid_frames``, so nothing is dropped silently."""
     ok = truth.valid[frames]
+    valid = np.ones(len(frames), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    out: dict = {"invalid_frames": int((~valid).sum()), "evaluated_frames": int((ok & valid).sum())}
+    ok = ok & valid
     pred, gt = np.asarray(joints)[ok], truth.joints[frames][ok]
-    out: dict = {}
     for c in CHUNKS:
         suffix = "" if c == 100 else f"_c{c}"
         out[f"w_mpjpe_mm{suffix}"] = round(float(M.w_mpjpe(pred, gt, chunk=c)), 2)
@@ -248,6 +256,53 @@ def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth) -> dic
     out["pa_mpjpe_mm"] = round(float(M.pa_mpjpe(pred, gt)), 2)
     out["rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
     return out
+
+
+def keypoint_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=None, smpl_path: Path | None = None) -> dict:
+    """The fitted body's keypoints against the triangulated ones they were fitted to, both against
+    the truth, on the (frame, joint) pairs that were triangulated (not gap-filled):
+
+    ``kp3d_triangulation_err_mm`` (median |triangulated - true|), ``kp3d_fit_err_mm`` (median
+    |fitted - true|, the fitted body's points of the keypoints' layout) and
+    ``fit_vs_triangulation`` (their ratio: below 1, the fit is closer to the truth than its input).
+    Keypoints are compared with the truth of the detector's own definition (its hips) when the
+    ground truth has it (``joints_keypoints``), else with the true COCO-17 points. Frames are the
+    motion's (``smpl_path``, default ``smpl_world.npz``): the contact alignment moves the body,
+    so compare before it (``smpl_fit.npz``) when it was applied."""
+    import torch
+
+    from embodmocap.body.joints import smpl_to_coco17
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.smpl_file import read_smpl_npz
+    from embodmocap.motion.stage import keypoint_layout
+
+    sl = lay.sequence(seq)
+    gt = lay.ground_truth
+    g = np.load(gt.sequence(seq))
+    T_world_scene = invert_T(np.load(gt.scene_device(scene))["T_scene_vio"])
+    raw = np.load(sl.view(VIEWS[0]).cameras)["raw_frames"].astype(np.int64)
+    motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
+    true_kp = g["joints_keypoints"] if "joints_keypoints" in g.files else g["joints_coco17"]
+    M_frames = len(true_kp)
+    k3 = np.load(sl.keypoints3d)
+    tri, filled = k3["points"], k3["filled"]
+    model = load_body_model(body_model_path)
+    params, frames = read_smpl_npz(smpl_path or sl.smpl_world)
+    with torch.no_grad():
+        out = model.from_params(params, dtype=torch.float64)
+        fit = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, keypoint_layout(sl, seq)).numpy()
+    T = min(len(tri), len(frames))
+    m = motion[frames[:T]]
+    inside = (m >= 0) & (m < M_frames)
+    truth = true_kp[np.clip(m, 0, M_frames - 1)] @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
+    seen = np.isfinite(tri[:T]).all(-1) & ~filled[:T].astype(bool) & inside[:, None]
+    if not seen.any():
+        return {}
+    e_tri = np.linalg.norm(tri[:T] - truth, axis=-1)[seen]
+    e_fit = np.linalg.norm(fit[:T] - truth, axis=-1)[seen]
+    return {"kp3d_triangulation_err_mm": round(1000 * float(np.median(e_tri)), 2),
+            "kp3d_fit_err_mm": round(1000 * float(np.median(e_fit)), 2),
+            "fit_vs_triangulation": round(float(np.median(e_fit) / max(np.median(e_tri), 1e-9)), 3)}
 
 
 def scene_errors(lay: SessionLayout, scene: str, cfg: EvaluateConfig = EvaluateConfig()) -> dict:

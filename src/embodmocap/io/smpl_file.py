@@ -10,6 +10,9 @@ Keys (see docs/formats.md, "Stage IV outputs"):
     mocap_framerate  () float64 frames per second (AMASS's name)
     framerate        () float64 the same value (the name issue 6 of the tracker uses)
     frames           (T,) int64 sequence frame of each row
+    valid            (T,) bool whether the body could be placed in that frame (optional; absent =
+                     all True): frames without enough triangulated joints are fitted from their
+                     neighbours and flagged False
 
 AMASS's own files use the same key names (``poses``, ``trans``, ``betas``, ``gender``,
 ``mocap_framerate``), so tools that read AMASS SMPL motion read these.
@@ -30,16 +33,38 @@ SMPL_FILE_VERSION = 1
 _KEYS = ("poses", "trans", "betas", "gender", "mocap_framerate", "frames")
 
 
-def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None) -> Path:
-    """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1."""
+def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None,
+                   valid: NDArray | None = None) -> Path:
+    """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1, ``valid`` (T,) bool
+    to all True."""
     T = len(params)
     frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
     if frames.shape != (T,):
         raise ValueError(f"frames must be ({T},), got {frames.shape}")
+    valid = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if valid.shape != (T,):
+        raise ValueError(f"valid must be ({T},), got {valid.shape}")
     write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
               betas=np.asarray(params.betas), gender=np.array(params.gender),
-              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames)
+              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid)
     return Path(path)
+
+
+def read_smpl_valid(path: str | Path) -> NDArray[np.bool_]:
+    """(T,) the ``valid`` flags of a world SMPL motion file (all True when the file has none).
+
+    Raises:
+        InputError: as :func:`read_smpl_npz`, or a ``valid`` array of the wrong shape.
+    """
+    params, _ = read_smpl_npz(path)
+    with np.load(path, allow_pickle=False) as z:
+        if "valid" not in z.files:
+            return np.ones(len(params), dtype=bool)
+        valid = z["valid"]
+    if valid.shape != (len(params),):
+        raise InputError(path, f"valid has shape {valid.shape}, expected ({len(params)},)",
+                         "re-run `embodmocap motion` to write it again")
+    return valid.astype(bool)
 
 
 def read_smpl_npz(path: str | Path) -> tuple[SmplParams, NDArray[np.int64]]:

@@ -3,8 +3,8 @@
 - :func:`init_from_prior`: a camera-space body prior (one view's regressor output) moved into the
   world through that view's cameras, frame by frame, keeping each frame's pelvis where the
   regressor put it.
-- :func:`init_from_keypoints`: no prior: a standing rest pose placed at the triangulated hips and
-  turned to face the way the hips and shoulders do.
+- :func:`init_from_keypoints`: no prior: shape from bone lengths, the torso fitted rigidly, the
+  limbs by analytic IK (:mod:`embodmocap.motion.ik`).
 
 Frames with nothing to go on (an all-zero prior row, or no hips/shoulders) are filled from their
 neighbours: rotations by normalised quaternion interpolation, positions linearly, the ends held.
@@ -127,49 +127,24 @@ _I = {n: i for i, n in enumerate(COCO17_NAMES)}
 
 
 def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: float = 30.0,
-                        gender: str = "neutral", min_conf: float = 0.1) -> SmplParams:
-    """A standing rest pose at the triangulated hips, facing where the torso faces.
+                        gender: str = "neutral", min_conf: float = 0.1, layout: str = "COCO17") -> SmplParams:
+    """A posed body on the triangulated keypoints, no regressor needed (:mod:`embodmocap.motion.ik`).
 
-    The body's left is along ``(left_hip - right_hip) + (left_shoulder - right_shoulder)``
-    projected on the floor; it faces ``left x up`` (Z up). The body is placed so that its COCO
-    hip midpoint is the observed one. Betas are zero. Frames where a hip or shoulder pair is
-    missing are interpolated.
+    Shape from the observed bone lengths, the root and trunk from a rigid fit of the hips and
+    shoulders, the limbs by analytic IK; frames whose torso is not seen are interpolated.
 
     Args:
-        points: (T, 17, 3) COCO-17 keypoints in the world (Z up), metres (NaN = missing).
+        points: (T, 17, 3) COCO-17-ordered keypoints of ``layout`` (whose hip definition,
+            :data:`embodmocap.body.joints.HIP_DEFINITIONS`) in the world (Z up), metres (NaN = missing).
         conf: (T, 17) confidences; below ``min_conf`` counts as missing.
 
     Raises:
-        ValueError: bad shapes, or no frame with both hips and both shoulders.
+        ValueError: bad shapes, or no frame with three of the hips and shoulders.
     """
-    points = np.asarray(points, dtype=np.float64)
-    conf = np.asarray(conf, dtype=np.float64)
-    T = len(points)
-    if points.shape != (T, 17, 3) or conf.shape != (T, 17):
-        raise ValueError(f"points must be (T, 17, 3) and conf (T, 17), got {points.shape} and {conf.shape}")
-    ok = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
-    torso = [_I["left_hip"], _I["right_hip"], _I["left_shoulder"], _I["right_shoulder"]]
-    valid = ok[:, torso].all(1)
-    if not valid.any():
-        raise ValueError("no frame has both hips and both shoulders: cannot place the body")
-    p = np.nan_to_num(points)
-    left = (p[:, _I["left_hip"]] - p[:, _I["right_hip"]]) + (p[:, _I["left_shoulder"]] - p[:, _I["right_shoulder"]])
-    left[:, 2] = 0.0
-    fwd = np.cross(left, [0.0, 0.0, 1.0])
-    yaw = np.arctan2(fwd[:, 1], fwd[:, 0])
-    # SMPL faces +Z of its frame; R_ZUP_YUP turns that to -Y, a further +90 deg to +X (yaw 0).
-    go = Rotation.from_matrix(rot_z(yaw + np.pi / 2) @ R_ZUP_YUP).as_rotvec()
-    go = fill_rotations(go[:, None], valid)[:, 0]
-    hips = fill_linear(0.5 * (p[:, _I["left_hip"]] + p[:, _I["right_hip"]]), valid)
-    betas = np.zeros(model.num_betas)
-    # COCO hips sit below and outside SMPL's pelvis joint: place the rest body so that its own
-    # COCO hip midpoint (an offset from the pelvis, fixed in the body frame) lands on the observed one.
-    rest = model.forward(betas, np.zeros((1, 3)), np.zeros((1, 69)))
-    coco0, pelvis0 = rest.coco17[0].double().numpy(), rest.joints[0, 0].double().numpy()
-    off = 0.5 * (coco0[_I["left_hip"]] + coco0[_I["right_hip"]]) - pelvis0  # canonical frame
-    pelvis = hips - Rotation.from_rotvec(go).apply(off)
-    transl = pelvis - model.pelvis_offset(betas)
-    return SmplParams(betas=betas, global_orient=go, body_pose=np.zeros((T, 69)), transl=transl, fps=fps, gender=gender)
+    from embodmocap.motion.ik import init_ik
+
+    betas, go, pose, transl, _ = init_ik(model, points, conf, layout, min_conf)
+    return SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=fps, gender=gender)
 
 
 def snap_to_keypoints(model: BodyModel, params: SmplParams, points: NDArray, conf: NDArray,

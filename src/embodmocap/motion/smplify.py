@@ -4,13 +4,21 @@ Cameras and the scene are fixed; the unknowns are one shape ``betas`` (B,) for t
 per-frame ``global_orient`` (T, 3), ``body_pose`` (T, 69) and ``transl`` (T, 3) in the scene world
 (Z up, metres). The objective is a weighted sum of the terms of :mod:`embodmocap.motion.terms`.
 
-Two phases, as in the paper:
+Four stages (the paper's two phases, with the pose freed in two steps between them):
 
-1. **Phase 1** — shape, root orientation and translation (``body_pose`` fixed at the init) on the
-   3D keypoint term, the smoothness terms and the shape prior: it puts the body where the
-   keypoints are before the limbs are allowed to move.
-2. **Phase 2** — everything, with all terms (3D keypoints, reprojection in every view,
-   smoothness, pose prior, joint limits, shape prior).
+1. **Phase 1 (global)** — shape, root orientation and translation (``body_pose`` fixed at the
+   init) on the 3D keypoint term, the smoothness terms and the shape prior: it puts the body where
+   the keypoints are before the limbs are allowed to move.
+2. **Torso** — adds the trunk's joints (spine, neck, collars, head) to the free parameters.
+3. **Limbs** — the limbs' joints (hips, knees, ankles, shoulders, elbows, wrists) instead: each
+   limb settles on its keypoints with the trunk in place, so a limb error cannot twist the trunk.
+4. **Phase 2 (all)** — everything, with all terms (3D keypoints, reprojection in every view,
+   smoothness, pose prior, joint limits and anatomical ranges, shape prior).
+
+Stages 2 and 3 use the 3D, smoothness and joint-limit terms. Which SMPL points the keypoints are
+depends on the layout of the detector that produced them (the hips differ:
+:data:`embodmocap.body.joints.HIP_DEFINITIONS`); a body model without the face vertex ids fits
+without the five face keypoints (warned).
 
 Speed: the body is evaluated by :class:`KeypointBody`, SMPL restricted to what the terms see
 (24 joints by forward kinematics and the 5 face vertices COCO-17 needs), which equals
@@ -77,6 +85,13 @@ class SmplifyConfig:
     used only when a prior pose is given."""
     w_joint_limits: float = 1.0
     """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
+    w_rest_pose: float = 0.01
+    """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
+    hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
+    what the keypoints cannot see stays plausible instead of drifting."""
+    w_joint_range: float = 1.0
+    """Weight of the per-axis anatomical ranges of every joint (per rad^2 outside the range,
+    :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
     w_shape_prior: float = 0.01
     """Weight of the betas L2 prior (per unit of mean squared beta)."""
     kp3d_kernel: str = "geman_mcclure"
@@ -96,6 +111,14 @@ class SmplifyConfig:
     """Iterations of phase 1 (Adam steps, or L-BFGS outer iterations)."""
     phase1_lr: float = 0.03
     """Adam learning rate of phase 1 (radians / metres / beta units per step at the start)."""
+    torso_iterations: int = 0
+    """Iterations of the torso stage (between phase 1 and the limbs); 0 = skipped. Off by default:
+    after the keypoint start (whose own steps are global, torso, limbs) it changed nothing on the
+    hard benchmark, and from a start perturbed everywhere it slowed phase 2's convergence."""
+    limbs_iterations: int = 0
+    """Iterations of the limbs stage (between the torso and phase 2); 0 = skipped (see above)."""
+    stage_pose_lr: float = 0.03
+    """Adam learning rate of the pose in the torso and limbs stages."""
     phase2_iterations: int = 300
     """Iterations of phase 2."""
     phase2_lr: float = 0.03
@@ -162,6 +185,17 @@ class SmplifyResult:
 # ---------------------------------------------------------------------------------------------
 
 
+#: SMPL joints freed in the torso stage (spine, neck, collars, head) and the limbs stage.
+TORSO_JOINTS: tuple[int, ...] = (3, 6, 9, 12, 13, 14, 15)
+LIMB_JOINTS: tuple[int, ...] = (1, 2, 4, 5, 7, 8, 16, 17, 18, 19, 20, 21)
+#: SMPL joints whose rotation moves no COCO-17 keypoint (or only the face): feet, wrists, hands,
+#: collars, neck, head.
+UNPINNED_JOINTS: tuple[int, ...] = (10, 11, 20, 21, 22, 23, 13, 14, 12, 15)
+#: COCO-17 keypoints of the trunk and head (face, shoulders, hips): the only ones the global and
+#: torso stages fit.
+_TRUNK_KEYPOINTS = np.array([1.0] * 7 + [0.0] * 4 + [1.0] * 2 + [0.0] * 4)
+
+
 def axis_angle_to_matrix(r: torch.Tensor) -> torch.Tensor:
     """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices, smooth at zero.
 
@@ -187,9 +221,17 @@ class KeypointBody:
     :meth:`BodyModel.forward`'s ``joints`` and ``coco17``.
     """
 
-    def __init__(self, model: BodyModel, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> None:
+    def __init__(self, model: BodyModel, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu",
+                 layout: str = "COCO17") -> None:
         a = model.arrays
-        ids = face_vertex_ids(model.vertex_ids)
+        try:
+            ids = face_vertex_ids(model.vertex_ids)
+            self.has_face = True
+        except (KeyError, ValueError):
+            # No face vertices on this mesh: the face keypoints follow the head joint and must not
+            # be fitted (the caller drops them).
+            ids = np.zeros(5, dtype=np.int64)
+            self.has_face = False
         tt = lambda x: torch.as_tensor(np.ascontiguousarray(x), dtype=dtype, device=device)  # noqa: E731
         Jr = a["J_regressor"]
         self.num_betas = model.num_betas
@@ -199,7 +241,11 @@ class KeypointBody:
         self.f_dirs = tt(a["shapedirs"][ids])  # (5, 3, B)
         self.f_posedirs = tt(a["posedirs"][ids])  # (5, 3, 207)
         self.f_weights = tt(a["weights"][ids])  # (5, 24)
-        self.coco = tt(coco17_matrix())  # (17, 29)
+        A = coco17_matrix(layout)
+        if not self.has_face:
+            A[:5, 24:] = 0.0
+            A[:5, 15] = 1.0
+        self.coco = tt(A)  # (17, 29)
         parents = np.asarray(model.parents, dtype=np.int64).copy()
         parents[0] = -1
         self.parents = torch.as_tensor(parents, device=device)
@@ -332,18 +378,26 @@ class _State:
     transl: torch.Tensor  # (W, 3)
 
 
-def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: int, names: list[str],
+def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: float, names: list[str],
            smooth: bool = True) -> dict[str, torch.Tensor]:
-    """Weighted terms of ``phase`` (1 or 2) for the state ``s`` on data ``d``."""
+    """Weighted terms of ``phase`` for the state ``s`` on data ``d``: 1 (3D keypoints, smoothness,
+    shape), 1.25 (the same on the trunk's keypoints only), 1.5 (1 + joint limits and ranges), 2 (all)."""
     joints, coco = body(s.betas, s.go, s.pose, s.transl)
-    out = {"kp3d": cfg.w_kp3d * TM.kp3d_term(coco, d.kp3d, d.conf3d, cfg.kp3d_kernel, cfg.kp3d_scale_m)}
+    conf3d = d.conf3d
+    if phase == 1.25:  # global and torso stages: the limbs, still at their start, must not tilt the trunk
+        conf3d = conf3d * torch.as_tensor(_TRUNK_KEYPOINTS, dtype=conf3d.dtype, device=conf3d.device)
+    out = {"kp3d": cfg.w_kp3d * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, cfg.kp3d_scale_m)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
         out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
-    if phase == 1:
+    if phase <= 1.25:
+        return out
+    if phase == 1.5:  # torso and limbs stages: the pose moves, the 2D terms wait for phase 2
+        out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
+        out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
         return out
     for v, name in enumerate(names):
         out[f"reproj/{name}"] = cfg.w_reproj * TM.reproj_term(
@@ -351,7 +405,11 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: i
             cfg.reproj_kernel, cfg.reproj_scale_px)
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
+    elif cfg.w_rest_pose > 0:
+        idx = [3 * (j - 1) + a for j in UNPINNED_JOINTS for a in range(3)]
+        out["rest_pose"] = cfg.w_rest_pose * (s.pose[:, idx] ** 2).sum(-1).mean()
     out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
+    out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
     return out
 
 
@@ -393,7 +451,17 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
     lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
-    _optimise(p1, lr1, total(1), cfg.phase1_iterations, cfg)
+    _optimise(p1, lr1, total(1.25), cfg.phase1_iterations, cfg)
+    # Torso, then limbs: the pose is free only on those joints (zeroed gradients elsewhere: with a
+    # fresh Adam per stage, a zero gradient moves nothing).
+    for joints, iters, phase in ((TORSO_JOINTS, cfg.torso_iterations, 1.25), (LIMB_JOINTS, cfg.limbs_iterations, 1.5)):
+        if iters <= 0:
+            continue
+        mask = torch.zeros(23, 3, dtype=s.pose.dtype, device=s.pose.device)
+        mask[[j - 1 for j in joints]] = 1.0
+        hook = s.pose.register_hook(lambda g, m=mask.reshape(69): g * m)
+        _optimise(p1 + [s.pose], lr1 + [cfg.stage_pose_lr], total(phase), iters, cfg)
+        hook.remove()
     t1 = time.perf_counter()
     p2 = p1 + [s.pose]
     lr2 = ([cfg.phase2_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase2_lr] * 3
@@ -508,6 +576,8 @@ def fit_world_smpl(
     init: SmplParams,
     prior_body_pose: NDArray | None = None,
     cfg: SmplifyConfig = SmplifyConfig(),
+    layout: str = "COCO17",
+    prior_weight: NDArray | None = None,
 ) -> SmplifyResult:
     """Fit world-space SMPL motion to 3D and 2D keypoints with the cameras fixed.
 
@@ -520,6 +590,9 @@ def fit_world_smpl(
         prior_body_pose: (T, 69) body pose to stay near (e.g. the regressor's), all-zero rows =
             missing; None = no pose prior.
         cfg: weights, schedules, windows, device.
+        layout: the keypoint layout (its hip definition, :func:`embodmocap.body.joints.coco17_matrix`).
+        prior_weight: (T,) per-frame weight of the pose prior (e.g. 0 where the prior disagrees
+            with the triangulation); None = 1 wherever the prior has a row.
 
     Returns:
         :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
@@ -529,8 +602,17 @@ def fit_world_smpl(
     T = _check_inputs(kp3d, kp3d_conf, views, init, prior_body_pose, model.num_betas)
     dtype, device = _check_config(cfg), _device(cfg)
     names = [v.name or f"view{i}" for i, v in enumerate(views)]
-    body = KeypointBody(model, dtype, device)
+    body = KeypointBody(model, dtype, device, layout)
+    if not body.has_face:
+        log.warning("the body model has no face vertex ids: fitting without the nose, eyes and ears")
+        kp3d_conf = kp3d_conf.copy()
+        kp3d_conf[:, :5] = 0.0
+        views = [ViewObservations(v.K, v.T_world_cam, np.concatenate(
+            [np.zeros_like(np.asarray(v.keypoints)[:, :5]), np.asarray(v.keypoints)[:, 5:]], 1), v.name) for v in views]
     data = _to_data(kp3d, kp3d_conf, views, prior_body_pose, cfg, dtype, device)
+    if prior_weight is not None and data.prior_conf is not None:
+        data = _Data(data.kp3d, data.conf3d, data.K, data.T_world_cam, data.kp2d, data.conf2d, data.prior,
+                     data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device))
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
     start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
 

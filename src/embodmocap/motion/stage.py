@@ -33,7 +33,7 @@ from embodmocap.geometry.triangulation import TriangulationConfig, projection_ma
 from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.smpl_file import read_smpl_npz, write_smpl_npz
+from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid, write_smpl_npz
 from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
@@ -66,6 +66,27 @@ class MotionConfig:
     the whole body the wrong way round in one view) before triangulating and fitting."""
     min_prior_fraction: float = 0.5
     """A view's body prior is used only when at least this share of its frames has an estimate."""
+    min_frame_joints: int = 8
+    """A frame needs this many triangulated joints to count as well observed; a sequence where
+    more than ``max_poor_fraction`` of the frames has fewer is refused (one clear error)."""
+    max_poor_fraction: float = 0.5
+    """Largest share of frames with fewer than ``min_frame_joints`` triangulated joints."""
+    min_valid_joints: int = 4
+    """A frame where fewer joints are triangulated, or fewer than two of the hips and shoulders,
+    cannot place the body: it is fitted from its neighbours but flagged ``valid = False`` in
+    ``smpl_world.npz``."""
+    bone_tol: float = 0.3
+    """Triangulated limb points whose bone to the parent point is off by more than this fraction
+    of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
+    (a left/right confusion in one view triangulates at the wrong depth with no reprojection
+    error); 0 = keep every point."""
+    init_median_frames: int = 0
+    """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
+    many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
+    prior_disagree_m: float = 0.08
+    """A frame whose prior-started body is this much further (median over the triangulated joints)
+    from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
+    gets no pull towards the prior's pose: the triangulation wins."""
 
 
 @dataclass(frozen=True)
@@ -147,38 +168,70 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     # 2. SMPLify.
     model = load_body_model(manifest.body_model)
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
-    fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, path_fingerprint(out.keypoints3d),
-                         *[path_fingerprint(out.view(v).body_prior) for v in priors],
+    layout = keypoint_layout(out, entry.name)
+    fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
+                         cfg.init_median_frames, layout,
+                         path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
                          path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
     if step("fit", fp_fit):
         t0 = time.perf_counter()
         k3 = np.load(out.keypoints3d)
+        valid = placeable_frames(out.keypoints3d, entry.name, k3["points"], k3["conf"], cfg)
         # The 2D keypoints as the triangulation step left them (left/right swaps undone).
         kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
         views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
                  for i, v in enumerate(VIEWS)]
+        min_conf = cfg.smplify.min_conf
+        points, conf3 = k3["points"], k3["conf"]
+        if cfg.bone_tol > 0:
+            from embodmocap.motion.ik import betas_from_bone_lengths, implausible_points, observed_bone_lengths, rest_skeleton
+
+            sk = rest_skeleton(model, layout)
+            seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
+            gated = implausible_points(sk, betas_from_bone_lengths(sk, observed_bone_lengths(points, seen)), points,
+                                       seen, cfg.bone_tol)
+            conf3 = np.where(gated, 0.0, conf3)
+        else:
+            gated = np.zeros(points.shape[:2], dtype=bool)
+        try:
+            kp_init = init_from_keypoints(model, running_median(points, cfg.init_median_frames), conf3, fps,
+                                          manifest.gender or "neutral", min_conf, layout)
+        except ValueError as err:
+            kp_init = None
+            if not priors:
+                raise InputError(out.keypoints3d, f"cannot place a starting body in sequence {entry.name}: {err}",
+                                 "both views must see the hips and shoulders in some frames; or give a body prior "
+                                 "(body_prior in session.toml)") from err
+        prior_pose, v_best, prior_w, n_replaced = None, None, None, 0
         if priors:
             v_best = max(priors, key=lambda v: priors[v][1].mean())
             prior, has = priors[v_best]
             init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, manifest.gender or "neutral")
             # The prior's depth can be far off; start where the triangulation says the body is.
-            init = snap_to_keypoints(model, init, k3["points"], k3["conf"])
+            init = snap_to_keypoints(model, init, points, conf3)
             prior_pose = init.body_pose
-            log.info("%s: initialised from the %s body prior (%.0f%% of frames)", entry.name, v_best, 100 * has.mean())
+            if kp_init is not None:
+                # Where the prior disagrees with the triangulation (a flipped body, limbs elsewhere),
+                # the triangulation wins: start there from the keypoints, and do not pull to the prior.
+                init, worse = prefer_keypoints(model, init, kp_init, points, conf3, min_conf,
+                                               cfg.prior_disagree_m, layout)
+                prior_w, n_replaced = (~worse).astype(np.float64), int(worse.sum())
+            log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)",
+                     entry.name, v_best, 100 * has.mean(), n_replaced)
         else:
-            try:
-                init = init_from_keypoints(model, k3["points"], k3["conf"], fps, manifest.gender or "neutral")
-            except ValueError as err:
-                raise InputError(out.keypoints3d, f"cannot place a starting body: {err}",
-                                 "both views must see the hips and shoulders in some frames; or give a body prior "
-                                 "(body_prior in session.toml)") from err
-            prior_pose, v_best = None, None
+            init = kp_init
         init = _with_fps(init, fps, manifest.gender)
-        res = fit_world_smpl(model, k3["points"], k3["conf"], views, init, prior_pose, cfg.smplify)
-        write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender))
+        res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
+                             prior_weight=prior_w)
+        write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender), valid=valid)
         sm.record("fit", fp_fit, [out.smpl_fit], time.perf_counter() - t0, {
             "init": f"body prior {v_best}" if v_best else "keypoints",
+            "init_frames_from_keypoints": n_replaced if v_best else int(T),
+            "keypoint_layout": layout,
+            "points_dropped_bone_length": int(gated.sum()),
+            "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
             "terms_before": res.terms_before, "terms_after": res.terms_after,
             **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
             "fit_seconds": {k: round(float(x), 2) for k, x in res.phase_seconds.items()},
@@ -191,6 +244,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     if step("align", fp_align):
         t0 = time.perf_counter()
         params, frames = read_smpl_npz(out.smpl_fit)
+        valid = read_smpl_valid(out.smpl_fit)
         # Every contact figure is written on every run: the stage manifest merges figures, and a
         # stale message from an earlier run must not survive.
         T_align = np.eye(4)
@@ -211,7 +265,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             else:
                 T_align = al.T
                 params = apply_alignment(model, params, T_align)
-        write_smpl_npz(out.smpl_world, params, frames)
+        write_smpl_npz(out.smpl_world, params, frames, valid=valid)
         body = model.from_params(params, dtype=__import__("torch").float64)
         write_npz(out.joints_world, version=np.int64(1), joints=body.joints.detach().numpy(),
                   coco17=body.coco17.detach().numpy(), frames=frames)
@@ -224,6 +278,95 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         figures["T_align"] = T_align.tolist()
         sm.record("align", fp_align, outs, time.perf_counter() - t0, figures)
     return MotionOutputs(entry.name, out, sm.figures(), tuple(skipped))
+
+
+def keypoint_layout(out: SequenceLayout, seq: str) -> str:
+    """The layout of the detector behind the sequence's 2D keypoints (``keypoints2d.npz``'s
+    ``layout``; COCO17 for files written before it was recorded). Views that disagree fall back
+    to COCO17 with a warning (one hip definition serves the 3D points of both)."""
+    found = []
+    for v in VIEWS:
+        with np.load(out.view(v).keypoints) as z:
+            found.append(str(z["layout"]) if "layout" in z.files else "COCO17")
+    if len(set(found)) > 1:
+        log.warning("%s: the views' keypoints come from different layouts %s; fitting with COCO-17 hips", seq, found)
+        return "COCO17"
+    return found[0]
+
+
+def running_median(points: NDArray, frames: int) -> NDArray:
+    """(T, J, 3) points through a centred running median of ``frames`` frames per coordinate,
+    ignoring NaN (a point stays NaN where it was NaN: only the seen ones are replaced)."""
+    if frames <= 1:
+        return points
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    h = frames // 2
+    pad = np.concatenate([np.full((h,) + points.shape[1:], np.nan), points, np.full((h,) + points.shape[1:], np.nan)])
+    win = sliding_window_view(pad, 2 * h + 1, axis=0)  # (T, J, 3, w)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(win, axis=-1)
+    return np.where(np.isfinite(points), med, np.nan)
+
+
+def placeable_frames(path: Path, seq: str, points: NDArray, conf: NDArray, cfg: MotionConfig) -> NDArray[np.bool_]:
+    """(T,) frames where the body can be placed (see :attr:`MotionConfig.min_valid_joints`).
+
+    Raises:
+        InputError: more than ``cfg.max_poor_fraction`` of the frames have fewer than
+            ``cfg.min_frame_joints`` triangulated joints.
+    """
+    # Any triangulated point counts (the triangulation already ignored weak detections); points
+    # filled over short gaps count too: they are what the fit follows there.
+    seen = np.isfinite(points).all(-1)
+    n = seen.sum(1)
+    poor = float((n < cfg.min_frame_joints).mean()) if len(n) else 1.0
+    if poor > cfg.max_poor_fraction:
+        raise InputError(path, f"sequence {seq}: {100 * poor:.0f}% of the {len(n)} frames have fewer than "
+                         f"{cfg.min_frame_joints} triangulated joints (at most {100 * cfg.max_poor_fraction:.0f}% "
+                         "allowed): too little to place a body",
+                         "check that both views see the performer (keypoints2d.npz, the sync and the cameras)")
+    torso = seen[:, [5, 6, 11, 12]].sum(1)
+    return (n >= cfg.min_valid_joints) & (torso >= 2)
+
+
+def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_conf: float, margin_m: float,
+                     layout: str = "COCO17"):
+    """``init`` with the frames where it is more than ``margin_m`` further from the 3D keypoints
+    than ``kp_init`` (median over the triangulated joints) taken from ``kp_init``; and those frames
+    (T,) bool. Betas stay ``init``'s."""
+    import torch
+    from dataclasses import replace
+
+    from embodmocap.body.joints import smpl_to_coco17
+
+    seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
+
+    def err(p):
+        with torch.no_grad():
+            out = model.from_params(p, dtype=torch.float64)
+            kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
+        n = seen.sum(1)
+        # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).
+        d = np.sort(np.where(seen, d, np.inf), axis=1)
+        mid = np.take_along_axis(d, np.clip((n - 1) // 2, 0, None)[:, None], 1)[:, 0]
+        mid2 = np.take_along_axis(d, np.clip(n // 2, 0, None)[:, None], 1)[:, 0]
+        return np.where(n > 0, 0.5 * (mid + np.where(n > 0, mid2, 0.0)), 0.0)
+
+    kp_same_shape = replace(kp_init, betas=init.betas,
+                            transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))
+    worse = err(init) > err(kp_same_shape) + margin_m
+    if not worse.any():
+        return init, worse
+    pick = lambda a, b: np.where(worse.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
+    return replace(init, global_orient=pick(init.global_orient, kp_same_shape.global_orient),
+                   body_pose=pick(init.body_pose, kp_same_shape.body_pose),
+                   transl=pick(init.transl, kp_same_shape.transl)), worse
 
 
 def _fps(out: SequenceLayout) -> float:

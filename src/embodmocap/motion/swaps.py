@@ -49,6 +49,14 @@ class SwapConfig:
     cap_px: float = 60.0
     """Per-point reprojection errors are capped at this before averaging (one wild point must not
     decide)."""
+    bone_tol: float = 0.3
+    """Arms and legs: a bone (shoulder-elbow, elbow-wrist, hip-knee, knee-ankle) whose triangulated
+    length is off the sequence's median by more than this fraction is implausible. With two views a
+    swap along the epipolar lines (cameras at one height, a horizontal confusion) leaves no
+    reprojection error but puts the limbs at wrong depths: the view whose swap makes every bone
+    plausible again (and no reprojection worse by ``bone_max_extra_px``) is swapped back. 0 = off."""
+    bone_max_extra_px: float = 5.0
+    """Largest increase of the group's reprojection error a bone-length swap may cause, pixels."""
 
 
 def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
@@ -98,6 +106,24 @@ def _mislabelled(points: NDArray, group: str) -> NDArray[np.bool_]:
         return ~(side > 0)
 
 
+#: Bones (parent, child) of each limb group, both sides.
+_LIMB_BONES = {
+    "arms": ((_L_SHOULDER, _L_ELBOW), (_R_SHOULDER, _R_ELBOW), (_L_ELBOW, 9), (_R_ELBOW, 10)),
+    "legs": ((_L_HIP, _L_KNEE), (_R_HIP, _R_KNEE), (_L_KNEE, 15), (_R_KNEE, 16)),
+}
+
+
+def _implausible_bones(points: NDArray, bones, lengths: NDArray, tol: float) -> NDArray:
+    """(T,) number of ``bones`` whose length in ``points`` (T, 17, 3) is more than ``tol`` off
+    ``lengths``; a bone with a missing end counts as implausible (it cannot vouch for a labelling)."""
+    out = np.zeros(len(points))
+    for (a, b), L in zip(bones, lengths):
+        d = np.linalg.norm(points[:, a] - points[:, b], axis=-1)
+        with np.errstate(invalid="ignore"):
+            out += ~(np.abs(d - L) <= tol * L)
+    return out
+
+
 def _runs(mask: NDArray[np.bool_]) -> list[tuple[int, int]]:
     """[start, end) of each run of True."""
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
@@ -123,6 +149,34 @@ def _continuity_gain(kp: NDArray, v: int, run: tuple[int, int], pairs, min_conf:
     return gain
 
 
+def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[NDArray, int]:
+    """Two views, arms or legs: swap back the view whose swap makes the group's bones plausible
+    (see :attr:`SwapConfig.bone_tol`); marks ``swapped`` in place; returns the keypoints and how
+    many frames were changed."""
+    bones = _LIMB_BONES[name]
+    d = [np.linalg.norm(X0[:, a] - X0[:, b], axis=-1) for a, b in bones]
+    L = np.array([np.median(x[np.isfinite(x)]) if np.isfinite(x).any() else np.nan for x in d])
+    if not np.isfinite(L).all():
+        return kp, 0
+    joints = [j for pair in pairs for j in pair]
+    n0 = _implausible_bones(X0, bones, L, cfg.bone_tol)
+    best_n, best_v = n0.copy(), np.full(len(kp), -1)
+    for v in range(kp.shape[1]):
+        trial = kp.copy()
+        trial[:, v] = _swap(kp[:, v], pairs)
+        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+        nv = _implausible_bones(Xv, bones, L, cfg.bone_tol)
+        ok = (nv == 0) & (n0 >= 1) & (nv < best_n) & (err <= base + cfg.bone_max_extra_px)
+        best_n, best_v = np.where(ok, nv, best_n), np.where(ok, v, best_v)
+    t_idx = np.flatnonzero(best_v >= 0)
+    for t in t_idx:
+        kp[t, best_v[t]] = _swap(kp[t, best_v[t]], pairs)
+        swapped[t, best_v[t], g] = True
+    if len(t_idx):
+        log.info("left/right %s swapped back by bone lengths in %d frames", name, len(t_idx))
+    return kp, len(t_idx)
+
+
 def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = TriangulationConfig(),
               cfg: SwapConfig = SwapConfig(),
               groups: dict[str, tuple[tuple[int, int], ...]] = COCO17_SWAP_GROUPS) -> tuple[NDArray, NDArray[np.bool_]]:
@@ -145,7 +199,11 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
     swapped = np.zeros((T, V, len(names)), dtype=bool)
     for g, name in enumerate(names):
         joints = [j for pair in groups[name] for j in pair]
-        base, _ = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+        base, X0 = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+        if V == 2 and name in _LIMB_BONES and cfg.bone_tol > 0:
+            kp, n_bone = _bone_swaps(P, kp, X0, base, name, groups[name], g, swapped, tcfg, cfg)
+            if n_bone:
+                base, _ = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
         bad = base >= cfg.min_error_px
         if not bad.any():
             continue

@@ -12,6 +12,7 @@ joint_vel / _acc    mean squared norm of the 1st / 2nd frame difference of joint
 transl_vel / _acc   same for the SMPL translation                                         m^2
 pose_prior          mean squared axis-angle difference to a prior body pose               rad^2
 joint_limits        mean over frames of squared hinge violations (knees, elbows)          rad^2
+joint_range         mean over frames of squared violations of per-axis anatomical ranges  rad^2
 shape_prior         mean squared beta                                                     1
 =================== ==================================================================== =========
 
@@ -150,6 +151,54 @@ def joint_limits_term(body_pose: torch.Tensor, hinges: tuple[tuple[int, int, flo
     idx = torch.tensor([3 * (j - 1) + a for j, a, _ in hinges], device=body_pose.device)
     sign = torch.tensor([s for _, _, s in hinges], dtype=body_pose.dtype, device=body_pose.device)
     v = torch.relu(-sign * body_pose[:, idx])
+    return (v ** 2).sum(-1).mean() if len(body_pose) else body_pose.sum() * 0.0
+
+
+def _range(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z):
+    return ((lo_x, hi_x), (lo_y, hi_y), (lo_z, hi_z))
+
+
+#: Anatomical range of each body joint (SMPL joints 1..23) per axis-angle component of its local
+#: rotation, radians: ``((x_lo, x_hi), (y_lo, y_hi), (z_lo, z_hi))``. SMPL's joint frames share the
+#: canonical axes (X to the body's left, Y up, Z forward), so e.g. a hip's -x bends the thigh
+#: forward (flexion), a knee's +x bends the shin back, the left shoulder's +z lifts the arm. The
+#: figures are generous versions of textbook ranges of motion (hip flexion ~125 deg, knee ~150
+#: deg, shoulder elevation ~180 deg, spine segments a few tens of degrees each): the term keeps a
+#: fit from impossible poses, it does not prefer any possible one. For larger rotations the
+#: components are not Euler angles, but the box stays a fair bound for the joints that turn far
+#: (shoulders, hips), whose boxes are wide.
+ANATOMICAL_RANGES: tuple[tuple[tuple[float, float], ...], ...] = (
+    _range(-2.4, 0.7, -0.9, 0.9, -0.6, 1.3),    # 1 left hip
+    _range(-2.4, 0.7, -0.9, 0.9, -1.3, 0.6),    # 2 right hip
+    _range(-0.5, 0.9, -0.6, 0.6, -0.5, 0.5),    # 3 spine1
+    _range(-0.1, 2.7, -0.4, 0.4, -0.3, 0.3),    # 4 left knee
+    _range(-0.1, 2.7, -0.4, 0.4, -0.3, 0.3),    # 5 right knee
+    _range(-0.4, 0.6, -0.5, 0.5, -0.4, 0.4),    # 6 spine2
+    _range(-1.0, 1.0, -0.6, 0.6, -0.5, 0.5),    # 7 left ankle
+    _range(-1.0, 1.0, -0.6, 0.6, -0.5, 0.5),    # 8 right ankle
+    _range(-0.4, 0.6, -0.5, 0.5, -0.4, 0.4),    # 9 spine3
+    _range(-0.5, 0.5, -0.4, 0.4, -0.4, 0.4),    # 10 left foot
+    _range(-0.5, 0.5, -0.4, 0.4, -0.4, 0.4),    # 11 right foot
+    _range(-0.7, 0.9, -0.9, 0.9, -0.6, 0.6),    # 12 neck
+    _range(-0.4, 0.4, -0.5, 0.5, -0.5, 0.5),    # 13 left collar
+    _range(-0.4, 0.4, -0.5, 0.5, -0.5, 0.5),    # 14 right collar
+    _range(-0.7, 0.9, -0.9, 0.9, -0.6, 0.6),    # 15 head
+    _range(-1.8, 1.8, -2.0, 1.6, -1.9, 1.8),    # 16 left shoulder
+    _range(-1.8, 1.8, -1.6, 2.0, -1.8, 1.9),    # 17 right shoulder
+    _range(-1.6, 1.6, -2.7, 0.1, -0.4, 0.4),    # 18 left elbow
+    _range(-1.6, 1.6, -0.1, 2.7, -0.4, 0.4),    # 19 right elbow
+    _range(-1.6, 1.6, -1.1, 1.1, -1.2, 1.2),    # 20 left wrist
+    _range(-1.6, 1.6, -1.1, 1.1, -1.2, 1.2),    # 21 right wrist
+    _range(-0.6, 0.6, -0.6, 0.6, -0.6, 0.6),    # 22 left hand
+    _range(-0.6, 0.6, -0.6, 0.6, -0.6, 0.6),    # 23 right hand
+)
+
+
+def joint_range_term(body_pose: torch.Tensor, ranges=ANATOMICAL_RANGES) -> torch.Tensor:
+    """Per-axis anatomical limits: mean over frames of the summed squared distances of each
+    axis-angle component of ``body_pose`` (T, 69) outside its range (:data:`ANATOMICAL_RANGES`)."""
+    r = torch.as_tensor(ranges, dtype=body_pose.dtype, device=body_pose.device).reshape(69, 2)
+    v = torch.relu(r[:, 0] - body_pose) + torch.relu(body_pose - r[:, 1])
     return (v ** 2).sum(-1).mean() if len(body_pose) else body_pose.sum() * 0.0
 
 

@@ -211,11 +211,11 @@ def _chunks(n: int, size: int):
 
 def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, out: SequenceLayout) -> dict:
     """Every person per frame -> tracks -> the performer (one identity, consistent across views)."""
-    people, tracks = {}, {}
+    people, tracks, layouts = {}, {}, {}
     figs: dict = {}
     for v in VIEWS:
         fm, cap = maps[v], captures[v]
-        people[v], missing = _all_people(cfg, entry.views[v], cap, fm)
+        people[v], missing, layouts[v] = _all_people(cfg, entry.views[v], cap, fm)
         tracks[v] = track_people(people[v], (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height), cfg.tracking)
         figs[f"{v}_frames_missing_keypoint_file"] = missing
         if missing:
@@ -238,7 +238,8 @@ def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, o
             log.warning("%s %s: no performer for %.1f s in a row (longest gap)", entry.name, v, gap)
         conf = kp[..., 2][seen]
         write_npz(out.view(v).keypoints, version=np.int64(1), keypoints=kp, boxes=boxes,
-                  raw_frames=maps[v].raw_frames, seen=seen, track_id=np.int64(track.track_id if track else -1))
+                  raw_frames=maps[v].raw_frames, seen=seen, track_id=np.int64(track.track_id if track else -1),
+                  layout=np.array(layouts[v]))
         figs.update({
             f"{v}_frames_with_person": int(seen.sum()),
             f"{v}_mean_keypoint_confidence": round(float(conf.mean()) if conf.size else 0.0, 4),
@@ -248,8 +249,9 @@ def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, o
     return figs
 
 
-def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[list[np.ndarray], int]:
-    """Per sliced frame, (N, 17, 3) keypoints of everyone the backend sees; and missing files."""
+def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[list[np.ndarray], int, str]:
+    """Per sliced frame, (N, 17, 3) keypoints of everyone the backend sees; missing files; the
+    layout of the detector that produced them (its hip definition matters to Stage IV)."""
     if cfg.keypoints == "precomputed":
         if view.keypoints is None:
             raise InputError(cap.path, "keypoints = precomputed but the view names no keypoint folder",
@@ -258,7 +260,7 @@ def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[
 
         src = PrecomputedKeypoints(view.keypoints)
         people = src.read(fm.raw_frames)
-        return people, len(src.missing_frames)
+        return people, len(src.missing_frames), src.layout or "COCO17"
     detector, estimator = _model_backends(cfg, view)
     people = []
     for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
@@ -267,7 +269,7 @@ def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[
         boxes = detector.detect(frames, ids)
         kps = estimator.estimate(frames, ids, [b[:, :4] for b in boxes])
         people += [np.asarray(k, dtype=np.float64).reshape(-1, 17, 3) for k in kps]
-    return people, 0
+    return people, 0, "COCO17"
 
 
 def _model_backends(cfg: SequenceConfig, view):

@@ -119,6 +119,20 @@ class SynthConfig:
     be registered to the scene)."""
     laser: LaserConfig = LaserConfig()
     """The laser dot of the sync event: easy (default), realistic range, or none."""
+    perception: Literal["clean", "hard"] = "clean"
+    """The 2D detector the perception files imitate: ``clean`` = a good detector on a clear view
+    (jitter, low confidence when occluded, rare outliers, short swaps); ``hard`` = every adversity
+    of real detectors on (:data:`embodmocap.synth.perception.HARD_KEYPOINT_NOISE`: noise growing
+    with occlusion and distance, missed joints, more outliers, left/right limb swaps lasting up to
+    a second, whole-body misses, furniture-hidden joints guessed at wrong places) and, unless
+    ``keypoint_layout`` says otherwise, OpenPose BODY_25 output."""
+    body_prior: Literal["none", "realistic", "poor"] = "realistic"
+    """The camera-space body prior written per view: ``none`` (no file: a user without regressor
+    weights), ``realistic`` (a VIMO-like regressor: 7 deg per joint, depth 10 % off) or ``poor``
+    (15 deg per joint, depth 20 % off)."""
+    keypoint_layout: Literal["auto", "COCO17", "BODY_25"] = "auto"
+    """Layout of the keypoint JSON: ``COCO17``, ``BODY_25`` (OpenPose's default model, with its own
+    hip definition) or ``auto`` (BODY_25 for ``perception = hard``, else COCO17)."""
 
     def __post_init__(self) -> None:
         from embodmocap.errors import InputError
@@ -144,6 +158,12 @@ class SynthConfig:
         bad = [msg for ok, msg in checks if not ok]
         if bad:
             raise InputError(None, "invalid synth settings: " + "; ".join(bad), "change the options")
+
+    def layout(self) -> str:
+        """The keypoint layout the perception files are written in."""
+        if self.keypoint_layout != "auto":
+            return self.keypoint_layout
+        return "BODY_25" if self.perception == "hard" else "COCO17"
 
     def intrinsics(self) -> Intrinsics:
         fx = (self.width / 2) / np.tan(np.deg2rad(self.hfov_deg) / 2)

@@ -132,7 +132,41 @@ class KeypointNoiseConfig:
     """A frame whose mean joint visibility is below this has no person at all (all zeros): the
     detector misses a person mostly out of view or hidden."""
     miss_rate: float = 0.005
-    """Probability that the detector misses the person in a frame anyway."""
+    """Probability that the detector misses the person in a frame anyway (a miss starts; see
+    ``miss_frames``)."""
+    miss_frames: tuple[int, int] = (1, 1)
+    """Range (inclusive) of how many frames a whole-body miss lasts (motion blur, a detector that
+    loses the person for a moment)."""
+    small_person_px: float = 0.0
+    """Distance: below this person height in the image (pixels) the jitter grows as
+    ``small_person_px / height`` (a top-down detector working on a low-resolution crop is less
+    precise relative to the person's size); 0 = off."""
+    missed_joint_rate: float = 0.0
+    """Probability that a fully visible joint is not output at all (confidence 0)."""
+    missed_occluded_rate: float = 0.0
+    """Probability that a fully occluded joint is not output (blended by visibility)."""
+    occluded_wrong_rate: float = 0.0
+    """Per frame and joint, the probability that a run starts in which the joint, while occluded
+    (by the scene's furniture or the body), is put at a wrong place with a middling confidence
+    instead of a low one: a detector's confident guess of a hidden joint."""
+    occluded_wrong_frames: tuple[int, int] = (5, 20)
+    """Range (inclusive) of how many frames such a wrong guess lasts."""
+    occluded_wrong_jump: tuple[float, float] = (0.08, 0.2)
+    """Range of a wrong guess's displacement, as a fraction of the person's height."""
+    occluded_wrong_conf: tuple[float, float] = (0.3, 0.6)
+    """Range of a wrong guess's confidence."""
+
+
+#: The adversities of real detectors, all on (``embodmocap synth --perception hard``). Figures
+#: follow published behaviour of top-down detectors (HRNet / ViTPose / OpenPose on COCO and on
+#: in-the-wild video): about 1-2 % of the person's height of jitter on visible joints, several
+#: times that on occluded ones, a few % gross outliers, left/right limb confusions lasting up to a
+#: second, joints dropped under occlusion, and whole-body misses of a few frames.
+HARD_KEYPOINT_NOISE = KeypointNoiseConfig(
+    rel_std=0.013, occluded_std_scale=4.0, conf_occluded=(0.05, 0.35), outlier_rate=0.04,
+    outlier_jump=(0.1, 0.4), swap_rate=0.008, swap_frames=(5, 30), miss_rate=0.006, miss_frames=(2, 12),
+    small_person_px=300.0, missed_joint_rate=0.02, missed_occluded_rate=0.4, occluded_wrong_rate=0.01,
+)
 
 
 def noisy_keypoints(
@@ -155,6 +189,8 @@ def noisy_keypoints(
     scale = person_height_px(gt)  # (T,)
 
     std = cfg.rel_std * scale[:, None] * (1.0 + (cfg.occluded_std_scale - 1.0) * (1.0 - vis))
+    if cfg.small_person_px > 0:
+        std = std * np.maximum(cfg.small_person_px / np.maximum(scale, 1.0), 1.0)[:, None]
     xy = gt + rng.normal(size=(T, J, 2)) * std[..., None]
     conf = vis * rng.uniform(*cfg.conf_visible, size=(T, J)) + (1.0 - vis) * rng.uniform(*cfg.conf_occluded, size=(T, J))
 
@@ -168,9 +204,55 @@ def noisy_keypoints(
     kp = np.concatenate([xy, conf[..., None]], axis=-1)
     kp = _apply_swaps(kp, swap_mask(T, rng, cfg))
 
-    missed = (vis.mean(axis=1) < cfg.min_visible_frac) | (rng.random(T) < cfg.miss_rate)
+    if cfg.miss_frames == (1, 1):
+        missed = (vis.mean(axis=1) < cfg.min_visible_frac) | (rng.random(T) < cfg.miss_rate)
+    else:
+        missed = (vis.mean(axis=1) < cfg.min_visible_frac) | runs(T, 1, cfg.miss_rate, cfg.miss_frames, rng)[:, 0]
     kp[missed] = 0.0
+    if cfg.occluded_wrong_rate > 0:
+        # A hidden joint guessed at a wrong place, consistently over a run of frames.
+        wrong = runs(T, J, cfg.occluded_wrong_rate, cfg.occluded_wrong_frames, rng) & (vis < 0.5)
+        ang = rng.uniform(0.0, 2.0 * np.pi, size=J)
+        jump = rng.uniform(*cfg.occluded_wrong_jump, size=J)[None] * scale[:, None]
+        off = jump[..., None] * np.stack([np.cos(ang), np.sin(ang)], -1)[None]
+        wrong &= ~missed[:, None]
+        kp[..., :2] = np.where(wrong[..., None], kp[..., :2] + off, kp[..., :2])
+        kp[..., 2] = np.where(wrong, rng.uniform(*cfg.occluded_wrong_conf, size=(T, J)), kp[..., 2])
+    if cfg.missed_joint_rate > 0 or cfg.missed_occluded_rate > 0:
+        p = cfg.missed_joint_rate + (cfg.missed_occluded_rate - cfg.missed_joint_rate) * (1.0 - vis)
+        drop = rng.random((T, J)) < p
+        kp[drop] = 0.0
     return kp
+
+
+def runs(T: int, n: int, rate: float, frames: tuple[int, int], rng: np.random.Generator) -> NDArray[np.bool_]:
+    """(T, n) True inside random runs: per frame and column a run starts with probability
+    ``rate`` and lasts a random number of frames in ``frames`` (inclusive)."""
+    starts = rng.random((T, n)) < rate
+    lengths = rng.integers(frames[0], frames[1] + 1, size=(T, n))
+    diff = np.zeros((T + frames[1] + 1, n), dtype=np.int64)
+    t_idx, g_idx = np.nonzero(starts)
+    np.add.at(diff, (t_idx, g_idx), 1)
+    np.add.at(diff, (t_idx + lengths[t_idx, g_idx], g_idx), -1)
+    return np.cumsum(diff, axis=0)[:T] > 0
+
+
+def coco17_to_body25(kp17: NDArray) -> NDArray[np.float64]:
+    """(..., 17, 3) COCO-17-ordered points (with BODY_25 hips) -> (..., 25, 3) OpenPose BODY_25.
+
+    The neck and mid-hip are the midpoints of the shoulders and the hips (confidence: the lower
+    of the two; 0 when either is missing); the six foot points are written as not detected.
+    """
+    from embodmocap.io.openpose import COCO17_FROM
+
+    kp17 = np.asarray(kp17, dtype=np.float64)
+    out = np.zeros(kp17.shape[:-2] + (25, 3))
+    out[..., list(COCO17_FROM["BODY_25"]), :] = kp17
+    for dst, (a, b) in ((1, (5, 6)), (8, (11, 12))):
+        c = np.minimum(kp17[..., a, 2], kp17[..., b, 2])
+        out[..., dst, :2] = np.where((c > 0)[..., None], 0.5 * (kp17[..., a, :2] + kp17[..., b, :2]), 0.0)
+        out[..., dst, 2] = c
+    return out
 
 
 def person_height_px(gt_px: NDArray) -> NDArray[np.float64]:
@@ -280,6 +362,11 @@ class PriorNoiseConfig:
     corr_s: float = 0.5
     """Correlation time of all errors, seconds (Gaussian smoothing of white noise): regressors run
     on short windows, so their errors drift slowly rather than jitter."""
+
+
+#: A poor regressor (``embodmocap synth --body-prior poor``): depth 20 % off, 15 degrees per joint.
+POOR_PRIOR_NOISE = PriorNoiseConfig(pose_std_deg=15.0, orient_std_deg=10.0, betas_std=0.6, depth_rel_std=0.2,
+                                    xy_std_m=0.03)
 
 
 def body_prior(

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from embodmocap.body.joints import smpl_to_coco17
 from embodmocap.body.model import load_body_model
 from embodmocap.body.testmodel import write_test_model
 from embodmocap.geometry.transforms import apply_T, invert_T
@@ -108,6 +109,10 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     out_body = body.from_params(params)
     verts = out_body.vertices.detach().cpu().numpy()
     coco = out_body.coco17.detach().cpu().numpy()
+    # What the detector marks: COCO-17 points with the layout's own hip definition.
+    layout = cfg.layout()
+    kp_true = coco if layout == "COCO17" else smpl_to_coco17(out_body.joints, out_body.vertices, body.vertex_ids,
+                                                             layout).detach().cpu().numpy()
     joints = out_body.joints.detach().cpu().numpy()
     faces = np.asarray(body.faces)
 
@@ -172,7 +177,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         phase = cfg.phone_offset_frames if v == "v2" else 0.0
         t_motion = span + phase
         T_scene_cam = _at_times(T_v[k], t_motion)
-        v_verts, v_coco = (_lerp_frames(a, t_motion) for a in (verts, coco))
+        v_verts, v_coco = (_lerp_frames(a, t_motion) for a in (verts, kp_true))
         T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 20 + k))
         T_vio_cam = trajectory.add_drift(
             invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
@@ -190,13 +195,17 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         )
         frames_rendered += len(span)
         prng = _rng(cfg.seed, 60 + k)
-        kps = perception.noisy_keypoints(gt_px, vis, prng, perception.KeypointNoiseConfig())
+        noise = perception.HARD_KEYPOINT_NOISE if cfg.perception == "hard" else perception.KeypointNoiseConfig()
+        kps = perception.noisy_keypoints(gt_px, vis, prng, noise)
         perc = lay.perception(cfg.sequence_name, v)
         for i, kp in enumerate(kps):
-            write_openpose_json(perc.keypoints_json(i), [kp] if kp[:, 2].max() > 0 else [])
-        prior_params = type(params)(params.betas, params.global_orient[span], params.body_pose[span], params.transl[span], params.fps, params.gender)
-        prior = perception.body_prior(prior_params, T_scene_cam, body, prng, perception.PriorNoiseConfig())
-        write_body_prior(perc.body_prior, prior)
+            out_kp = perception.coco17_to_body25(kp) if layout == "BODY_25" else kp
+            write_openpose_json(perc.keypoints_json(i), [out_kp] if kp[:, 2].max() > 0 else [])
+        if cfg.body_prior != "none":
+            prior_params = type(params)(params.betas, params.global_orient[span], params.body_pose[span], params.transl[span], params.fps, params.gender)
+            pcfg = perception.POOR_PRIOR_NOISE if cfg.body_prior == "poor" else perception.PriorNoiseConfig()
+            prior = perception.body_prior(prior_params, T_scene_cam, body, prng, pcfg)
+            write_body_prior(perc.body_prior, prior)
         sync_frames[v] = int(event - starts[v])
         seq_gt.update({
             f"{v}_T_scene_vio": T_scene_vio, f"{v}_T_scene_cam": T_scene_cam, f"{v}_T_vio_cam": T_vio_cam,
@@ -212,6 +221,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         gt.sequence(cfg.sequence_name), version=np.int64(GT_VERSION),
         betas=params.betas, global_orient=params.global_orient, body_pose=params.body_pose, transl=params.transl,
         fps=np.float64(cfg.fps), joints_smpl24=joints, joints_coco17=coco, event_motion_frame=np.int64(event),
+        joints_keypoints=kp_true, keypoint_layout=np.array(layout),
         segments=np.array([f"{n}:{s}:{e}" for n, s, e in script.segments]), **seq_gt,
     )
     write_json(gt.info, {
@@ -236,7 +246,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
                 capture=lay.view_capture(cfg.sequence_name, v),
                 keypoints=lay.perception(cfg.sequence_name, v).keypoints_dir,
                 masks=lay.perception(cfg.sequence_name, v).masks_dir,
-                body_prior=lay.perception(cfg.sequence_name, v).body_prior,
+                body_prior=lay.perception(cfg.sequence_name, v).body_prior if cfg.body_prior != "none" else None,
             ) for v in VIEWS},
         )},
         body_model=lay.body_model,
