@@ -42,7 +42,7 @@ from embodmocap.io.captures import open_capture
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.sequence.geosync import GeoSyncConfig
 
 log = logging.getLogger(__name__)
@@ -367,6 +367,7 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
               if d.get("contact_sheet")}
     rec = decide(rec, geo, cfg.geosync, fps, sheets, seq)
     write_json(out.sync, rec)
+    amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
     for w in rec["warnings"]:
         log.warning("%s", w)
     outs = [out.sync]
