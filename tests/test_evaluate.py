@@ -80,6 +80,22 @@ def test_missing_motion_is_reported(tmp_path):
     assert "embodmocap run" in result["sequences"][SYNTH.sequence_name]["missing"]
 
 
+def test_a_failed_stage_is_not_evaluated(session, tmp_path):
+    """Outputs left behind by a Stage IV run that failed are reported, never evaluated."""
+    import shutil
+
+    from embodmocap.io.stage_manifest import StageManifest
+
+    root, _ = session
+    copy = tmp_path / "s"
+    shutil.copytree(root, copy)
+    sl = SessionLayout(copy).sequence(SYNTH.sequence_name)
+    sm = StageManifest(sl.motion_manifest, "motion", {}, root=copy)
+    sm.finish("failed", RuntimeError("fit diverged"))
+    m = evaluate_session(copy, EvaluateConfig(frames_per_view=3))["sequences"][SYNTH.sequence_name]
+    assert set(m) == {"missing"} and "motion stage failed" in m["missing"] and "embodmocap motion" in m["missing"]
+
+
 def test_report_is_self_contained(session):
     import re
 

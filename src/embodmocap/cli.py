@@ -474,17 +474,11 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     """Export and render read every stage's outputs of a sequence: none may have failed or be stale."""
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
-    from embodmocap.io.stage_manifest import Upstream, require_upstream
+    from embodmocap.io.stage_manifest import require_sequence_stages
     from embodmocap.sequence.stage import _pick_sequence
 
     lay = SessionLayout(session)
-    entry = _pick_sequence(load_manifest(lay.manifest), seq)
-    sl = lay.sequence(entry.name)
-    for path, stage, target in ((lay.scene(entry.scene).manifest, "scene", f"--scene {entry.scene}"),
-                                (sl.manifest, "sequence", f"--seq {entry.name}"),
-                                (sl.calibrate_manifest, "calibrate", f"--seq {entry.name}"),
-                                (sl.motion_manifest, "motion", f"--seq {entry.name}")):
-        require_upstream(Upstream(path, stage, f"embodmocap {stage} {session} {target}"))
+    require_sequence_stages(lay, _pick_sequence(load_manifest(lay.manifest), seq))
 
 
 def _setup_logging(debug: bool) -> None:

@@ -103,7 +103,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
         m = evaluation.get("sequences", {}).get(name, {})
         page.table(["metric", "value"], [[k, v] for k, v in m.items()])
         sl = lay.sequence(name)
-        if not sl.smpl_world.is_file():
+        if not sl.smpl_world.is_file() or "missing" in m:  # unfitted, or a stage failed / is out of date
             continue
         page.image(f"{name}_floorplan.png", _floor_plan(lay, entry.scene, name, cfg), "Top-down view: scene, camera paths, performer path")
         page.image(f"{name}_errors.png", _error_plot(lay, entry.scene, name, manifest.body_model, evaluation.get("ground_truth")),

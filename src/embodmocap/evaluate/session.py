@@ -32,6 +32,7 @@ from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.atomic import write_json
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.stage_manifest import require_sequence_stages
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +109,12 @@ def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()
             hint = (f"the manifest marks it failed: run `embodmocap run {lay.root} --include-failed`" if entry.failed
                     else f"no fitted motion: run `embodmocap run {lay.root}` first")
             result["sequences"][name] = {"missing": hint}
+            continue
+        try:  # never evaluate outputs that a failed or out-of-date stage left behind
+            require_sequence_stages(lay, entry)
+        except InputError as err:
+            log.warning("%s not evaluated: %s", name, err)
+            result["sequences"][name] = {"missing": str(err)}
             continue
         log.info("evaluating %s", name)
         metrics = sequence_quality(lay, name, manifest.body_model, cfg)

@@ -393,3 +393,19 @@ def tracked_stage(fn: F) -> F:
         return result
 
     return wrapper  # type: ignore[return-value]
+
+
+def require_sequence_stages(lay: Any, entry: Any) -> None:
+    """Refuse a sequence whose outputs cannot be trusted: any of its stages (its scene's Stage I,
+    then Stages II-IV) failed, did not finish, or is out of date (:func:`require_upstream`).
+
+    Args:
+        lay: the session's :class:`embodmocap.io.layout.SessionLayout`.
+        entry: the sequence's entry of ``session.toml`` (``name``, ``scene``).
+    """
+    sl = lay.sequence(entry.name)
+    for path, stage, target in ((lay.scene(entry.scene).manifest, "scene", f"--scene {entry.scene}"),
+                                (sl.manifest, "sequence", f"--seq {entry.name}"),
+                                (sl.calibrate_manifest, "calibrate", f"--seq {entry.name}"),
+                                (sl.motion_manifest, "motion", f"--seq {entry.name}")):
+        require_upstream(Upstream(path, stage, f"embodmocap {stage} {lay.root} {target}"))
