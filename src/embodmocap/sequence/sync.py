@@ -19,6 +19,9 @@ How the detector works, reading each frame once, in order, at full resolution (u
    that prediction within a small residual gate (or to a constant-velocity guess in the next
    frame). A track may miss up to ``absent_frames - 1`` frames and continue: a dot hidden for a
    moment by the performer's arm and seen again at a consistent position is the same dot.
+   Hysteresis: a track the candidate test misses in the next frame goes on where its spot still
+   stands out nearly as strongly as when detected (``follow_strength``), so it ends where the dot
+   really goes out, not where the strict test first fails.
 3. **Events**: a track seen for at least ``min_seen_frames`` that then stays gone for
    ``absent_frames`` frames, whose place stays inside the image (a dot that leaves the field of
    view has not been switched off), ends with an event at the frame after its last sighting.
@@ -108,6 +111,16 @@ class SyncConfig:
     """Share of the frames from a track's first to its last sighting in which it must be seen
     for full confidence (scaled down below): a dot is seen in nearly every frame it is on,
     brief occlusions aside."""
+    follow_strength: float = 0.75
+    """Hysteresis: a track seen in the previous frame that the candidate test misses now goes on
+    where its spot, at the predicted position, still stands out (:func:`spot_strength`) by at least
+    this fraction of the median strength of its last detections. The candidate test starts tracks;
+    a dot already found only has to stay (nearly) as strong: a pointer that is on shines steadily
+    (0.9-1.1 of its strength in the benchmark's dots), while the place of a dot switched off keeps
+    at most about half of it (a white-and-red wall edge). The thin red rim of a large over-exposed core
+    (5-6 px core, halo 1 px wider) is diluted by video's half-resolution chroma and passes the
+    rim test only in some frames, and an event is the first frame the spot is really gone, not
+    the first frame the strict test fails."""
     absent_frames: int = 8
     """Frames the dot must stay gone after the event; a dot that comes back within this many
     frames at a consistent position was only hidden, not switched off."""
@@ -362,6 +375,23 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
                          np.array(rr, np.float64), np.array(st, np.float64), np.array(wh, np.float64))
 
 
+def _spot_centre(img: NDArray[np.uint8], xy, radius: float, cfg: SyncConfig) -> NDArray:
+    """Centroid of the red-saturated pixels (``r >= min_peak_red_redcore``) within ``radius`` px of
+    ``xy`` in an (H, W, 3) image; ``xy`` itself when there are none (keeps a followed track on the
+    spot rather than on its prediction)."""
+    H, W = img.shape[:2]
+    R = int(math.ceil(radius))
+    cx, cy = int(round(xy[0])), int(round(xy[1]))
+    x0, x1, y0, y1 = max(0, cx - R), min(W, cx + R + 1), max(0, cy - R), min(H, cy + R + 1)
+    if x0 >= x1 or y0 >= y1:
+        return np.asarray(xy, np.float64)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    m = (img[y0:y1, x0:x1, 0] >= cfg.min_peak_red_redcore) & (np.hypot(xx - xy[0], yy - xy[1]) <= radius)
+    if not m.any():
+        return np.asarray(xy, np.float64)
+    return np.array([xx[m].mean(), yy[m].mean()], np.float64)
+
+
 def _radius(diameter: float) -> float:
     """Radius within which :func:`spot_strength` looks for a spot of this saturated diameter."""
     return max(2.0, 0.5 * float(diameter) + 1.0)
@@ -382,6 +412,7 @@ class _Track:
     after_strength: list[float] = field(default_factory=list)
     after_xy: list[NDArray] = field(default_factory=list)
     after_ring: NDArray | None = None
+    detected: list[float] = field(default_factory=list)  # strengths of candidate-test sightings
 
     def predict(self, frame: int, motion: "_ImageMotion") -> tuple[NDArray | None, NDArray]:
         """Two guesses of the position at ``frame``: rigid with the image (the last position
@@ -397,11 +428,16 @@ class _Track:
         return rigid, p
 
     def add(self, frame: int, cands: DotCandidates, k: int) -> None:
+        self.follow(frame, cands.xy[k], float(cands.diameter[k]), float(cands.strength[k]), cands.ring_rgb[k])
+        self.detected.append(float(cands.strength[k]))
+
+    def follow(self, frame: int, xy: NDArray, diameter: float, strength: float, ring: NDArray) -> None:
+        """A sighting at ``frame``: a candidate, or (hysteresis) the spot still as strong."""
         self.frames.append(frame)
-        self.xy.append(cands.xy[k])
-        self.diameter.append(float(cands.diameter[k]))
-        self.strength.append(float(cands.strength[k]))
-        self.ring.append(cands.ring_rgb[k])
+        self.xy.append(np.asarray(xy, np.float64))
+        self.diameter.append(diameter)
+        self.strength.append(strength)
+        self.ring.append(ring)
         self.after_strength.clear()  # it was only hidden: what follows its new last sighting counts
         self.after_xy.clear()
         self.after_ring = None
@@ -511,6 +547,11 @@ def _track_dots(frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig) -> tuple[l
                 continue
             p = preds[ti][0] if preds[ti][0] is not None else preds[ti][1]
             s, ring = spot_strength(img, p, _radius(t.diameter[-1]) + 1.0)
+            if f - t.frames[-1] == 1 and s >= cfg.follow_strength * float(np.median(t.detected[-5:])) > 0:
+                # Still there, only missed by the candidate test (hysteresis): follow it.
+                q = _spot_centre(img, p, _radius(t.diameter[-1]) + 1.0, cfg)
+                t.follow(f, q, t.diameter[-1], s, ring)
+                continue
             t.after_strength.append(s)
             t.after_xy.append(p)
             if t.after_ring is None:
