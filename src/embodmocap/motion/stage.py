@@ -82,7 +82,7 @@ class MotionConfig:
     init_median_frames: int = 0
     """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
     many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
-    prior_disagree_m: float = 0.08
+    prior_disagree_m: float = 0.2
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
     gets no pull towards the prior's pose: the triangulation wins."""
