@@ -69,7 +69,7 @@ class BenchmarkConfig:
     """Frames per view rendered for the quality metrics of the ablation."""
     perception: Literal["clean", "hard", "both"] = "clean"
     """The studio's detector: ``clean``, ``hard`` (every adversity of real detectors) or ``both``."""
-    no_prior: bool = True
+    fit_without_prior: bool = True
     """Also fit the dual view without the camera-space body prior (the ``prior = none`` rows)."""
 
 
@@ -138,7 +138,7 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
         params = ctx.fit(single_view=v, cameras={v: cams})
         methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth)
     result = {"methods": methods}
-    if cfg.no_prior:
+    if cfg.fit_without_prior:
         params = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False)
         result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth)}
     if cfg.ablation:

@@ -15,7 +15,9 @@ Four stages (the paper's two phases, with the pose freed in two steps between th
 4. **Phase 2 (all)** — everything, with all terms (3D keypoints, reprojection in every view,
    smoothness, pose prior, joint limits and anatomical ranges, shape prior).
 
-Stages 2 and 3 use the 3D, smoothness and joint-limit terms. Which SMPL points the keypoints are
+Stages 2 and 3 use the 3D, smoothness and joint-limit terms; they are optional and off by default
+(``torso_iterations`` / ``limbs_iterations`` 0: after the keypoint start, whose own steps are
+global, torso and limbs, they changed nothing measurable and slowed phase 2 from poor starts). Which SMPL points the keypoints are
 depends on the layout of the detector that produced them (the hips differ:
 :data:`embodmocap.body.joints.HIP_DEFINITIONS`); a body model without the face vertex ids fits
 without the five face keypoints (warned).

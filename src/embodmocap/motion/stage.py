@@ -5,10 +5,13 @@
 1. ``triangulate``: both views' COCO-17 keypoints (Stage II), left/right swaps undone, triangulated
    with the cameras in the scene's world (Stage III): confidence-weighted DLT over all frames at
    once, short gaps filled, long gaps flagged -> ``keypoints3d.npz``;
-2. ``fit``: the two-phase world SMPLify (shape, translation and orientation first; then
-   everything) on the 3D keypoints, each view's 2D keypoints, smoothness and the pose prior,
-   initialised from the camera-space body prior moved into the world (or, without a prior, from
-   the 3D keypoints) -> ``smpl_fit.npz``;
+2. ``fit``: the world SMPLify (shape, translation and orientation first; then everything) on the
+   3D keypoints, each view's 2D keypoints (both with the SMPL points of the detector's layout),
+   smoothness, anatomical joint ranges and the pose prior, started from the camera-space body
+   prior moved into the world, or without a prior from the 3D keypoints alone (shape from bone
+   lengths, torso fit, limb IK: :mod:`embodmocap.motion.ik`); the prior loses to the triangulation
+   where it is grossly off. Too few triangulated joints is one clear error; frames where the body
+   cannot be placed are flagged ``valid = False`` -> ``smpl_fit.npz``;
 3. ``align``: with contact markers in the manifest, the yaw + translation that puts the feet on
    the markers, applied to the body (pelvis-consistent) and the cameras; refused, with the
    residual, when the markers disagree -> ``smpl_world.npz``, ``joints_world.npz`` and
@@ -83,7 +86,7 @@ class MotionConfig:
     init_median_frames: int = 0
     """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
     many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
-    prior_disagree_m: float = 0.08
+    prior_disagree_m: float = 0.2
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
     gets no pull towards the prior's pose: the triangulation wins."""
