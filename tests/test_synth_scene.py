@@ -108,3 +108,51 @@ def test_albedo_is_a_deterministic_solid_texture():
     patch = np.column_stack([np.full(4000, 1.0), rng.uniform(0, 0.5, 4000), rng.uniform(1, 1.5, 4000)])
     lum = albedo(patch, np.full(4000, wall), built.materials).mean(1)
     assert lum.std() > 0.05
+
+
+def test_room_presets_have_their_sizes_and_standard_is_unchanged():
+    std = build_scene("indoor", np.random.default_rng(4))
+    again = build_scene("indoor", np.random.default_rng(4), "standard")
+    np.testing.assert_array_equal(std.vertices, again.vertices)
+    large = build_scene("indoor", np.random.default_rng(4), "large").spec
+    np.testing.assert_allclose(large.floor_max_xy - large.floor_min_xy, [8.0, 6.0], atol=0.16)
+    assert build_scene("indoor", np.random.default_rng(4), "high_ceiling").spec.wall_height >= 4.0
+    with pytest.raises(ValueError):
+        build_scene("outdoor", np.random.default_rng(4), "large")
+
+
+def test_repetitive_walls_repeat_and_plain_walls_are_flat():
+    from embodmocap.synth.texture import LATTICE_ROTATION, albedo
+
+    rep = build_scene("indoor", np.random.default_rng(2), "repetitive")
+    mats = rep.materials
+    wall = rep.material_id("wall")
+    m = mats[wall]
+    assert m.period == 2
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-2, 2, (500, 3))
+    # One period along a lattice axis (cell size x period), expressed in the scene frame.
+    shift = LATTICE_ROTATION @ np.array([m.cell_m[0] * m.period, 0.0, 0.0])
+    ids = np.full(len(p), wall)
+    a, b = albedo(p, ids, mats), albedo(p + shift, ids, mats)
+    assert np.mean(np.all(np.abs(a - b) < 1e-4, axis=1)) > 0.97  # (float rounding at cell borders)
+    std = build_scene("indoor", np.random.default_rng(2))
+    c = albedo(p, np.full(len(p), std.material_id("wall")), std.materials)
+    d = albedo(p + shift, np.full(len(p), std.material_id("wall")), std.materials)
+    assert np.mean(np.all(np.abs(c - d) < 1e-4, axis=1)) < 0.2
+    plain = build_scene("indoor", np.random.default_rng(2), "low_texture")
+    e = albedo(p, np.full(len(p), plain.material_id("wall")), plain.materials)
+    assert e.std(axis=0).max() < 0.3 * c.std(axis=0).max()
+
+
+def test_relight_is_identity_at_unit_gain_and_saturates():
+    from embodmocap.synth.texture import relight
+
+    img = np.random.default_rng(0).integers(0, 256, (8, 8, 3), dtype=np.uint8)
+    np.testing.assert_allclose(relight(img, 1.0, np.ones(3)).astype(int), img.astype(int), atol=1)
+    bright = relight(img, 3.0, np.ones(3))
+    assert np.all(bright >= img) and bright.max() == 255
+    warm = relight(np.full((1, 1, 3), 128, np.uint8), 1.0, [1.2, 1.0, 0.8])[0, 0]
+    assert warm[0] > 128 > warm[2] and abs(int(warm[1]) - 128) <= 1
+    f = relight(np.full((2, 2, 3), 0.5, np.float32), 0.5, np.ones(3))
+    assert f.dtype == np.float32 and np.all(f < 0.5)

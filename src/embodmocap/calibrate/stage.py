@@ -279,8 +279,9 @@ def _check_view(cfg: CalibrateConfig, capture: Path, v: str, reg: Registration, 
     if n_ok < cfg.min_registered_frames or n_ok < cfg.min_consistent_fraction * n_reg:
         raise InputError(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
                          f"(largest consistent group {n_ok} of {n_reg} frames, {check.runs} runs)",
-                         "likely cause: the sequence was not filmed in this scene (wrong scene capture in "
-                         "session.toml), or the VIO poses are broken")
+                         "likely causes: the sequence was not filmed in this scene (wrong scene capture in "
+                         "session.toml), broken VIO poses, or too little background texture / very different "
+                         "lighting for registration to be reliable")
 
 
 def _save_registration(path: Path, reg, check=None) -> None:
