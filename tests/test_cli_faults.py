@@ -124,8 +124,21 @@ def test_inspect_lists_every_session_problem_at_once(tmp_path):
         assert needle in joined, text
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode != 0,
-                    reason="needs user + mount namespaces (unshare -rm) for a small file system")
+needs_tiny_disk = pytest.mark.skipif(
+    shutil.which("unshare") is None or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode != 0,
+    reason="needs user + mount namespaces (unshare -rm) for a small file system")
+
+
+def _on_tiny_disk(folder, code: str) -> tuple[subprocess.CompletedProcess, list[str]]:
+    """Run Python ``code`` (argv[1] = ``folder``) with a 1 MiB tmpfs mounted on ``folder``; returns
+    the process and its output lines, the last ones being what was left on that disk."""
+    script = f'mount -t tmpfs -o size=1m tmpfs "{folder}" && "$@"; rc=$?; ls -A "{folder}"; exit $rc'
+    res = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh", sys.executable, "-c", code, str(folder)],
+                         capture_output=True, text=True, env=_env(), timeout=300)
+    return res, res.stdout.splitlines()
+
+
+@needs_tiny_disk
 def test_full_disk_under_a_memory_mapped_stack_is_an_error_not_sigbus(tmp_path):
     # Stage II writes masks and depth through memory maps; on a full disk that used to be SIGBUS.
     code = ("import numpy as np, sys\n"
@@ -135,16 +148,13 @@ def test_full_disk_under_a_memory_mapped_stack_is_an_error_not_sigbus(tmp_path):
             "        s[:] = 1\n"
             "except OSError as e:\n"
             "    print('OSError', e.errno, e.filename); sys.exit(2)\n")
-    script = f'mount -t tmpfs -o size=1m tmpfs "{tmp_path}" && "$@"; rc=$?; ls -A "{tmp_path}"; exit $rc'
-    res = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh", sys.executable, "-c", code, str(tmp_path)],
-                         capture_output=True, text=True, env=_env(), timeout=300)
+    res, lines = _on_tiny_disk(tmp_path, code)
     assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)  # -7 would be SIGBUS
-    first, *left = res.stdout.splitlines()
+    first, *left = lines
     assert first == f"OSError 28 {tmp_path}/depth.npy" and left == []  # no partial file left
 
 
-@pytest.mark.skipif(shutil.which("unshare") is None or subprocess.run(["unshare", "-rm", "true"], capture_output=True).returncode != 0,
-                    reason="needs user + mount namespaces (unshare -rm) for a small file system")
+@needs_tiny_disk
 def test_sfm_refuses_to_start_on_a_disk_too_small(tmp_path):
     # COLMAP aborts the whole process (SIGABRT, a C++ stack trace) when its database meets a full
     # disk, so SfM checks the free space first.
@@ -160,10 +170,8 @@ def test_sfm_refuses_to_start_on_a_disk_too_small(tmp_path):
             "    build_sparse_model([('a', rgb), ('b', rgb)], K, T, sys.argv[1] + '/sfm')\n"
             "except InputError as e:\n"
             "    print(e); sys.exit(2)\n")
-    script = f'mount -t tmpfs -o size=1m tmpfs "{tmp_path}" && "$@"; rc=$?; ls -A "{tmp_path}"; exit $rc'
-    res = subprocess.run(["unshare", "-rm", "sh", "-c", script, "sh", sys.executable, "-c", code, str(tmp_path)],
-                         capture_output=True, text=True, env=_env(), timeout=300)
+    res, lines = _on_tiny_disk(tmp_path, code)
     assert res.returncode == 2, (res.returncode, res.stdout, res.stderr)
-    first, *left = res.stdout.splitlines()
+    first, *left = lines
     assert first.startswith(f"{tmp_path}: only 1 MiB free on its disk; the sparse model of 2 key frames needs up to")
     assert "free some disk space" in first and left == []
