@@ -96,6 +96,27 @@ def test_a_failed_stage_is_not_evaluated(session, tmp_path):
     assert set(m) == {"missing"} and "motion stage failed" in m["missing"] and "embodmocap motion" in m["missing"]
 
 
+def test_subframe_sync_error_against_the_phones_true_phase(session, tmp_path):
+    """The truth-fed session is sliced at the true sync frames of frame-aligned phones: a final
+    sync.json applying no residual has no error; one applying a quarter frame is a quarter off."""
+    import shutil
+
+    from embodmocap.evaluate.session import subframe_sync_err_frames
+    from embodmocap.io.atomic import write_json
+
+    root, _ = session
+    copy = tmp_path / "s"
+    shutil.copytree(root, copy)
+    lay = SessionLayout(copy)
+    sl = lay.sequence(SYNTH.sequence_name)
+    assert subframe_sync_err_frames(lay, SYNTH.sequence_name) is None  # version 1: no sub-frame offset
+    rec = json.loads(sl.sync.read_text())
+    for frames in (0.0, 0.25, -0.4):
+        rec.update(version=2, chosen={"final": True, "residual_s": frames / SYNTH.fps})
+        write_json(sl.sync, rec)
+        assert subframe_sync_err_frames(lay, SYNTH.sequence_name) == pytest.approx(frames, abs=1e-4)
+
+
 def test_report_is_self_contained(session):
     import re
 

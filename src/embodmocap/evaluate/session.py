@@ -243,7 +243,33 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
             out[f"{v}_view_yaw_err_deg"] = round(float(deg), 4)
         if v in sync:
             out[f"{v}_sync_err_frames"] = int(M.sync_err_frames(sync[v]["frame"], truth.sync_frame[v]))
+    sub = subframe_sync_err_frames(lay, seq)
+    if sub is not None:
+        out["sync_subframe_err_frames"] = sub
     return out
+
+
+def subframe_sync_err_frames(lay: SessionLayout, seq: str) -> float | None:
+    """Error of the offset Stage IV applies between the views (slicing + ``chosen.residual_s`` of
+    a final version-2 ``sync.json``), in frames, against the studio's truth, which knows each
+    phone's sub-frame phase: raw frame ``j`` of view ``v`` is the motion's instant
+    ``view_motion_start[v] + j + view_time_offset_frames[v]``. None without such a record."""
+    from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION, residual_s
+
+    sl = lay.sequence(seq)
+    if not (sl.sync.is_file() and sl.manifest.is_file()):
+        return None
+    rec = json.loads(sl.sync.read_text())
+    if rec.get("version") != SYNC_RECORD_VERSION or not rec.get("chosen", {}).get("final"):
+        return None
+    gt = json.loads(lay.ground_truth.info.read_text())
+    start = gt["view_motion_start"]
+    phase = gt.get("view_time_offset_frames", {v: 0.0 for v in VIEWS})
+    a, b = VIEWS
+    # View 2's sequence frame minus view 1's at the same instant, as the slicing left them.
+    true_residual = (start[a] + rec["views"][a]["frame"] + phase[a]) - (start[b] + rec["views"][b]["frame"] + phase[b])
+    fps = float(json.loads(sl.manifest.read_text())["figures"]["fps"])
+    return round(residual_s(rec) * fps - true_residual, 4)
 
 
 def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth, valid: NDArray | None = None) -> dict:
