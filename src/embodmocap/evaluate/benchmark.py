@@ -194,7 +194,7 @@ class _Context:
         """view -> (T, 4, 4) cameras after refining ``views`` (alone or jointly) with ``refine_cfg``."""
         from embodmocap.calibrate import losses as L
         from embodmocap.calibrate import stage as stage3
-        from embodmocap.calibrate.offset import robust_yaw_offset
+        from embodmocap.calibrate.offset import chain_yaw_offset
         from embodmocap.calibrate.refine import refine_offsets
         from embodmocap.scene.mesh import read_mesh_ply
 
@@ -206,7 +206,9 @@ class _Context:
         for v in views:
             reg = np.load(self.sl.view(v).registration)
             vio = np.load(self.sl.view(v).cameras)["T_world_cam"]
-            init = robust_yaw_offset(vio[reg["t"], :3, 3], reg["T_world_cam"][:, :3, 3], cfg.offset).offset
+            # As Stage III does: the offset from the VIO-consistent chain only (rejected runs left out).
+            acc = np.asarray(reg["accepted"], dtype=bool) if "accepted" in reg else np.ones(len(reg["t"]), dtype=bool)
+            init = chain_yaw_offset(vio[reg["t"][acc]], reg["T_world_cam"][acc], cfg.offset).offset
             data[v] = stage3.build_view_data(cfg, self.lay, self.seq, v, init, reg)
         tracks = stage3._track_pairs(self.lay, self.seq) if len(views) == 2 and refine_cfg.w_track > 0 else None
         res = refine_offsets(data, refine_cfg, scene=self._scene_points, tracks=tracks)
