@@ -295,7 +295,7 @@ def run_check(out: Path, seeds: list[int], only: list[str] | None = None) -> lis
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("mode", choices=["prepare", "prepare-fail", "prepare-long", "geosync", "nolaser", "subframe", "check"])
-    ap.add_argument("--out", type=Path, default=Path("/work/bench/12b"))
+    ap.add_argument("--out", type=Path, default=Path("bench_out/geosync"))
     ap.add_argument("--seeds", type=int, nargs="*", default=SEEDS)
     ap.add_argument("--only", nargs="*", default=None, help="check: only these session folders")
     ap.add_argument("--register-frames", type=int, default=None,
