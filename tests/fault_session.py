@@ -61,8 +61,13 @@ def cli(*args: str, cwd: Path | None = None, timeout: float = 1800, prefix: tupl
 
 
 def popen(*args: str) -> subprocess.Popen:
+    # SIGINT back to its default in the child: a test run started in the background of a
+    # non-interactive shell inherits SIGINT ignored, and Python then never raises KeyboardInterrupt.
+    import signal
+
     return subprocess.Popen([sys.executable, "-m", "embodmocap.cli", *args], env=env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, bufsize=1)
+                            stderr=subprocess.STDOUT, text=True, bufsize=1,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def remove_outputs(root: Path, stages) -> None:
