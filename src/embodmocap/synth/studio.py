@@ -267,9 +267,11 @@ def _lighting(rng: np.random.Generator) -> tuple[float, np.ndarray]:
 def _lerp_frames(a: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Per-frame arrays (M, ...) at fractional motion frames t (N,), linearly (clamped to the ends).
     Exact (a copy of the rows) at integer t; between frames a smooth motion moves almost linearly."""
-    i0 = np.clip(np.floor(t).astype(np.int64), 0, len(a) - 1)
+    from embodmocap.geometry.interpolate import bracket
+
+    i0, w, _ = bracket(np.arange(len(a), dtype=np.float64), t)
     i1 = np.minimum(i0 + 1, len(a) - 1)
-    w = np.clip(t - i0, 0.0, 1.0).reshape((-1,) + (1,) * (a.ndim - 1))
+    w = w.reshape((-1,) + (1,) * (a.ndim - 1))
     return (1.0 - w) * a[i0] + w * a[i1]
 
 
