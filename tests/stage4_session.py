@@ -81,7 +81,7 @@ def make_stage4_session(root: Path, cfg: SynthConfig = SYNTH, stage1_world: bool
     scene = lay.scene(cfg.scene_name)
     scene.root.mkdir(parents=True, exist_ok=True)
     if stage1_world:
-        from embodmocap.scene.mesh import read_mesh_ply, write_mesh_ply
+        from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
 
         mv, mf, mc = read_mesh_ply(lay.ground_truth.scene_mesh(cfg.scene_name))
         write_mesh_ply(scene.mesh_raw, move(mv), mf, mc if len(mc) else None)

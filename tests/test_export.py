@@ -330,7 +330,7 @@ def session(tmp_path, model, params):
     from embodmocap.body.testmodel import write_test_model
     from embodmocap.io.atomic import write_npz
     from embodmocap.io.manifest import SceneEntry, SequenceEntry, SessionManifest, ViewEntry, write_manifest
-    from embodmocap.scene.mesh import write_mesh_ply
+    from embodmocap.io.mesh_file import write_mesh_ply
 
     root = tmp_path / "session"
     lay = SessionLayout(root)

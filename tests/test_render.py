@@ -60,7 +60,7 @@ def _studio_renderer(root: Path):
     The studio builds its scene from the generator ``[seed, 1]``; the test checks that the rebuilt
     scene is the ground-truth mesh before trusting it.
     """
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.synth.render import Renderer
     from embodmocap.synth.scene import build_scene
 

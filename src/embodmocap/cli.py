@@ -286,9 +286,8 @@ def _sequence_name(session: Path, seq: str | None) -> str:
     """The sequence to work on: ``seq``, or the session's only one."""
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
-    from embodmocap.sequence.stage import _pick_sequence
 
-    return _pick_sequence(load_manifest(SessionLayout(session).manifest), seq).name
+    return load_manifest(SessionLayout(session).manifest).sequence(seq).name
 
 
 @dataclass(frozen=True)
@@ -475,10 +474,9 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.stage_manifest import require_sequence_stages
-    from embodmocap.sequence.stage import _pick_sequence
 
     lay = SessionLayout(session)
-    require_sequence_stages(lay, _pick_sequence(load_manifest(lay.manifest), seq))
+    require_sequence_stages(lay, load_manifest(lay.manifest).sequence(seq))
 
 
 def _setup_logging(debug: bool) -> None:

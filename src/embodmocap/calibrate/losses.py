@@ -43,6 +43,8 @@ import torch
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from embodmocap.geometry.robust import ROBUST_KINDS, irls_weight, robust_rho  # noqa: F401 (re-exported)
+
 log = logging.getLogger(__name__)
 
 #: COCO-17 joints used for cross-view tracks by default: shoulders, elbows, wrists, hips, knees,
@@ -65,43 +67,6 @@ JOINT_DEPTH_BEHIND_SURFACE_M: tuple[float, ...] = (
     0.05, 0.05,  # knees
     0.04, 0.04,  # ankles
 )
-
-ROBUST_KINDS = ("l2", "huber", "geman_mcclure")
-
-
-# ---------------------------------------------------------------------------------------------
-# Robust kernels on squared residual norms
-# ---------------------------------------------------------------------------------------------
-
-
-def robust_rho(s: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
-    """Robust cost of squared residual norms ``s`` (any shape), divided by ``scale**2``.
-
-    ``l2``: s/c^2. ``huber``: quadratic up to |r| = c, linear beyond (C1). ``geman_mcclure``:
-    s/(s + c^2), bounded by 1, so gross outliers stop pulling.
-    """
-    c2 = scale * scale
-    if kind == "l2":
-        return s / c2
-    if kind == "huber":
-        # sqrt of a clamped value keeps the unused branch's gradient finite at s = 0.
-        r = torch.sqrt(torch.clamp(s, min=c2))
-        return torch.where(s <= c2, s / c2, (2.0 * scale * r - c2) / c2)
-    if kind == "geman_mcclure":
-        return s / (s + c2)
-    raise ValueError(f"unknown robust kernel {kind!r}; use one of {ROBUST_KINDS}")
-
-
-def irls_weight(s: torch.Tensor, kind: str, scale: float) -> torch.Tensor:
-    """``d robust_rho / d s`` times ``scale**2``: the IRLS weight of each residual (1 for inliers)."""
-    c2 = scale * scale
-    if kind == "l2":
-        return torch.ones_like(s)
-    if kind == "huber":
-        return torch.where(s <= c2, torch.ones_like(s), scale / torch.sqrt(torch.clamp(s, min=c2)))
-    if kind == "geman_mcclure":
-        return c2 * c2 / (s + c2) ** 2
-    raise ValueError(f"unknown robust kernel {kind!r}; use one of {ROBUST_KINDS}")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError, require
 from embodmocap.geometry.transforms import invert_T
-from embodmocap.scene.sfm import COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap
+from embodmocap.io.colmap import COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -703,8 +703,9 @@ def load_view_frames(view_layout, capture, ts: Sequence[int]) -> tuple[list[View
         (view frames, RGB intrinsics, (T, 4, 4) VIO camera-to-world of every sequence frame).
     """
     from embodmocap.io.frame_stack import read_mask
+    from embodmocap.io.stage_files import read_cameras
 
-    cams = np.load(view_layout.cameras)
+    cams = read_cameras(view_layout.cameras, "cameras")
     K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
     raw = np.asarray(cams["raw_frames"], dtype=np.int64)
     frames = [(int(t), np.asarray(capture.frames.rgb(int(raw[t]))), read_mask(view_layout.masks, int(t), K.width))

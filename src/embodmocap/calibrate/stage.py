@@ -37,11 +37,15 @@ from embodmocap.calibrate.register import (RegisterConfig, Registration, load_or
                                            register_frames, select_frames)
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import rotation_angle
-from embodmocap.io.atomic import write_json, write_npz
+from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.stage_files import (
+    CameraFile, RegistrationFile, read_cameras, read_keypoints2d, read_registration, sequence_fps, write_cameras,
+    write_registration,
+)
 from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.sequence.geosync import GeoSyncConfig
 
@@ -107,10 +111,8 @@ class CalibrateOutputs:
 @tracked_stage
 def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> CalibrateOutputs:
     """Run Stage III for sequence ``seq`` (the only one when None)."""
-    from embodmocap.sequence.stage import _pick_sequence
-
     lay = SessionLayout(Path(session))
-    entry = _pick_sequence(load_manifest(lay.manifest), seq)
+    entry = load_manifest(lay.manifest).sequence(seq)
     scene = lay.scene(entry.scene)
     out = lay.sequence(entry.name)
     if not (scene.sfm_dir / "sparse").is_dir() or not scene.mesh_raw.is_file():
@@ -141,7 +143,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             t0 = time.perf_counter()
             # One index per scene, cached next to the scene's outputs and reused by every sequence.
             index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.root / "register_index.npz")
-            cams = np.load(vl.cameras)
+            cams = read_cameras(vl.cameras)
             T_vio = np.asarray(cams["T_world_cam"], dtype=np.float64)
             ts = select_frames(T_vio, cfg.register.num_frames)
             frames, K, _ = load_view_frames(vl, open_capture(entry.views[v].capture), ts)
@@ -156,16 +158,13 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                 f"{v}_vio_rejected_runs": check.rejected_runs, f"{v}_vio_rejected_frames": check.rejected_frames,
                 f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
             })
-        regs[v] = dict(np.load(reg_path))
-        if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
-            regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
-            regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
+        regs[v] = read_registration(reg_path)  # a version 1 file (before the VIO check): every frame accepted
 
     # 2. Initial yaw-only offsets.
     init: dict[str, YawOffset] = {}
     init_report = {}
     for v in VIEWS:
-        cams = np.load(out.view(v).cameras)
+        cams = read_cameras(out.view(v).cameras)
         r = regs[v]
         acc = np.asarray(r["accepted"], dtype=bool)
         # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
@@ -292,9 +291,10 @@ def _save_registration(path: Path, reg, check=None) -> None:
     xyz = np.concatenate([c.xyz for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 3))
     acc = np.ones(len(reg.t), dtype=bool) if check is None else check.accepted
     run = np.zeros(len(reg.t), dtype=np.int64) if check is None else check.run
-    write_npz(path, version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
-              t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
-              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run)
+    write_registration(path, RegistrationFile(
+        version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
+        t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
+        match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run))
 
 
 def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, init: YawOffset, reg) -> ViewData:
@@ -302,7 +302,7 @@ def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, 
     from embodmocap.calibrate import losses as L
 
     vl = lay.sequence(seq).view(v)
-    cams = np.load(vl.cameras)
+    cams = read_cameras(vl.cameras)
     T = len(cams["raw_frames"])
     width = int(cams["width"])
     frames = np.unique(np.linspace(0, T - 1, min(cfg.chamfer_frames, T)).astype(np.int64))
@@ -353,12 +353,12 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
         skipped.append("geosync")
         return rec
     t0 = time.perf_counter()
-    fps = float(json.loads(out.manifest.read_text())["figures"]["fps"])
-    cams = {v: np.load(out.view(v).cameras) for v in VIEWS}
+    fps = sequence_fps(out)
+    cams = {v: read_cameras(out.view(v).cameras) for v in VIEWS}
     world = {v: T_world_vio[v] @ cams[v]["T_world_cam"] for v in VIEWS}
     geo = None
     if cfg.geosync.enabled:
-        data = [(cams[v]["K"], world[v], np.load(out.view(v).keypoints)["keypoints"], frame_times(cams[v], fps))
+        data = [(cams[v]["K"], world[v], read_keypoints2d(out.view(v).keypoints).keypoints, frame_times(cams[v], fps))
                 for v in VIEWS]
         search = cfg.geosync.search_s_without_laser if rec["slicing"]["source"] == "start" else cfg.geosync.search_s
         geo = geometric_sync(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
@@ -374,9 +374,9 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
     outs = [out.sync]
     for v in VIEWS:
         # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
-        write_npz(out.view(v).cameras_world, version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"],
-                  height=cams[v]["height"], T_world_cam=world[v], raw_frames=cams[v]["raw_frames"],
-                  time_offset_s=np.float64(rec["chosen"]["residual_s"] if v == VIEWS[1] else 0.0))
+        write_cameras(out.view(v).cameras_world, CameraFile(
+            version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"], T_world_cam=world[v],
+            raw_frames=cams[v]["raw_frames"], time_offset_s=np.float64(rec["chosen"]["residual_s"] if v == VIEWS[1] else 0.0)))
         outs.append(out.view(v).cameras_world)
     ch = rec["chosen"]
     sm.record("geosync", fp, outs, time.perf_counter() - t0, {
@@ -391,7 +391,7 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
 def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: dict, init_report: dict,
             use_tracks: bool = True) -> dict:
     from embodmocap.calibrate import losses as L
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
 
     warnings: list[str] = []
     views = {v: build_view_data(cfg, lay, entry.name, v, init[v], regs[v]) for v in VIEWS}
@@ -440,8 +440,8 @@ def _track_pairs(lay: SessionLayout, seq: str):
     from embodmocap.calibrate import losses as L
 
     sl = lay.sequence(seq)
-    kp = {v: np.load(sl.view(v).keypoints)["keypoints"] for v in VIEWS}
-    cams = {v: np.load(sl.view(v).cameras) for v in VIEWS}
+    kp = {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS}
+    cams = {v: read_cameras(sl.view(v).cameras) for v in VIEWS}
     corr = L.KeypointCorrespondences(kp["v1"], kp["v2"]).correspondences()
     if len(corr.frames) == 0:
         return None
@@ -450,3 +450,7 @@ def _track_pairs(lay: SessionLayout, seq: str):
         tuple(cams[v]["K"] for v in VIEWS),
         tuple((int(cams[v]["width"]), int(cams[v]["height"])) for v in VIEWS),
     )
+
+
+#: The public name of :func:`_track_pairs` (the benchmark rebuilds Stage III with it).
+track_pairs = _track_pairs

@@ -275,7 +275,7 @@ def _register(cfg: CheckConfig, lay: SessionLayout, entry, caps, maps, seq_idx, 
 
 def _midpoints(world: dict, kps: dict, caps, conf: float) -> tuple[NDArray, NDArray]:
     """(n, 3) the performer's torso point from both views' rays, and (n,) where it exists."""
-    from embodmocap.sequence.geosync import _rays
+    from embodmocap.geometry.raycast import pixel_rays
 
     out, ok = [], []
     c, d = {}, {}
@@ -283,7 +283,7 @@ def _midpoints(world: dict, kps: dict, caps, conf: float) -> tuple[NDArray, NDAr
         k = kps[v][:, TORSO]
         good = k[..., 2] >= conf
         xy = np.where(good[..., None], k[..., :2], 0).sum(1) / np.maximum(good.sum(1), 1)[:, None]
-        c[v], d[v] = _rays(caps[v].rgb_intrinsics.K, world[v], xy)
+        c[v], d[v] = pixel_rays(caps[v].rgb_intrinsics.K, world[v], xy)
         ok.append(good.sum(1) >= 2)
     w0 = c["v1"] - c["v2"]
     b = np.sum(d["v1"] * d["v2"], -1)

@@ -41,6 +41,7 @@ import numpy as np
 
 from embodmocap.io.atomic import write_json, write_text
 from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps
 
 log = logging.getLogger(__name__)
 
@@ -173,20 +174,20 @@ class _Context:
             return self.model.from_params(params, dtype=torch.float64).joints.numpy()
 
     def cameras(self, v: str) -> np.ndarray:
-        return np.load(self.sl.view(v).cameras_world)["T_world_cam"]
+        return read_cameras(self.sl.view(v).cameras_world).T_world_cam
 
     def _T(self) -> int:
-        return min(len(np.load(self.sl.view(v).keypoints)["keypoints"]) for v in VIEWS)
+        return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
 
     def prior_in_world(self, v: str, T_world_cam: np.ndarray):
         from embodmocap.motion.init import init_from_prior
-        from embodmocap.motion.stage import MotionConfig, _fps, _priors
+        from embodmocap.io.body_prior import body_priors_by_frame
 
         T = self._T()
-        priors = _priors(self.lay, self.seq, T, MotionConfig(min_prior_fraction=0.0))
+        priors = body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, T, 0.0, self.seq)
         if v not in priors:
             raise RuntimeError(f"view {v} has no body prior")
-        return init_from_prior(self.model, priors[v][0], T_world_cam[:T], _fps(self.sl))
+        return init_from_prior(self.model, priors[v][0], T_world_cam[:T], sequence_fps(self.sl))
 
     # -- Stage III variants
 
@@ -196,7 +197,7 @@ class _Context:
         from embodmocap.calibrate import stage as stage3
         from embodmocap.calibrate.offset import chain_yaw_offset
         from embodmocap.calibrate.refine import refine_offsets
-        from embodmocap.scene.mesh import read_mesh_ply
+        from embodmocap.io.mesh_file import read_mesh_ply
 
         cfg = stage3.CalibrateConfig()
         if self._scene_points is None:
@@ -204,16 +205,16 @@ class _Context:
             self._scene_points = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
         data = {}
         for v in views:
-            reg = np.load(self.sl.view(v).registration)
-            vio = np.load(self.sl.view(v).cameras)["T_world_cam"]
+            reg = read_registration(self.sl.view(v).registration)
+            vio = read_cameras(self.sl.view(v).cameras).T_world_cam
             # As Stage III does: the offset from the VIO-consistent chain only (rejected runs left out).
             acc = np.asarray(reg["accepted"], dtype=bool) if "accepted" in reg else np.ones(len(reg["t"]), dtype=bool)
             init = chain_yaw_offset(vio[reg["t"][acc]], reg["T_world_cam"][acc], cfg.offset).offset
             data[v] = stage3.build_view_data(cfg, self.lay, self.seq, v, init, reg)
-        tracks = stage3._track_pairs(self.lay, self.seq) if len(views) == 2 and refine_cfg.w_track > 0 else None
+        tracks = stage3.track_pairs(self.lay, self.seq) if len(views) == 2 and refine_cfg.w_track > 0 else None
         res = refine_offsets(data, refine_cfg, scene=self._scene_points, tracks=tracks)
         return {v: (res.views[v].T_world_vio if not res.diverged else data[v].T_world_vio_init)
-                @ np.load(self.sl.view(v).cameras)["T_world_cam"] for v in views}
+                @ read_cameras(self.sl.view(v).cameras).T_world_cam for v in views}
 
     def single_view_cameras(self, v: str) -> np.ndarray:
         from embodmocap.calibrate.refine import RefineConfig
@@ -244,8 +245,8 @@ class _Context:
         mcfg = MotionConfig()
         T = self._T()
         views = [single_view] if single_view else list(VIEWS)
-        kps = {v: np.load(self.sl.view(v).keypoints)["keypoints"][:T] for v in views}
-        K = {v: np.load(self.sl.view(v).cameras)["K"] for v in views}
+        kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
+        K = {v: read_cameras(self.sl.view(v).cameras).K for v in views}
         scfg = mcfg.smplify
         if single_view:
             points, conf = np.full((T, 17, 3), np.nan), np.zeros((T, 17))
@@ -268,9 +269,7 @@ class _Context:
             if single_view:
                 raise ValueError("a single view cannot be fitted without a body prior")
             from embodmocap.motion.init import init_from_keypoints
-            from embodmocap.motion.stage import _fps
-
-            init = init_from_keypoints(self.model, points, conf, _fps(self.sl), min_conf=scfg.min_conf, layout=layout)
+            init = init_from_keypoints(self.model, points, conf, sequence_fps(self.sl), min_conf=scfg.min_conf, layout=layout)
             return fit_world_smpl(self.model, points, conf, obs, init, None, scfg, layout=layout).params
         prior_view = single_view or "v1"
         init = self.prior_in_world(prior_view, cameras[prior_view])

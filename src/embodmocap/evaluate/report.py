@@ -23,6 +23,7 @@ import numpy as np
 from embodmocap.io.atomic import write_bytes, write_text
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.stage_files import read_cameras, read_keypoints3d, read_world_joints, sequence_fps
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +171,7 @@ def _plt():
 
 
 def _floor_plan(lay: SessionLayout, scene: str, seq: str, cfg: ReportConfig) -> bytes:
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
 
     plt = _plt()
     sl = lay.sequence(seq)
@@ -189,10 +190,10 @@ def _floor_plan(lay: SessionLayout, scene: str, seq: str, cfg: ReportConfig) -> 
         sc = ax.scatter(p[:, 0], p[:, 1], c=p[:, 2], s=0.3, cmap="Greys", alpha=0.6)
         fig.colorbar(sc, ax=ax, fraction=0.04, label="height (m)")
     for v, colour in zip(VIEWS, ("tab:blue", "tab:orange")):
-        c = np.load(sl.view(v).cameras_final)["T_world_cam"][:, :3, 3]
+        c = read_cameras(sl.view(v).cameras_final).T_world_cam[:, :3, 3]
         ax.plot(c[:, 0], c[:, 1], color=colour, lw=1.5, label=f"camera {v}")
         ax.plot(*c[0, :2], "o", color=colour)
-    pelvis = np.load(sl.joints_world)["joints"][:, 0]
+    pelvis = read_world_joints(sl.joints_world).joints[:, 0]
     ax.plot(pelvis[:, 0], pelvis[:, 1], color="tab:red", lw=2, label="performer (pelvis)")
     ax.plot(*pelvis[0, :2], "o", color="tab:red")
     ax.set_aspect("equal")
@@ -210,9 +211,9 @@ def _error_plot(lay: SessionLayout, scene: str, seq: str, body_model, has_gt: bo
     plt = _plt()
     sl = lay.sequence(seq)
     fig, ax = plt.subplots(figsize=(10, 4))
-    joints = np.load(sl.joints_world)["joints"]
-    frames = np.load(sl.joints_world)["frames"] if "frames" in np.load(sl.joints_world).files else np.arange(len(joints))
-    fps = json.loads(sl.manifest.read_text()).get("figures", {}).get("fps", 30.0) if sl.manifest.is_file() else 30.0
+    wj = read_world_joints(sl.joints_world)  # frames 0..T-1 for files written without them
+    joints, frames = wj.joints, wj.frames
+    fps = sequence_fps(sl)
     t = frames / float(fps)
     if has_gt:
         from embodmocap.evaluate.session import sequence_truth
@@ -226,7 +227,7 @@ def _error_plot(lay: SessionLayout, scene: str, seq: str, body_model, has_gt: bo
         ax.set_ylabel("world error, no alignment (mm)")
     else:
         for v in VIEWS:
-            k3 = np.load(sl.keypoints3d)
+            k3 = read_keypoints3d(sl.keypoints3d)
             e = k3["reproj_err_px"][..., VIEWS.index(v)]
             ax.plot(t[: len(e)], np.nanmean(e, axis=1), lw=1, label=f"{v}: triangulation reprojection")
         ax.set_ylabel("pixels")
@@ -250,7 +251,7 @@ def _overlays(lay: SessionLayout, entry, seq: str, view: str, body_model, cfg: R
     sl = lay.sequence(seq)
     model = load_body_model(body_model)
     params, frames = read_smpl_npz(sl.smpl_world)
-    cams = np.load(sl.view(view).cameras_final)
+    cams = read_cameras(sl.view(view).cameras_final)
     K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
     capture = open_capture(entry.views[view].capture)
     pick = np.unique(np.linspace(0, len(frames) - 1, cfg.overlay_frames + 2)[1:-1].astype(int))

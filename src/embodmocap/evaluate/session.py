@@ -32,6 +32,8 @@ from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.atomic import write_json
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.ground_truth import read_truth_scene_device, read_truth_sequence
+from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d
 from embodmocap.io.stage_manifest import require_sequence_stages
 
 log = logging.getLogger(__name__)
@@ -74,9 +76,9 @@ class SequenceTruth:
 def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
     """The synthetic truth of ``seq`` moved into Stage I's world and indexed by sequence frame."""
     gt = lay.ground_truth
-    T_world_scene = invert_T(np.load(gt.scene_device(scene))["T_scene_vio"])
-    g = np.load(gt.sequence(seq))
-    raw = np.load(lay.sequence(seq).view(VIEWS[0]).cameras)["raw_frames"].astype(np.int64)
+    T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
+    g = read_truth_sequence(gt.sequence(seq))
+    raw = read_cameras(lay.sequence(seq).view(VIEWS[0]).cameras).raw_frames.astype(np.int64)
     motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
     M_frames = len(g["joints_smpl24"])
     valid = (motion >= 0) & (motion < M_frames)
@@ -84,7 +86,7 @@ def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
     joints = j @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
     cams, vio = {}, {}
     for v in VIEWS:
-        raw_v = np.load(lay.sequence(seq).view(v).cameras)["raw_frames"].astype(np.int64)
+        raw_v = read_cameras(lay.sequence(seq).view(v).cameras).raw_frames.astype(np.int64)
         cams[v] = T_world_scene @ g[f"{v}_T_scene_cam"][raw_v]
         vio[v] = T_world_scene @ g[f"{v}_T_scene_vio"]
     return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in VIEWS}, valid)
@@ -145,7 +147,7 @@ def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: Ev
     from embodmocap.io.smpl_file import read_smpl_npz
 
     params, _ = read_smpl_npz(lay.sequence(seq).smpl_world)
-    cams = {v: np.load(lay.sequence(seq).view(v).cameras_final)["T_world_cam"] for v in VIEWS}
+    cams = {v: read_cameras(lay.sequence(seq).view(v).cameras_final).T_world_cam for v in VIEWS}
     return quality_metrics(lay, seq, load_body_model(body_model_path), params, cams, cfg)
 
 
@@ -169,10 +171,10 @@ def quality_metrics(lay: SessionLayout, seq: str, model, params, T_world_cam: di
     ious, reps, derrs = [], [], []
     for v in VIEWS:
         vl = lay.sequence(seq).view(v)
-        cams = np.load(vl.cameras)
+        cams = read_cameras(vl.cameras)
         K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
         T_wc = T_world_cam[v]
-        kp = np.load(vl.keypoints)["keypoints"]
+        kp = read_keypoints2d(vl.keypoints).keypoints
         n = min(len(kp), len(coco), len(T_wc))
         proj = _project(K, T_wc[:n], coco[:n])
         reps.append(M.reproj_err_px(proj, kp[:n]))
@@ -237,7 +239,7 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     for v in VIEWS:
         if calib is not None:
             T_est = T_align @ np.asarray(calib["views"][v]["T_world_vio"])
-            centres = np.load(lay.sequence(seq).view(v).cameras)["T_world_cam"][:, :3, 3]
+            centres = read_cameras(lay.sequence(seq).view(v).cameras).T_world_cam[:, :3, 3]
             cm, deg = M.view_offset_err(T_est, truth.T_world_vio[v], centres)
             out[f"{v}_view_translation_err_cm"] = round(float(cm), 3)
             out[f"{v}_view_yaw_err_deg"] = round(float(deg), 4)
@@ -311,13 +313,13 @@ def keypoint_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
 
     sl = lay.sequence(seq)
     gt = lay.ground_truth
-    g = np.load(gt.sequence(seq))
-    T_world_scene = invert_T(np.load(gt.scene_device(scene))["T_scene_vio"])
-    raw = np.load(sl.view(VIEWS[0]).cameras)["raw_frames"].astype(np.int64)
+    g = read_truth_sequence(gt.sequence(seq))
+    T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
+    raw = read_cameras(sl.view(VIEWS[0]).cameras).raw_frames.astype(np.int64)
     motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
     true_kp = g["joints_keypoints"] if "joints_keypoints" in g.files else g["joints_coco17"]
     M_frames = len(true_kp)
-    k3 = np.load(sl.keypoints3d)
+    k3 = read_keypoints3d(sl.keypoints3d)
     tri, filled = k3["points"], k3["filled"]
     model = load_body_model(body_model_path)
     params, frames = read_smpl_npz(smpl_path or sl.smpl_world)
@@ -346,12 +348,12 @@ def scene_errors(lay: SessionLayout, scene: str, cfg: EvaluateConfig = EvaluateC
     from embodmocap.geometry.transforms import apply_T
     from embodmocap.io.captures import open_capture
     from embodmocap.scene.config import SceneConfig
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.scene.stage import read_keyframes
 
     gt = lay.ground_truth
     true_mesh = trimesh.load(gt.scene_mesh(scene), force="mesh")
-    dev = np.load(gt.scene_device(scene))
+    dev = read_truth_scene_device(gt.scene_device(scene))
     info = json.loads(gt.info.read_text())
     indoor = info.get("config", {}).get("preset", "indoor") == "indoor"
     kf = read_keyframes(lay.scene(scene))

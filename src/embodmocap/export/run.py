@@ -69,7 +69,7 @@ def _default_out(layout: SessionLayout, seq: str, to: str) -> Path:
 
 
 def _scene_mesh(layout: SessionLayout, manifest, seq: str, prefer_simplified: bool) -> tuple:
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
 
     scene = layout.scene(manifest.sequences[seq].scene)
     if prefer_simplified and scene.mesh_simplified.is_file():

@@ -17,15 +17,19 @@ transl         (T, 3)    float64 SMPL ``transl`` in the camera frame, metres (pe
 
 from __future__ import annotations
 
-import zipfile
+import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_npz
+from embodmocap.io.npz_file import load_npz
+
+log = logging.getLogger(__name__)
 
 #: Version of the file this module writes; readers accept this one only.
 BODY_PRIOR_VERSION = 1
@@ -98,17 +102,8 @@ def read_body_prior(path: str | Path) -> BodyPriorSeq:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "body prior file not found", "run the perception step or give the right path")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-        raise InputError(path, f"not a readable npz file ({err.__class__.__name__})", "re-create the body prior") from err
-    missing = [k for k in _KEYS if k not in data]
-    if missing:
-        raise InputError(path, f"body prior lacks keys {missing}", f"expected keys {list(_KEYS)}")
-    version = int(np.asarray(data["version"]).reshape(-1)[0])
-    if version != BODY_PRIOR_VERSION:
-        raise InputError(path, f"body prior version {version} is not supported", f"this package reads version {BODY_PRIOR_VERSION}")
+    data = load_npz(path, what="body prior", required=_KEYS, versions=(BODY_PRIOR_VERSION,), default_version=None,
+                    fix=f"re-create the body prior (keys {list(_KEYS)}, version {BODY_PRIOR_VERSION})")
     try:
         prior = BodyPriorSeq(
             global_orient_cam=data["global_orient"], body_pose=data["body_pose"], betas=data["betas"],
@@ -120,3 +115,38 @@ def read_body_prior(path: str | Path) -> BodyPriorSeq:
     if not finite:
         raise InputError(path, "body prior holds NaN or infinite values", "re-create the body prior")
     return prior
+
+
+def body_priors_by_frame(paths: Mapping[str, Path], T: int, min_fraction: float,
+                         label: str = "") -> dict[str, tuple[BodyPriorSeq, NDArray[np.bool_]]]:
+    """Stage II's body priors of the views, one row per sequence frame ``0..T-1``.
+
+    Args:
+        paths: view -> ``body_prior.npz`` (views whose file does not exist are left out).
+        T: frames wanted.
+        min_fraction: views whose prior has an estimate on fewer of the frames are left out.
+        label: the sequence, for the log line naming a view left out.
+
+    Returns:
+        view -> (prior with rows ``0..T-1``, zeros where no estimate; (T,) bool has-estimate).
+    """
+    found = {}
+    for v, path in paths.items():
+        if not Path(path).is_file():
+            continue
+        prior = read_body_prior(path)
+        rows = np.full(T, -1)
+        idx = np.asarray(prior.frame_ids)
+        keep = (idx >= 0) & (idx < T)
+        rows[idx[keep]] = np.flatnonzero(keep)
+        has = rows >= 0
+        # Stage II writes zeros for frames with no estimate.
+        r = np.maximum(rows, 0)
+        has &= np.any(prior.body_pose[r] != 0, axis=1) | np.any(prior.transl_cam[r] != 0, axis=1)
+        if has.mean() < min_fraction:
+            log.info("%s %s: body prior covers only %.0f%% of frames; not used", label, v, 100 * has.mean())
+            continue
+        z = lambda a: np.where(has.reshape((-1,) + (1,) * (a.ndim - 1)), a[r], 0.0)  # noqa: E731
+        found[v] = (BodyPriorSeq(z(prior.global_orient_cam), z(prior.body_pose), z(prior.betas), z(prior.transl_cam),
+                                 np.arange(T)), has)
+    return found

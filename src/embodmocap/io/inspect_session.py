@@ -49,14 +49,14 @@ def _folder_lines(folder: Path, bad: list[str], what: str) -> list[str]:
 def keypoint_problems(folder: Path) -> list[str]:
     """Every keypoint file of a view parsed (OpenPose per-frame JSON, or one COCO file)."""
     from embodmocap.io.openpose import keypoint_files, read_coco_keypoints, read_openpose_raw
-    from embodmocap.perception.precomputed import _looks_like_coco
+    from embodmocap.perception.precomputed import looks_like_coco
 
     folder = Path(folder)
     if not folder.is_dir():
         return [] if not folder.is_file() else _one(lambda: read_coco_keypoints(folder))
     jsons = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".json")
     try:
-        if len(jsons) == 1 and _looks_like_coco(jsons[0]):
+        if len(jsons) == 1 and looks_like_coco(jsons[0]):
             return _one(lambda: read_coco_keypoints(jsons[0]))
         files = keypoint_files(folder)
     except EmbodMocapError as err:

@@ -46,10 +46,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-import tomli_w
-
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_bytes
 from embodmocap.io.layout import VIEWS
 
 try:  # Python >= 3.11
@@ -192,6 +189,25 @@ class SessionManifest:
     def active_sequences(self, force: bool = False) -> list[SequenceEntry]:
         """Sequences to run, in file order: all with ``force``, else those not marked failed."""
         return [s for s in self.sequences.values() if force or not s.failed]
+
+    def sequence(self, name: str | None = None) -> SequenceEntry:
+        """The sequence called ``name``, or the only one when None (InputError naming the file,
+        with the sequences there, when there is no such sequence or more than one)."""
+        return self.sequences[self._pick("sequence", list(self.sequences), name, "--seq")]
+
+    def scene(self, name: str | None = None) -> SceneEntry:
+        """The scene called ``name``, or the only one when None (InputError as :meth:`sequence`)."""
+        return self.scenes[self._pick("scene", list(self.scenes), name, "--scene")]
+
+    def _pick(self, kind: str, names: list[str], name: str | None, option: str) -> str:
+        where = self.root / MANIFEST_NAME
+        if name is None:
+            if len(names) != 1:
+                raise InputError(where, f"{len(names)} {kind}s in the session", f"name one with {option}")
+            return names[0]
+        if name not in names:
+            raise InputError(where, f"no {kind} named '{name}'", f"{kind}s in this session: {', '.join(names) or 'none'}")
+        return name
 
 
 def _absolute(path: Path) -> Path:
@@ -533,65 +549,5 @@ def _check_path(path: Path | None, key: str, kind: str, add: Callable[[str, str]
         add(key, f"{kind} does not exist: {path}")
 
 
-# --------------------------------------------------------------------------------------------
-# Writing
-
-
-def write_manifest(manifest: SessionManifest, path: str | Path | None = None) -> Path:
-    """Write ``manifest`` as TOML atomically; returns the path written.
-
-    ``path`` defaults to ``<root>/session.toml``. Paths inside the folder of the written file are
-    stored relative to it (that folder is the root when the file is loaded again), others absolute.
-    ``load_manifest(write_manifest(m)) == m`` for a manifest whose root is that folder.
-    """
-    path = _absolute(Path(path) if path is not None else manifest.root / MANIFEST_NAME)
-    if path.parent != manifest.root:
-        logger.warning("writing manifest to %s, outside its root %s: paths become relative to %s", path, manifest.root, path.parent)
-    write_bytes(path, tomli_w.dumps(manifest_to_dict(manifest, path.parent)).encode("utf-8"))
-    return path
-
-
-def manifest_to_dict(manifest: SessionManifest, root: Path | None = None) -> dict[str, Any]:
-    """The TOML document of ``manifest`` as plain dicts (no None values; paths as strings)."""
-    root = _absolute(Path(root)) if root is not None else manifest.root
-    rel = lambda p: _path_text(p, root)  # noqa: E731
-    doc: dict[str, Any] = {"version": manifest.version}
-    if manifest.body_model is not None:
-        doc["body_model"] = rel(manifest.body_model)
-    doc["gender"] = manifest.gender
-    doc["scenes"] = {
-        name: {"capture": rel(s.capture), "indoor": s.indoor, **({"markers": {k: list(v) for k, v in s.markers.items()}} if s.markers else {})}
-        for name, s in manifest.scenes.items()
-    }
-    doc["sequences"] = {name: _sequence_to_dict(s, rel) for name, s in manifest.sequences.items()}
-    return doc
-
-
-def _sequence_to_dict(seq: SequenceEntry, rel: Callable[[Path], str]) -> dict[str, Any]:
-    out: dict[str, Any] = {"scene": seq.scene, "optim_scale": seq.optim_scale, "failed": seq.failed}
-    if seq.note:
-        out["note"] = seq.note
-    if seq.contacts:
-        out["contacts"] = [
-            {"frame": c.frame, "marker": c.marker} if c.marker is not None else {"frame": c.frame, "xyz": list(c.xyz)}
-            for c in seq.contacts
-        ]
-    views: dict[str, Any] = {}
-    for vname, v in seq.views.items():
-        view: dict[str, Any] = {"capture": rel(v.capture)}
-        if v.sync_frame is not None:
-            view["sync_frame"] = v.sync_frame
-        for attr in ("keypoints", "masks", "depth", "body_prior"):
-            if getattr(v, attr) is not None:
-                view[attr] = rel(getattr(v, attr))
-        views[vname] = view
-    out["views"] = views
-    return out
-
-
-def _path_text(path: Path, root: Path) -> str:
-    """POSIX text of ``path``, relative to ``root`` when inside it (so sessions can move)."""
-    try:
-        return path.relative_to(root).as_posix()
-    except ValueError:
-        return path.as_posix()
+# The writer lives in its own module (this one would pass 600 lines); its names stay importable here.
+from embodmocap.io.manifest_write import manifest_to_dict, write_manifest  # noqa: E402,F401

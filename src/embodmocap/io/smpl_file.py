@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_npz
+from embodmocap.io.npz_file import load_npz
 from embodmocap.types import SmplParams
 
 SMPL_FILE_VERSION = 1
@@ -57,10 +58,10 @@ def read_smpl_valid(path: str | Path) -> NDArray[np.bool_]:
         InputError: as :func:`read_smpl_npz`, or a ``valid`` array of the wrong shape.
     """
     params, _ = read_smpl_npz(path)
-    with np.load(path, allow_pickle=False) as z:
-        if "valid" not in z.files:
-            return np.ones(len(params), dtype=bool)
-        valid = z["valid"]
+    data = load_npz(path, what="SMPL motion file", fix="", versions=None)
+    if "valid" not in data:
+        return np.ones(len(params), dtype=bool)
+    valid = data["valid"]
     if valid.shape != (len(params),):
         raise InputError(path, f"valid has shape {valid.shape}, expected ({len(params)},)",
                          "re-run `embodmocap motion` to write it again")
@@ -80,17 +81,8 @@ def read_smpl_npz(path: str | Path) -> tuple[SmplParams, NDArray[np.int64]]:
     fix = "re-run `embodmocap motion` to write it again"
     if not path.is_file():
         raise InputError(path, "SMPL motion file not found", "run `embodmocap motion SESSION --seq NAME` first")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as err:  # zip or npy errors of a damaged file
-        raise InputError(path, f"not a readable npz file ({err})", fix) from err
-    missing = [k for k in _KEYS if k not in data]
-    if missing:
-        raise InputError(path, f"not an SMPL motion file: keys {missing} missing",
-                         "expected poses (T,72), trans (T,3), betas (B,), gender, mocap_framerate, frames (T,)")
-    if int(data.get("version", SMPL_FILE_VERSION)) != SMPL_FILE_VERSION:
-        raise InputError(path, f"version {int(data['version'])}, this reader knows {SMPL_FILE_VERSION}", fix)
+    data = load_npz(path, what="SMPL motion file", required=_KEYS, versions=(SMPL_FILE_VERSION,),
+                    fix="expected poses (T,72), trans (T,3), betas (B,), gender, mocap_framerate, frames (T,); " + fix)
     poses, trans, betas = data["poses"], data["trans"], data["betas"]
     T = len(poses)
     if poses.shape != (T, 72) or trans.shape != (T, 3) or betas.ndim != 1 or data["frames"].shape != (T,):

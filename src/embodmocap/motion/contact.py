@@ -116,13 +116,13 @@ class ContactAlignment:
 def contact_points(model, params: SmplParams, frames: NDArray, sole_band_m: float = 0.01) -> NDArray[np.float64]:
     """(N, 3) contact point of the body at sequence frames ``frames`` (N,), in the params' frame.
 
-    Per foot (vertex ids from :func:`embodmocap.synth.motion.foot_vertex_ids`: the rest-pose
+    Per foot (vertex ids from :func:`embodmocap.body.vertex_sets.foot_vertex_ids`: the rest-pose
     vertices nearest the ankle/foot joints and below the ankle), the *sole patch* is the foot's
     vertices within ``sole_band_m`` of its lowest vertex (lowest = smallest world z). A foot's
     point is the patch's mean x, y and its lowest z; the contact point is the mean of the two
     feet's points (the paper's "centre of the lowest points of both feet").
     """
-    from embodmocap.synth.motion import foot_vertex_ids
+    from embodmocap.body.vertex_sets import foot_vertex_ids
 
     frames = np.asarray(frames, dtype=np.int64)
     left, right = foot_vertex_ids(model, params.betas)

@@ -37,6 +37,7 @@ from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid, write_smpl_npz
+from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d, sequence_fps
 from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
@@ -106,11 +107,10 @@ class MotionOutputs:
 def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> MotionOutputs:
     """Run Stage IV for sequence ``seq`` (the only one when None)."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.sequence.stage import _pick_sequence
 
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
-    entry = _pick_sequence(manifest, seq)
+    entry = manifest.sequence(seq)
     out = lay.sequence(entry.name)
     for v in VIEWS:
         vl = out.view(v)
@@ -125,12 +125,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         inputs=[manifest.body_model, *[getattr(out.view(v), k) for v in VIEWS
                                        for k in ("keypoints", "cameras_world", "body_prior")]])
     skipped: list[str] = []
-    cams = {v: np.load(out.view(v).cameras_world) for v in VIEWS}
-    kps = {v: np.load(out.view(v).keypoints)["keypoints"] for v in VIEWS}
+    cams = {v: read_cameras(out.view(v).cameras_world) for v in VIEWS}
+    kps = {v: read_keypoints2d(out.view(v).keypoints).keypoints for v in VIEWS}
     # Sub-frame sync: view 2's keypoints and cameras at view 1's instants (cams_raw: each view's own frames).
     cams_raw, (cams, kps) = cams, synced_views(out, cams, kps)
     T = min(len(kps[v]) for v in VIEWS)
-    fps = _fps(out)
+    fps = sequence_fps(out)
 
     def step(name: str, fp: str) -> bool:
         if not force and sm.is_current(name, fp):
@@ -180,7 +180,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                          path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
     if step("fit", fp_fit):
         t0 = time.perf_counter()
-        k3 = np.load(out.keypoints3d)
+        k3 = read_keypoints3d(out.keypoints3d)
         valid = placeable_frames(out.keypoints3d, entry.name, k3["points"], k3["conf"], cfg)
         # The 2D keypoints as the triangulation step left them (left/right swaps undone).
         kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
@@ -289,8 +289,7 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
     to COCO17 with a warning (one hip definition serves the 3D points of both)."""
     found = []
     for v in VIEWS:
-        with np.load(out.view(v).keypoints) as z:
-            found.append(str(z["layout"]) if "layout" in z.files else "COCO17")
+        found.append(str(read_keypoints2d(out.view(v).keypoints).layout))  # COCO17 for files without it
     if len(set(found)) > 1:
         log.warning("%s: the views' keypoints come from different layouts %s; fitting with COCO-17 hips", seq, found)
         return "COCO17"
@@ -372,13 +371,6 @@ def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_c
                    transl=pick(init.transl, kp_same_shape.transl)), worse
 
 
-def _fps(out: SequenceLayout) -> float:
-    """Sequence frame rate from Stage II's manifest."""
-    import json
-
-    return float(json.loads(out.manifest.read_text())["figures"]["fps"])
-
-
 def _with_fps(params, fps: float, gender: str | None):
     from dataclasses import replace
 
@@ -388,29 +380,9 @@ def _with_fps(params, fps: float, gender: str | None):
 def _priors(lay: SessionLayout, seq: str, T: int, cfg: MotionConfig) -> dict:
     """view -> (prior with one row per sequence frame 0..T-1, (T,) bool has-estimate), for the views
     whose prior covers at least ``cfg.min_prior_fraction`` of the frames."""
-    from embodmocap.io.body_prior import BodyPriorSeq, read_body_prior
+    from embodmocap.io.body_prior import body_priors_by_frame
 
-    found = {}
-    for v in VIEWS:
-        path = lay.sequence(seq).view(v).body_prior
-        if not path.is_file():
-            continue
-        prior = read_body_prior(path)
-        rows = np.full(T, -1)
-        idx = np.asarray(prior.frame_ids)
-        keep = (idx >= 0) & (idx < T)
-        rows[idx[keep]] = np.flatnonzero(keep)
-        has = rows >= 0
-        # Stage II writes zeros for frames with no estimate.
-        r = np.maximum(rows, 0)
-        has &= np.any(prior.body_pose[r] != 0, axis=1) | np.any(prior.transl_cam[r] != 0, axis=1)
-        if has.mean() < cfg.min_prior_fraction:
-            log.info("%s %s: body prior covers only %.0f%% of frames; not used", seq, v, 100 * has.mean())
-            continue
-        z = lambda a: np.where(has.reshape((-1,) + (1,) * (a.ndim - 1)), a[r], 0.0)  # noqa: E731
-        found[v] = (BodyPriorSeq(z(prior.global_orient_cam), z(prior.body_pose), z(prior.betas), z(prior.transl_cam),
-                                 np.arange(T)), has)
-    return found
+    return body_priors_by_frame({v: lay.sequence(seq).view(v).body_prior for v in VIEWS}, T, cfg.min_prior_fraction, seq)
 
 
 def _nanmedian(a: NDArray) -> float | None:

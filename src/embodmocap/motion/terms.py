@@ -16,7 +16,7 @@ joint_range         mean over frames of squared violations of per-axis anatomica
 shape_prior         mean squared beta                                                     1
 =================== ==================================================================== =========
 
-``rho`` is a robust kernel (:func:`embodmocap.calibrate.losses.robust_rho`: ``l2``, ``huber`` or
+``rho`` is a robust kernel (:func:`embodmocap.geometry.robust.robust_rho`: ``l2``, ``huber`` or
 ``geman_mcclure``) of the squared residual norm divided by ``scale**2``, so a residual of one
 ``scale`` costs about 1 (Huber) or 0.5 (Geman-McClure) and gross outliers stop pulling.
 
@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from embodmocap.calibrate.losses import robust_rho
+from embodmocap.geometry.robust import robust_rho
 
 #: (SMPL joint id, axis, sign) of one-way hinges: ``sign * angle`` must stay >= 0. Knees flex
 #: about +x of the SMPL joint frame; the left elbow flexes about -y and the right one about +y.

@@ -220,7 +220,7 @@ class PrecomputedKeypoints:
         if not self.source.is_dir():
             raise InputError(self.source, "keypoint folder or file not found", "check the keypoints path in the manifest")
         jsons = [p for p in self.source.iterdir() if p.suffix.lower() == ".json"]
-        if len(jsons) == 1 and _looks_like_coco(jsons[0]):
+        if len(jsons) == 1 and looks_like_coco(jsons[0]):
             return jsons[0]
         return None
 
@@ -274,7 +274,7 @@ class PrecomputedDetector:
         return out
 
 
-def _looks_like_coco(path: Path) -> bool:
+def looks_like_coco(path: Path) -> bool:
     """True when ``path`` is a COCO keypoint file (a results list or an annotations dict)."""
     try:
         with open(path, "rb") as f:

@@ -18,7 +18,7 @@ matches) and the binary model are kept on disk::
 
 Pixel convention: this package puts the centre of the top-left pixel at (0, 0); COLMAP puts it at
 (0.5, 0.5). So COLMAP's principal point is ours plus 0.5 (:func:`colmap_camera_params`) and COLMAP
-keypoint coordinates are ours plus 0.5 (:func:`pixels_from_colmap` undoes it). Focal lengths and
+keypoint coordinates are ours plus 0.5 (:mod:`embodmocap.io.colmap` converts). Focal lengths and
 poses are the same in both.
 
 Never call COLMAP's vocabulary-tree matcher here: without a local vocabulary file it tries to
@@ -42,12 +42,12 @@ from numpy.typing import NDArray
 from embodmocap.errors import InputError, require
 from embodmocap.geometry.transforms import invert_T, is_rigid
 from embodmocap.io.atomic import atomic_dir, write_json, write_text
+from embodmocap.io.colmap import (  # noqa: F401 (the conversions moved to io; old import path kept)
+    COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap,
+)
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
-
-#: COLMAP's pixel coordinates minus ours: COLMAP puts the top-left pixel's centre at (0.5, 0.5).
-COLMAP_PIXEL_OFFSET = 0.5
 
 #: Version of the folder layout and ``summary.json`` written by :func:`build_sparse_model`.
 SFM_FORMAT_VERSION = 1
@@ -160,27 +160,6 @@ class SparseModel:
             "sfm_mean_reproj_error_px": self.mean_reproj_error_px,
             "sfm_images_without_points": int(np.sum(self.observations_per_image == 0)),
         }
-
-
-# ------------------------------------------------------------------------------------------------
-# Pixel convention
-
-
-def colmap_camera_params(intrinsics: Intrinsics) -> NDArray[np.float64]:
-    """COLMAP ``PINHOLE`` parameters ``[fx, fy, cx, cy]`` of our intrinsics (principal point + 0.5)."""
-    k = intrinsics
-    return np.array([k.fx, k.fy, k.cx + COLMAP_PIXEL_OFFSET, k.cy + COLMAP_PIXEL_OFFSET])
-
-
-def intrinsics_from_colmap(params: Sequence[float], width: int, height: int) -> Intrinsics:
-    """Our intrinsics from COLMAP ``PINHOLE`` parameters ``[fx, fy, cx, cy]`` (principal point - 0.5)."""
-    fx, fy, cx, cy = (float(p) for p in params)
-    return Intrinsics(fx, fy, cx - COLMAP_PIXEL_OFFSET, cy - COLMAP_PIXEL_OFFSET, int(width), int(height))
-
-
-def pixels_from_colmap(xy: NDArray) -> NDArray[np.float64]:
-    """(..., 2) COLMAP pixel coordinates (keypoints, projections) -> ours (top-left centre at 0, 0)."""
-    return np.asarray(xy, dtype=np.float64) - COLMAP_PIXEL_OFFSET
 
 
 # ------------------------------------------------------------------------------------------------

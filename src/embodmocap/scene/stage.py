@@ -70,25 +70,13 @@ _SIMPLIFY_FIELDS = ("simplify_",)
 _SFM_FIELDS = ("sfm",)
 
 
-def _pick_scene(manifest, scene: str | None) -> str:
-    if scene is not None:
-        if scene not in manifest.scenes:
-            raise InputError(manifest.root / "session.toml", f"no scene named '{scene}'",
-                             f"scenes in this session: {', '.join(manifest.scenes) or 'none'}")
-        return scene
-    if len(manifest.scenes) != 1:
-        raise InputError(manifest.root / "session.toml", f"{len(manifest.scenes)} scenes in the session",
-                         "name one with --scene")
-    return next(iter(manifest.scenes))
-
-
 @tracked_stage
 def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, force: bool = False) -> SceneOutputs:
     """Run Stage I for ``scene`` of the session at ``session`` (the only scene when None)."""
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
-    name = _pick_scene(manifest, scene)
-    entry = manifest.scenes[name]
+    entry = manifest.scene(scene)
+    name = entry.name
     indoor = entry.indoor
     out = lay.scene(name)
     capture = open_capture(entry.capture)

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.raycast import pixel_rays
+
 F = NDArray[np.floating]
 
 #: Version of the algorithm (in Stage III's fingerprint: a change redoes the step).
@@ -140,15 +142,6 @@ class GeoSyncResult:
 # --------------------------------------------------------------------------- two-view geometry
 
 
-def _rays(K: F, T_world_cam: F, xy: F) -> tuple[F, F]:
-    """Camera centres (..., 3) and unit ray directions (..., 3) in the world of pixels xy (..., 2)."""
-    Kinv = np.linalg.inv(K)
-    h = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
-    d_cam = np.einsum("...ij,...j->...i", Kinv, h)
-    d = np.einsum("...ij,...j->...i", T_world_cam[..., :3, :3], d_cam)
-    return np.broadcast_to(T_world_cam[..., :3, 3], d.shape), d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
 def _project(K: F, T_world_cam: F, X: F) -> tuple[F, F]:
     """Pixels (..., 2) and depth (...) of world points X (..., 3)."""
     R, c = T_world_cam[..., :3, :3], T_world_cam[..., :3, 3]
@@ -170,8 +163,8 @@ def midpoint_reprojection_error(K1: F, T1: F, x1: F, K2: F, T2: F, x2: F) -> F:
         (...) error in pixels; ``inf`` where the rays are parallel or the midpoint lies behind a
         camera (the pairing cannot be right).
     """
-    c1, d1 = _rays(K1, T1, x1)
-    c2, d2 = _rays(K2, T2, x2)
+    c1, d1 = pixel_rays(K1, T1, x1)
+    c2, d2 = pixel_rays(K2, T2, x2)
     w0 = c1 - c2
     b = np.sum(d1 * d2, axis=-1)
     d = np.sum(d1 * w0, axis=-1)

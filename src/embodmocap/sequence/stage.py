@@ -29,12 +29,15 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_json, write_npz
+from embodmocap.io.atomic import write_json
 from embodmocap.io.frame_stack import depth_mm, pack_mask, write_stack
 from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout, ViewLayout
 from embodmocap.io.manifest import SequenceEntry, load_manifest
+from embodmocap.io.stage_files import (
+    CameraFile, Keypoints2DFile, read_keypoints2d, write_cameras, write_keypoints2d,
+)
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.perception.tracking import performer_keypoints, select_performer_two_views, track_people
 from embodmocap.sequence.config import SequenceConfig
@@ -58,23 +61,11 @@ class SequenceOutputs:
     skipped: tuple[str, ...]
 
 
-def _pick_sequence(manifest, seq: str | None) -> SequenceEntry:
-    names = list(manifest.sequences)
-    if seq is None:
-        if len(names) != 1:
-            raise InputError(manifest.root / "session.toml", f"{len(names)} sequences in the session", "name one with --seq")
-        seq = names[0]
-    if seq not in manifest.sequences:
-        raise InputError(manifest.root / "session.toml", f"no sequence named '{seq}'",
-                         f"sequences in this session: {', '.join(names) or 'none'}")
-    return manifest.sequences[seq]
-
-
 @tracked_stage
 def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> SequenceOutputs:
     """Run Stage II for sequence ``seq`` of the session (the only one when None)."""
     lay = SessionLayout(Path(session))
-    entry = _pick_sequence(load_manifest(lay.manifest), seq)
+    entry = load_manifest(lay.manifest).sequence(seq)
     out = lay.sequence(entry.name)
     out.root.mkdir(parents=True, exist_ok=True)
     sm = StageManifest(out.manifest, "sequence", cfg, root=lay.root, inputs=[
@@ -189,10 +180,11 @@ def _write_cameras(vl: ViewLayout, cap: Capture, fm: FrameMap) -> None:
         log.warning("%s: %d sliced frames have no pose of their own; the nearest pose is used",
                     cap.path, int(untracked.sum()))
     K, Kd = cap.rgb_intrinsics, cap.depth_intrinsics
-    write_npz(vl.cameras, version=np.int64(1), K=K.K, width=np.int64(K.width), height=np.int64(K.height),
-              K_depth=Kd.K, depth_width=np.int64(Kd.width), depth_height=np.int64(Kd.height),
-              T_world_cam=traj.T_world_cam[row], raw_frames=fm.raw_frames, timestamps_s=fm.seq_times_s,
-              frame_times_s=_frame_times(cap, fm), untracked=untracked)
+    write_cameras(vl.cameras, CameraFile(
+        version=np.int64(1), K=K.K, width=np.int64(K.width), height=np.int64(K.height),
+        K_depth=Kd.K, depth_width=np.int64(Kd.width), depth_height=np.int64(Kd.height),
+        T_world_cam=traj.T_world_cam[row], raw_frames=fm.raw_frames, timestamps_s=fm.seq_times_s,
+        frame_times_s=_frame_times(cap, fm), untracked=untracked, fps=np.float64(fm.fps)))
 
 
 def _frame_times(cap: Capture, fm: FrameMap) -> np.ndarray:
@@ -237,9 +229,9 @@ def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, o
         if gap > cfg.long_gap_s:
             log.warning("%s %s: no performer for %.1f s in a row (longest gap)", entry.name, v, gap)
         conf = kp[..., 2][seen]
-        write_npz(out.view(v).keypoints, version=np.int64(1), keypoints=kp, boxes=boxes,
-                  raw_frames=maps[v].raw_frames, seen=seen, track_id=np.int64(track.track_id if track else -1),
-                  layout=np.array(layouts[v]))
+        write_keypoints2d(out.view(v).keypoints, Keypoints2DFile(
+            version=np.int64(1), keypoints=kp, boxes=boxes, raw_frames=maps[v].raw_frames, seen=seen,
+            track_id=np.int64(track.track_id if track else -1), layout=np.array(layouts[v])))
         figs.update({
             f"{v}_frames_with_person": int(seen.sum()),
             f"{v}_mean_keypoint_confidence": round(float(conf.mean()) if conf.size else 0.0, 4),
@@ -301,8 +293,7 @@ def _model_backends(cfg: SequenceConfig, view):
 def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
     """Person masks of the sliced frames (bit-packed stack, ``io.frame_stack``); returns frames missing."""
     size = (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height)
-    kp = np.load(vl.keypoints)
-    boxes = kp["boxes"]
+    boxes = read_keypoints2d(vl.keypoints).boxes
     if cfg.masks == "precomputed":
         if view.masks is None:
             raise InputError(cap.path, "masks = precomputed but the view names no mask folder",

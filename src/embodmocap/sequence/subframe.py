@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from embodmocap.geometry.interpolate import interp_keypoints, interp_poses
 from embodmocap.io.layout import VIEWS, SequenceLayout
+from embodmocap.io.stage_files import read_cameras
 from embodmocap.sequence.sync_record import residual_s
 
 log = logging.getLogger(__name__)
@@ -69,7 +70,7 @@ def synced_views(out: SequenceLayout, cams: Mapping[str, Mapping], kps: Mapping[
     if not out.sync.is_file():
         return cams, kps
     off = residual_s(json.loads(out.sync.read_text()))
-    t1, t2 = (frame_times(np.load(out.view(v).cameras)) if out.view(v).cameras.is_file() else
+    t1, t2 = (frame_times(read_cameras(out.view(v).cameras, "cameras")) if out.view(v).cameras.is_file() else
               frame_times(cams[v]) for v in VIEWS)
     t1, t2 = t1[: len(kps[v1])], t2[: len(kps[v2])]
     query = t1 + off

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from embodmocap.body.vertex_sets import foot_vertex_ids  # noqa: F401 (moved to body; used by the studio)
 from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
@@ -164,19 +165,6 @@ def script_motion(
     params = SmplParams(betas, go, body_pose, transl, fps=fps)
     log.info("scripted %d frames: %s", n_frames, ", ".join(f"{n}[{s}:{e}]" for n, s, e in segments))
     return MotionScript(params, segments)
-
-
-def foot_vertex_ids(body, betas: NDArray | None = None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Vertex ids of the (left, right) feet: rest-pose vertices nearest to an ankle or foot joint
-    and below the ankle."""
-    out = body.forward(np.zeros(body.num_betas) if betas is None else betas, np.zeros((1, 3)), np.zeros((1, 69)))
-    v = out.vertices[0].detach().cpu().numpy().astype(np.float64)
-    j = out.joints[0].detach().cpu().numpy().astype(np.float64)
-    nearest = np.argmin(np.linalg.norm(v[:, None] - j[None], axis=-1), axis=1)
-    below = v[:, 1] < np.minimum(j[7, 1], j[8, 1]) + 0.02
-    left = np.nonzero(np.isin(nearest, (7, 10)) & below)[0]
-    right = np.nonzero(np.isin(nearest, (8, 11)) & below)[0]
-    return left, right
 
 
 def support_height(spec: SceneSpec, points: NDArray) -> NDArray[np.float64]:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.raycast import camera_ray_dirs, cast_rays, raycasting_scene  # noqa: F401 (camera_ray_dirs: old import path)
 from embodmocap.synth.scene import BuiltScene
 from embodmocap.synth.texture import LATTICE_ROTATION, albedo_lattice, relight
 from embodmocap.types import Intrinsics
@@ -88,40 +89,9 @@ class RenderOut:
     person_mask_lr: NDArray[np.bool_] | None
 
 
-def camera_ray_dirs(K: Intrinsics) -> NDArray[np.float32]:
-    """(3, H*W) float32 camera-frame directions ``K^-1 [u, v, 1]`` through pixel centres, row-major."""
-    u = (np.arange(K.width, dtype=np.float64) - K.cx) / K.fx
-    v = (np.arange(K.height, dtype=np.float64) - K.cy) / K.fy
-    d = np.empty((3, K.height, K.width), dtype=np.float32)
-    d[0] = u[None, :]
-    d[1] = v[:, None]
-    d[2] = 1.0
-    return d.reshape(3, -1)
-
-
-def _o3d():
-    import open3d as o3d
-
-    return o3d
-
-
-def _raycasting_scene(vertices: NDArray, faces: NDArray):
-    o3d = _o3d()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor.from_numpy(np.ascontiguousarray(vertices, dtype=np.float32)),
-        o3d.core.Tensor.from_numpy(np.ascontiguousarray(faces, dtype=np.uint32)),
-    )
-    return scene
-
-
 def _cast(scene, origin: NDArray, dirs: NDArray[np.float32]) -> dict:
     """Cast rays from one origin along (3, n) directions; returns Open3D's result as numpy."""
-    o3d = _o3d()
-    rays = np.empty((dirs.shape[1], 6), dtype=np.float32)
-    rays[:, :3] = origin
-    rays[:, 3:] = dirs.T
-    return {k: v.numpy() for k, v in scene.cast_rays(o3d.core.Tensor.from_numpy(rays)).items()}
+    return cast_rays(scene, origin, dirs.T)
 
 
 _CHUNK = 16384  # pixels per pass of the per-pixel numpy work: temporaries stay in the CPU cache
@@ -217,8 +187,8 @@ class Renderer:
         self._prop_boxes = np.flatnonzero(is_prop)
         self._prop_corners = scene.vertices.reshape(-1, 8, 3)[self._prop_boxes]  # (B, 8, 3)
         self._prop_faces = (self._prop_boxes[:, None] * 12 + np.arange(12)).reshape(-1)
-        self._props = _raycasting_scene(scene.vertices, scene.faces[self._prop_faces]) if is_prop.any() else None
-        self._whole = _raycasting_scene(scene.vertices, scene.faces)
+        self._props = raycasting_scene(scene.vertices, scene.faces[self._prop_faces]) if is_prop.any() else None
+        self._whole = raycasting_scene(scene.vertices, scene.faces)
 
     def _lambert(self, normals: NDArray) -> NDArray[np.float32]:
         cfg = self.config
@@ -261,7 +231,7 @@ class Renderer:
         T = np.asarray(T_world_cam, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError(f"T_world_cam must be a finite (4, 4) pose, got shape {T.shape}")
-        body_scene = _raycasting_scene(body[0], body[1]) if body is not None else None
+        body_scene = raycasting_scene(body[0], body[1]) if body is not None else None
         hits = self._hits(intrinsics, T, body_scene, body, shading=True)
         H, W = intrinsics.height, intrinsics.width
         rgb = self._shade(hits, T, body)

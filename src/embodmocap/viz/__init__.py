@@ -19,6 +19,7 @@ import torch
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
+from embodmocap.io import stage_files
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.smpl_file import read_smpl_npz
 from embodmocap.types import Intrinsics, SmplParams
@@ -89,50 +90,19 @@ class SequenceData:
     body_model: Path | None
 
 
-def _load_npz(path: Path, keys: tuple[str, ...], seq: str) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise InputError(path, "Stage IV output not found", RUN_MOTION_FIRST.format(seq=seq))
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as err:  # zip / npy errors of a damaged file
-        raise InputError(path, f"not a readable npz file ({err})", RUN_MOTION_FIRST.format(seq=seq)) from err
-    missing = [k for k in keys if k not in data]
-    if missing:
-        raise InputError(path, f"keys {missing} missing", RUN_MOTION_FIRST.format(seq=seq))
-    if int(data.get("version", 1)) != 1:
-        raise InputError(path, f"version {int(data['version'])}, this reader knows 1",
-                         "update embodmocap or run the motion stage again")
-    return data
-
-
 def read_cameras_final(path: str | Path, view: str, seq: str = "NAME") -> ViewCameras:
     """Read ``<view>/cameras_final.npz`` (keys K (3,3), width, height, T_world_cam (N,4,4), raw_frames (N,))."""
-    path = Path(path)
-    d = _load_npz(path, ("K", "width", "height", "T_world_cam", "raw_frames"), seq)
-    T, raw = np.asarray(d["T_world_cam"], dtype=np.float64), np.asarray(d["raw_frames"], dtype=np.int64)
-    N = len(T)
-    if T.shape != (N, 4, 4) or raw.shape != (N,) or np.shape(d["K"]) != (3, 3):
-        raise InputError(path, f"shapes K {np.shape(d['K'])}, T_world_cam {T.shape}, raw_frames {raw.shape} "
-                         "do not match (3,3), (N,4,4), (N,)", RUN_MOTION_FIRST.format(seq=seq))
-    if not np.isfinite(T).all():
-        raise InputError(path, "non-finite camera poses", RUN_MOTION_FIRST.format(seq=seq))
-    K = Intrinsics.from_K(d["K"], int(d["width"]), int(d["height"]))
-    return ViewCameras(view, K, T, raw)
+    c = stage_files.read_cameras(path, "cameras_final")
+    K = Intrinsics.from_K(c.K, int(c.width), int(c.height))
+    return ViewCameras(view, K, np.asarray(c.T_world_cam, dtype=np.float64), np.asarray(c.raw_frames, dtype=np.int64))
 
 
 def read_keypoints3d(path: str | Path, seq: str = "NAME") -> Keypoints3D:
     """Read ``keypoints3d.npz`` (keys points (N,17,3), conf (N,17), filled (N,17))."""
-    path = Path(path)
-    d = _load_npz(path, ("points", "conf"), seq)
-    pts = np.asarray(d["points"], dtype=np.float64)
-    N = len(pts)
-    conf = np.asarray(d["conf"], dtype=np.float64)
-    filled = np.asarray(d.get("filled", np.zeros((N, 17), bool)), dtype=bool)
-    if pts.shape != (N, 17, 3) or conf.shape != (N, 17) or filled.shape != (N, 17):
-        raise InputError(path, f"shapes points {pts.shape}, conf {conf.shape}, filled {filled.shape} "
-                         "do not match (N,17,3), (N,17), (N,17)", RUN_MOTION_FIRST.format(seq=seq))
-    return Keypoints3D(pts, conf, filled)
+    k3 = stage_files.read_keypoints3d(path)
+    pts = np.asarray(k3.points, dtype=np.float64)
+    filled = k3.filled if k3.filled is not None else np.zeros(pts.shape[:2], bool)
+    return Keypoints3D(pts, np.asarray(k3.conf, dtype=np.float64), np.asarray(filled, dtype=bool))
 
 
 def load_sequence(session: str | Path, seq: str) -> SequenceData:
@@ -166,7 +136,7 @@ def load_sequence(session: str | Path, seq: str) -> SequenceData:
 def _pelvis_path(path: Path, params: SmplParams, frames: NDArray, body_model: Path | None, seq: str) -> NDArray:
     """(T, 3) pelvis positions: from ``joints_world.npz`` when present, else posed from the params."""
     if path.is_file():
-        joints = np.asarray(_load_npz(path, ("joints",), seq)["joints"], dtype=np.float64)
+        joints = np.asarray(stage_files.read_world_joints(path).joints, dtype=np.float64)
         if joints.shape == (len(frames), 24, 3):
             return joints[:, 0]
         log.warning("%s: joints %s do not match %d motion rows; posing the body instead", path, joints.shape, len(frames))

@@ -8,7 +8,7 @@ the camera belongs to (``raw_frames``). Output, in ``SESSION/sequences/<seq>/ren
 - ``side_by_side.mp4``: both views next to each other at a common height.
 
 The body is drawn with the CPU ray caster the synthetic studio uses (Open3D ``RaycastingScene``):
-rays through the pixel centres (:func:`embodmocap.synth.render.camera_ray_dirs`) are cast only
+rays through the pixel centres (:func:`embodmocap.geometry.raycast.camera_ray_dirs`) are cast only
 inside the body's projected bounding box, so a frame costs a few milliseconds. With
 ``occlude_with_scene`` the scene mesh is cast for the same pixels and hides the body parts behind
 furniture, as in the real image.
@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
-from embodmocap.synth.render import camera_ray_dirs
+from embodmocap.geometry.raycast import camera_ray_dirs, cast_rays, raycasting_scene
 from embodmocap.types import Intrinsics
 from embodmocap.viz import SequenceData, BodyFrames, load_sequence
 
@@ -77,21 +77,6 @@ class BodyPixels:
     shade: NDArray[np.float32]
 
 
-def _o3d():
-    import open3d as o3d
-
-    return o3d
-
-
-def _ray_scene(vertices: NDArray, faces: NDArray):
-    """An Open3D ray-casting scene (Embree BVH) of one triangle mesh."""
-    o3d = _o3d()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor.from_numpy(np.ascontiguousarray(vertices, dtype=np.float32)),
-                        o3d.core.Tensor.from_numpy(np.ascontiguousarray(faces, dtype=np.uint32)))
-    return scene
-
-
 def _body_box(K: Intrinsics, T_world_cam: NDArray, vertices: NDArray) -> tuple[int, int, int, int] | None:
     """Half-open pixel box ``(u0, u1, v0, v1)`` holding the body's projection, or None if not seen.
 
@@ -138,15 +123,10 @@ def body_pixels(K: Intrinsics, T_world_cam: NDArray, vertices: NDArray, faces: N
     u0, u1, v0, v1 = box
     dirs_cam = camera_ray_dirs(K).reshape(3, H, W)[:, v0:v1, u0:u1].reshape(3, -1)
     dirs = (T[:3, :3].astype(np.float32) @ dirs_cam).T  # (n, 3) world; unit camera z, so t = depth
-    rays = np.empty((len(dirs), 6), dtype=np.float32)
-    rays[:, :3] = T[:3, 3]
-    rays[:, 3:] = dirs
-    o3d = _o3d()
-    rays_t = o3d.core.Tensor.from_numpy(rays)
-    hit = {k: v.numpy() for k, v in _ray_scene(vertices, faces).cast_rays(rays_t).items()}
+    hit = cast_rays(raycasting_scene(vertices, faces), T[:3, 3], dirs)
     seen = np.isfinite(hit["t_hit"])
     if occluder is not None and seen.any():
-        t_scene = occluder.cast_rays(rays_t)["t_hit"].numpy()
+        t_scene = cast_rays(occluder, T[:3, 3], dirs)["t_hit"]
         seen &= ~(t_scene < hit["t_hit"] - cfg.occlusion_margin_m)
     # Light from the camera, tilted a little towards the world's up, so the shading reads as
     # shape whatever the viewing direction; normals are flipped to face the camera (the mesh's
@@ -195,7 +175,7 @@ def _open_frames(session: Path, seq: str, view: str):
 def _occluder(session: Path, data: SequenceData, cfg: RenderConfig):
     if not cfg.occlude_with_scene:
         return None
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
 
     scene = SessionLayout(session).scene(data.scene)
     path = scene.mesh_simplified if cfg.scene_mesh == "simplified" else scene.mesh_raw
@@ -203,7 +183,7 @@ def _occluder(session: Path, data: SequenceData, cfg: RenderConfig):
         log.warning("%s not found: the body is drawn without scene occlusion", path)
         return None
     v, f, _ = read_mesh_ply(path)
-    return _ray_scene(v, f)
+    return raycasting_scene(v, f)
 
 
 def _resized(rgb: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.uint8]:

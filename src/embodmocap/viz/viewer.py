@@ -224,7 +224,7 @@ def _add_scene(server, session: Path, data: SequenceData, cfg: ViewerConfig):
     """Scene mesh (+ floor grid); returns the mesh handle and its (2, 3) bounds, or (None, None)."""
     if cfg.mesh == "none":
         return None, None
-    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.io.mesh_file import read_mesh_ply
 
     scene = SessionLayout(session).scene(data.scene)
     path = scene.mesh_simplified if cfg.mesh == "simplified" else scene.mesh_raw
