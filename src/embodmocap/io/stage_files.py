@@ -179,7 +179,7 @@ def write_cameras(path: str | Path, cams: CameraFile) -> Path:
     return Path(path)
 
 
-def sequence_fps(seq_root_or_cameras: str | Path) -> float:
+def sequence_fps(seq_root_or_cameras) -> float:
     """The sequence frame rate: Stage II's ``<v1>/cameras.npz`` ``fps`` key, or, for a file
     written before that key existed, Stage II's manifest figure ``fps``.
 
@@ -187,7 +187,8 @@ def sequence_fps(seq_root_or_cameras: str | Path) -> float:
         seq_root_or_cameras: the sequence folder (``sequences/<seq>``, or a ``SequenceLayout``'s
             ``root``), or a ``cameras.npz`` path.
     """
-    p = Path(getattr(seq_root_or_cameras, "root", seq_root_or_cameras))
+    x = seq_root_or_cameras
+    p = Path(x) if isinstance(x, (str, Path)) else Path(x.root)  # a SequenceLayout
     cams_path = p if p.suffix == ".npz" else p / "v1" / "cameras.npz"
     seq_root = cams_path.parent.parent
     cams = read_cameras(cams_path, "cameras")
