@@ -18,18 +18,17 @@ import tyro
 
 from embodmocap.errors import EmbodMocapError, os_error_line
 from embodmocap.scene.config import SceneConfig
-from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.check.config import CheckConfig
 from embodmocap.evaluate.benchmark import BenchmarkConfig
 from embodmocap.evaluate.report import ReportConfig
 from embodmocap.evaluate.session import EvaluateConfig
-from embodmocap.export.run import ExportConfig
-from embodmocap.motion.stage import MotionConfig
+from embodmocap.export.config import ExportConfig
+from embodmocap.motion.config import MotionConfig
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
-from embodmocap.viz.render import RenderConfig
-from embodmocap.viz.viewer import ViewerConfig
+from embodmocap.viz.config import RenderConfig, ViewerConfig
 
 log = logging.getLogger("embodmocap")
 

@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from embodmocap.calibrate.stage import CalibrateConfig
+from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.errors import EmbodMocapError, os_error_line
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.motion.stage import MotionConfig
+from embodmocap.motion.config import MotionConfig
 from embodmocap.scene.config import SceneConfig
 from embodmocap.sequence.config import SequenceConfig
 

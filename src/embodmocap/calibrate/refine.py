@@ -28,72 +28,15 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import torch
 from numpy.typing import NDArray
 
 from embodmocap.calibrate import losses as L
+from embodmocap.calibrate.config import RefineConfig, Solver  # noqa: F401 (defined with the stage's settings)
 
 log = logging.getLogger(__name__)
-
-Solver = Literal["adam", "lm", "both"]
-
-
-@dataclass(frozen=True)
-class RefineConfig:
-    """Settings of the joint refinement."""
-
-    w_track: float = 2.0
-    """Weight of the cross-view track term (the release weights it 2x the per-view terms)."""
-    w_chamfer: float = 1.0
-    """Weight of each view's Chamfer (view -> scene) term."""
-    w_reproj: float = 1.0
-    """Weight of each view's reprojection term."""
-    track_kernel: str = "huber"
-    """Robust kernel of the track term: "l2", "huber" or "geman_mcclure"."""
-    track_scale_m: float = 0.05
-    """Robust scale of the track term, metres (keypoint noise plus joint-vs-surface mismatch)."""
-    chamfer_max_distance_m: float = 0.5
-    """Background points farther than this from every scene sample are left out of the Chamfer
-    term (objects the mesh lacks, mesh holes); the initial offset must be better than this."""
-    chamfer_kernel: str = "huber"
-    """Robust kernel of the Chamfer term."""
-    chamfer_scale_m: float = 0.03
-    """Robust scale of the Chamfer term, metres (LiDAR noise plus mesh error)."""
-    reproj_kernel: str = "huber"
-    """Robust kernel of the reprojection term."""
-    reproj_scale_px: float = 3.0
-    """Robust scale of the reprojection term, pixels."""
-    solver: Solver = "both"
-    """Which solver(s) to run: "adam", "lm" or "both" (keeps the lower final loss)."""
-    adam_lr: float = 1e-2
-    """Adam's initial learning rate (the release's value)."""
-    adam_lr_final: float = 1e-4
-    """Learning rate reached at the last iteration by cosine decay (= adam_lr: constant)."""
-    adam_iterations: int = 200
-    """Adam iterations (the release's value)."""
-    adam_clip_norm: float = 1.0
-    """Gradient-norm clipping of Adam's steps (the paper's clipping); <= 0 disables it."""
-    chamfer_refresh: int = 5
-    """Adam re-finds the Chamfer nearest neighbours every this many iterations."""
-    lm_iterations: int = 30
-    """Maximum Levenberg-Marquardt iterations."""
-    lm_damping: float = 1e-3
-    """Initial LM damping (multiplies diag(J^T J)); divided by 10 on success, times 10 on failure."""
-    lm_step_tol: float = 1e-9
-    """LM stops when the step's largest component is below this (radians / metres)."""
-    max_translation_m: float = 0.5
-    """A translation change larger than this is flagged as diverged, metres."""
-    max_yaw_deg: float = 10.0
-    """A yaw change larger than this is flagged as diverged, degrees."""
-    inlier_ratio: float = 3.0
-    """A residual counts as an inlier when its norm is below this many robust scales."""
-    min_inlier_fraction: float = 0.75
-    """After refinement, a term with fewer inliers than this gets a warning: the terms disagree
-    (one pulls the view away from where another wants it) or that term's data are bad."""
-
 
 @dataclass(frozen=True)
 class ViewData:

@@ -25,15 +25,16 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from embodmocap.calibrate.config import CalibrateConfig  # noqa: F401 (re-exported: defined in config.py)
 from embodmocap.calibrate.consistency import check_against_vio
-from embodmocap.calibrate.offset import RobustOffsetConfig, YawOffset, chain_yaw_offset
-from embodmocap.calibrate.refine import RefineConfig, ViewData, refine_offsets
-from embodmocap.calibrate.register import (RegisterConfig, Registration, load_or_build_scene_index, load_view_frames,
+from embodmocap.calibrate.offset import YawOffset, chain_yaw_offset
+from embodmocap.calibrate.refine import ViewData, refine_offsets
+from embodmocap.calibrate.register import (Registration, load_or_build_scene_index, load_view_frames,
                                            register_frames, select_frames)
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import rotation_angle
@@ -47,55 +48,10 @@ from embodmocap.io.stage_files import (
     write_registration,
 )
 from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, fingerprint, path_fingerprint, tracked_stage
-from embodmocap.sequence.geosync import GeoSyncConfig
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_VERSION = 1
-
-
-@dataclass(frozen=True)
-class CalibrateConfig:
-    """How Stage III registers and refines the two views."""
-
-    register: RegisterConfig = field(default_factory=RegisterConfig)
-    """Registration of view frames into the scene's sparse model."""
-    offset: RobustOffsetConfig = field(default_factory=RobustOffsetConfig)
-    """Robust yaw-only fit of the initial offset."""
-    refine: RefineConfig = field(default_factory=RefineConfig)
-    """Joint refinement (losses, weights, solvers)."""
-    refine_views: bool = True
-    """Run the joint refinement (False = keep the registration-only offsets)."""
-    retry_below_fraction: float = 0.5
-    """A view registering fewer of its sampled frames than this is registered again against
-    ``retry_candidates_factor`` times more candidate key frames."""
-    retry_candidates_factor: int = 3
-    """How many times more candidate key frames the retry matches against."""
-    min_registered_fraction: float = 0.2
-    """Fewer registered frames than this fraction of those tried is an error for the view."""
-    vio_max_disagreement_m: float = 0.10
-    """VIO check (:mod:`embodmocap.calibrate.consistency`): two registered frames whose relative
-    motion differs from the VIO's by more than this (metres) disagree."""
-    vio_max_disagreement_deg: float = 3.0
-    """VIO check: the rotation limit of the same test, degrees."""
-    min_consistent_fraction: float = 0.25
-    """A view whose largest VIO-consistent group of registered frames holds fewer than this share
-    of them (or fewer than ``min_registered_frames``) disagrees with its VIO everywhere: an error
-    (the wrong scene capture, most likely)."""
-    min_registered_frames: int = 5
-    """Fewer registered frames than this is an error for the view."""
-    max_refine_shift_m: float = 0.15
-    """A refinement moving a view further than this from its registration offset is warned about."""
-    max_refine_yaw_deg: float = 3.0
-    """A refinement turning a view more than this from its registration offset is warned about."""
-    chamfer_frames: int = 30
-    """Frames per view whose background depth feeds the Chamfer term (evenly spread)."""
-    chamfer_points_per_frame: int = 400
-    """Background points per frame for the Chamfer term."""
-    scene_points: int = 50000
-    """Points sampled on the scene mesh for the Chamfer term."""
-    geosync: GeoSyncConfig = field(default_factory=GeoSyncConfig)
-    """Geometric sync after registration (keypoint rays meeting) and the choice of sync source."""
 
 
 @dataclass(frozen=True)

@@ -6,19 +6,23 @@ the writers underneath take in-memory :class:`~embodmocap.types.SmplParams` (wor
 in ``docs/formats.md`` (section "Exports").
 """
 
-from embodmocap.export.amass import read_amass, write_amass
-from embodmocap.export.bvh import bvh_text, write_bvh
-from embodmocap.export.csv_joints import joints_csv_header, write_joints_csv
-from embodmocap.export.gltf import glb_document, write_glb
-from embodmocap.export.mimickit import (
-    HeightMap, egocentric_heightmap, mimickit_frames, read_heightmap, read_mimickit_motion, scene_heightmap,
-    write_heightmap, write_mimickit, write_mimickit_motion,
-)
-from embodmocap.export.run import FORMATS, ExportConfig, export_sequence
+# Each name is imported from its module on first use, so importing one module of the package (its
+# settings, for the command line) does not load every writer's dependencies.
+_WHERE = {
+    "read_amass": "amass", "write_amass": "amass", "bvh_text": "bvh", "write_bvh": "bvh",
+    "joints_csv_header": "csv_joints", "write_joints_csv": "csv_joints", "glb_document": "gltf", "write_glb": "gltf",
+    "HeightMap": "mimickit", "egocentric_heightmap": "mimickit", "mimickit_frames": "mimickit",
+    "read_heightmap": "mimickit", "read_mimickit_motion": "mimickit", "scene_heightmap": "mimickit",
+    "write_heightmap": "mimickit", "write_mimickit": "mimickit", "write_mimickit_motion": "mimickit",
+    "FORMATS": "run", "export_sequence": "run", "ExportConfig": "config",
+}
 
-__all__ = [
-    "FORMATS", "ExportConfig", "HeightMap", "bvh_text", "egocentric_heightmap", "export_sequence", "glb_document",
-    "joints_csv_header", "mimickit_frames", "read_amass", "read_heightmap", "read_mimickit_motion", "scene_heightmap",
-    "write_amass", "write_bvh", "write_glb", "write_heightmap", "write_joints_csv", "write_mimickit",
-    "write_mimickit_motion",
-]
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        import importlib
+
+        return getattr(importlib.import_module(f"embodmocap.export.{_WHERE[name]}"), name)
+    raise AttributeError(f"module 'embodmocap.export' has no attribute {name!r}")

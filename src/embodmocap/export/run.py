@@ -19,9 +19,7 @@ csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.c
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
@@ -31,26 +29,13 @@ from embodmocap.export.bvh import write_bvh
 from embodmocap.export.csv_joints import write_joints_csv
 from embodmocap.export.gltf import write_glb
 from embodmocap.export.mimickit import write_mimickit
+from embodmocap.export.config import ExportConfig
 from embodmocap.io.layout import SessionLayout
 
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
 FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv")
-
-
-@dataclass(frozen=True)
-class ExportConfig:
-    """Options of the exports (defaults suit most users)."""
-
-    amass_hands: bool = False
-    """AMASS: write the (T, 156) SMPL+H pose layout with zero hands instead of SMPL's (T, 72)."""
-    bvh_units: Literal["cm", "m"] = "cm"
-    """BVH: length unit of offsets and root positions (most BVH tools expect centimetres)."""
-    mimickit_loop: Literal["clamp", "wrap"] = "clamp"
-    """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
-    heightmap_cell_m: float = 0.05
-    """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:

@@ -190,6 +190,8 @@ class StageManifest:
         self.stage = stage
         self.root = _abspath(root if root is not None else self.path.parent)
         self.inputs = [Path(p) for p in inputs if p is not None]
+        #: Steps found up to date by :meth:`step` in this run, in order.
+        self.skipped: list[str] = []
         self.data: dict[str, Any] = {
             "version": MANIFEST_VERSION, "stage": stage, "package_version": __version__,
             "config": json.loads(json.dumps(config, default=_plain)), "status": "running",
@@ -262,6 +264,12 @@ class StageManifest:
     def figures(self) -> dict[str, Any]:
         return dict(self.data["figures"])
 
+    def step(self, name: str, fp: str, *, force: bool = False, label: str = "") -> "StepRun":
+        """One step, for ``with``: ``step.run`` says whether it must run (forced, or its fingerprint
+        or outputs changed); the body calls ``step.record(outputs, figures)`` when it ran. Timing
+        starts at ``with``; a skipped step is added to :attr:`skipped`; each step logs one line."""
+        return StepRun(self, name, fp, force, label or self.stage)
+
     def finish(self, status: str, error: BaseException | str | None = None) -> None:
         """Record how the stage's run ended: ``ok`` (with its inputs' fingerprints), ``failed`` or
         ``interrupted`` (with the error's first line)."""
@@ -277,6 +285,43 @@ class StageManifest:
 
     def save(self) -> None:
         write_json(self.path, self.data)
+
+
+class StepRun:
+    """A step of a stage run (see :meth:`StageManifest.step`)."""
+
+    def __init__(self, manifest: StageManifest, name: str, fp: str, force: bool, label: str) -> None:
+        self.manifest, self.name, self.fp, self.label = manifest, name, fp, label
+        self.run = force or not manifest.is_current(name, fp)
+        self.recorded = False
+        self._t0 = time.perf_counter()
+
+    def __enter__(self) -> "StepRun":
+        self._t0 = time.perf_counter()
+        return self
+
+    def record(self, outputs: Iterable[str | Path], figures: dict[str, Any] | None = None) -> None:
+        """Mark the step done with its outputs and figures; logs its one summary line."""
+        seconds = time.perf_counter() - self._t0
+        self.manifest.record(self.name, self.fp, outputs, seconds, figures)
+        self.recorded = True
+        log.info("%s: %s done in %.1f s%s", self.label, self.name, seconds, _brief(figures))
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if not self.run:
+            self.manifest.skipped.append(self.name)
+        elif exc_type is None and not self.recorded:
+            raise RuntimeError(f"step {self.name} of {self.manifest.stage} ran but recorded nothing")
+        return False
+
+
+def _brief(figures: dict[str, Any] | None, limit: int = 6) -> str:
+    """``: a=1, b=0.5, ...`` of a step's scalar figures, at most ``limit`` (the manifest has them all)."""
+    items = [(k, v) for k, v in (figures or {}).items() if isinstance(v, (int, float, str, bool)) or v is None]
+    if not items:
+        return ""
+    text = ", ".join(f"{k}={v}" for k, v in items[:limit])
+    return f": {text}" + (f" (+{len(items) - limit} more in the manifest)" if len(items) > limit else "")
 
 
 def _resolve(manifest: Path, stored: str) -> Path:

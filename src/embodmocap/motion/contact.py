@@ -46,37 +46,10 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import is_rigid, make_T, rot_z
+from embodmocap.motion.config import ContactConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ContactConfig:
-    """How the contact-marker alignment is fitted and when it is refused."""
-
-    max_residual_m: float = 0.10
-    """Largest distance (metres) allowed between a contact point and its marker *after* the fit
-    (horizontal distance, or 3D with ``fit_z``). Above it the markers disagree with the motion
-    (or with each other) and the alignment is refused. People never stand exactly centred on a
-    marker: a few centimetres are normal."""
-    fit_z: bool = False
-    """Also fit a vertical shift (the mean height gap between markers and feet). Off by default:
-    the world is gravity-aligned and the floor height from Stage I is trusted."""
-    min_yaw_baseline_m: float = 0.5
-    """The yaw is fitted only when the markers spread at least this far (RMS horizontal distance
-    from their centroid, metres). With one marker, or markers close together, the yaw would be
-    fitted to noise, so only the translation is corrected."""
-    max_yaw_deg: float = 10.0
-    """Largest yaw correction (degrees) accepted. Stage III leaves errors of a degree or two; a
-    larger fit means wrong annotations, and the alignment is refused."""
-    max_shift_m: float = 0.5
-    """Largest translation (metres, at the contacts' centroid) accepted; larger is refused like
-    ``max_yaw_deg``."""
-    sole_band_m: float = 0.01
-    """A foot's contact point is the centre of its vertices within this height (metres) of its
-    lowest vertex (its sole patch), so that the point does not jump between heel and toe when the
-    foot pitches by a fraction of a degree."""
 
 
 @dataclass(frozen=True)

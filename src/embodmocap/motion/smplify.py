@@ -54,6 +54,7 @@ from scipy.spatial.transform import Rotation
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.motion import terms as TM
+from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -62,87 +63,6 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------------------------
 # Configuration and results
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SmplifyConfig:
-    """Weights, schedules and robust scales of the world-space SMPLify."""
-
-    w_kp3d: float = 1.0
-    """Weight of the 3D keypoint term (robust, dimensionless)."""
-    w_reproj: float = 0.5
-    """Weight of the reprojection term of each view (robust, dimensionless)."""
-    w_joint_vel: float = 0.0
-    """Weight of the joint velocity term (per m^2 of frame-to-frame joint displacement). Off by
-    default: it biases every real movement towards standing still; acceleration smooths without
-    that bias."""
-    w_joint_acc: float = 30.0
-    """Weight of the joint acceleration term (per m^2 of second difference per frame^2)."""
-    w_transl_vel: float = 0.0
-    """Weight of the translation velocity term (per m^2)."""
-    w_transl_acc: float = 30.0
-    """Weight of the translation acceleration term (per m^2)."""
-    w_pose_prior: float = 0.01
-    """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
-    used only when a prior pose is given."""
-    w_joint_limits: float = 1.0
-    """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
-    w_rest_pose: float = 0.01
-    """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
-    hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
-    what the keypoints cannot see stays plausible instead of drifting."""
-    w_joint_range: float = 1.0
-    """Weight of the per-axis anatomical ranges of every joint (per rad^2 outside the range,
-    :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
-    w_shape_prior: float = 0.01
-    """Weight of the betas L2 prior (per unit of mean squared beta)."""
-    kp3d_kernel: str = "geman_mcclure"
-    """Robust kernel of the 3D term: ``l2``, ``huber`` or ``geman_mcclure``."""
-    kp3d_scale_m: float = 0.05
-    """Robust scale of the 3D term, metres (a triangulation error of a few cm is normal; a
-    mis-triangulated point 20 cm off stops pulling)."""
-    reproj_kernel: str = "geman_mcclure"
-    """Robust kernel of the reprojection term."""
-    reproj_scale_px: float = 20.0
-    """Robust scale of the reprojection term, pixels."""
-    min_conf: float = 0.1
-    """Keypoints (3D and 2D) with confidence below this are ignored."""
-    solver: str = "adam"
-    """``adam`` or ``lbfgs`` (torch's L-BFGS with strong-Wolfe line search)."""
-    phase1_iterations: int = 60
-    """Iterations of phase 1 (Adam steps, or L-BFGS outer iterations)."""
-    phase1_lr: float = 0.03
-    """Adam learning rate of phase 1 (radians / metres / beta units per step at the start)."""
-    torso_iterations: int = 0
-    """Iterations of the torso stage (between phase 1 and the limbs); 0 = skipped. Off by default:
-    after the keypoint start (whose own steps are global, torso, limbs) it changed nothing on the
-    hard benchmark, and from a start perturbed everywhere it slowed phase 2's convergence."""
-    limbs_iterations: int = 0
-    """Iterations of the limbs stage (between the torso and phase 2); 0 = skipped (see above)."""
-    stage_pose_lr: float = 0.03
-    """Adam learning rate of the pose in the torso and limbs stages."""
-    phase2_iterations: int = 300
-    """Iterations of phase 2."""
-    phase2_lr: float = 0.03
-    """Adam learning rate of phase 2."""
-    lr_final_ratio: float = 0.02
-    """Adam learning rates decay (cosine) to this fraction of their start within each phase:
-    large steps find the basin, small ones settle in it without Adam's jitter."""
-    betas_lr_scale: float = 3.0
-    """Betas learn this many times faster than the rest (they move by O(1) units, the angles by
-    O(0.1) rad)."""
-    window_frames: int = 300
-    """Frames per window for long sequences (a sequence this long or shorter is one window)."""
-    overlap_frames: int = 30
-    """Frames shared by consecutive windows, blended linearly."""
-    shape_frames: int = 100
-    """Frames (spread evenly over the sequence) on which betas are fitted when there are several
-    windows."""
-    device: str = "auto"
-    """``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``."""
-    dtype: str = "float64"
-    """``float64`` or ``float32``; the keypoint body is cheap, so double precision costs little on
-    CPU and keeps the finest steps exact."""
 
 
 @dataclass(frozen=True)

@@ -25,72 +25,30 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
-from embodmocap.geometry.triangulation import TriangulationConfig, projection_matrices, triangulate
+from embodmocap.geometry.triangulation import projection_matrices, triangulate
 from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid, write_smpl_npz
 from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d, sequence_fps
 from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
-from embodmocap.motion.contact import ContactConfig, align_to_contacts, apply_alignment, apply_alignment_to_cameras
+from embodmocap.motion.config import MotionConfig  # noqa: F401 (re-exported: defined in config.py)
+from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
-from embodmocap.motion.smplify import SmplifyConfig, ViewObservations, fit_world_smpl
+from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
 from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
 from embodmocap.sequence.subframe import synced_views
 
 log = logging.getLogger(__name__)
 
 KEYPOINTS3D_VERSION = 1
-
-
-@dataclass(frozen=True)
-class MotionConfig:
-    """How Stage IV triangulates, fits and aligns the motion."""
-
-    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
-    """Triangulation of the two views' 2D keypoints."""
-    smplify: SmplifyConfig = field(default_factory=SmplifyConfig)
-    """The two-phase world SMPLify (weights, iterations, windows, device)."""
-    contact: ContactConfig = field(default_factory=ContactConfig)
-    """Contact-marker alignment (used when the manifest lists contacts for the sequence)."""
-    use_body_prior: bool = True
-    """Initialise from the camera-space body prior (and pull the pose towards it) when the
-    sequence has one; False = start from the triangulated keypoints, no pose prior."""
-    align_contacts: bool = True
-    """Apply the contact-marker alignment when the manifest lists contacts."""
-    fix_swaps: bool = True
-    """Find and undo left/right swaps of the 2D keypoints (a detector labelling an arm, a leg or
-    the whole body the wrong way round in one view) before triangulating and fitting."""
-    min_prior_fraction: float = 0.5
-    """A view's body prior is used only when at least this share of its frames has an estimate."""
-    min_frame_joints: int = 8
-    """A frame needs this many triangulated joints to count as well observed; a sequence where
-    more than ``max_poor_fraction`` of the frames has fewer is refused (one clear error)."""
-    max_poor_fraction: float = 0.5
-    """Largest share of frames with fewer than ``min_frame_joints`` triangulated joints."""
-    min_valid_joints: int = 4
-    """A frame where fewer joints are triangulated, or fewer than two of the hips and shoulders,
-    cannot place the body: it is fitted from its neighbours but flagged ``valid = False`` in
-    ``smpl_world.npz``."""
-    bone_tol: float = 0.3
-    """Triangulated limb points whose bone to the parent point is off by more than this fraction
-    of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
-    (a left/right confusion in one view triangulates at the wrong depth with no reprojection
-    error); 0 = keep every point."""
-    init_median_frames: int = 0
-    """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
-    many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
-    prior_disagree_m: float = 0.2
-    """A frame whose prior-started body is this much further (median over the triangulated joints)
-    from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
-    gets no pull towards the prior's pose: the triangulation wins."""
 
 
 @dataclass(frozen=True)

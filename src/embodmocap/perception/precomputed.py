@@ -450,6 +450,11 @@ class PrecomputedDepth(_PerFrameFiles):
         """:meth:`depth` for each frame of ``frame_ids``, in order."""
         return [self.depth(f) for f in frame_ids]
 
+    def depth_maps(self, frames, frame_ids: Sequence[int], sensor_depth=None) -> list[NDArray[np.float32]]:
+        """The :class:`~embodmocap.perception.roles.DepthEstimator` method: :meth:`read` (the frames
+        and the sensor depth are not needed)."""
+        return self.read(frame_ids)
+
     def _reference_shape(self) -> tuple[int, int]:
         if self._shape is None:
             if not self._files:

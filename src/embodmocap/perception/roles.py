@@ -64,3 +64,16 @@ class BodyPriorEstimator(Protocol):
                  boxes: NDArray[np.float64]):
         """A :class:`embodmocap.io.body_prior.BodyPriorSeq` for these frames."""
         ...
+
+
+@runtime_checkable
+class DepthEstimator(Protocol):
+    """Metric depth per frame: the sensor's depth refined by a model, or depth read from files."""
+
+    name: str
+
+    def depth_maps(self, frames: Sequence[NDArray[np.uint8]], frame_ids: Sequence[int],
+                   sensor_depth: Sequence[NDArray[np.floating]] | None) -> list[NDArray[np.float32]]:
+        """Per frame, an (h, w) float32 depth map in metres (0 = invalid). ``sensor_depth`` is the
+        capture's own depth of the same frames (None for backends that do not use it)."""
+        ...

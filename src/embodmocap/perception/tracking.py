@@ -37,39 +37,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
+from embodmocap.perception.config import TrackingConfig  # noqa: F401 (defined with the settings)
 from embodmocap.perception.precomputed import box_iou, boxes_from_keypoints
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class TrackingConfig:
-    """How detections are linked into tracks."""
-
-    conf_thr: float = 0.3
-    """Keypoints with at least this confidence count (for boxes and OKS)."""
-    min_keypoints: int = 3
-    """A person with fewer confident keypoints is ignored (too little to track)."""
-    box_scale: float = 1.2
-    """Enlargement of the box of the confident keypoints (see ``boxes_from_keypoints``)."""
-    iou_weight: float = 0.4
-    """Weight of box IoU in the similarity; the rest goes to keypoint similarity (OKS)."""
-    oks_sigma: float = 0.1
-    """Keypoint distance scale, as a fraction of sqrt(box area) (about 10% of the body size)."""
-    gap_growth: float = 0.15
-    """Per missed frame, the OKS distance scale grows by this fraction (prediction uncertainty)."""
-    velocity_smoothing: float = 0.5
-    """Weight of the newest box-centre motion in the track's velocity average (0..1]."""
-    min_similarity: float = 0.15
-    """Track and detection are linked only when their similarity reaches this."""
-    max_gap: int = 30
-    """A track survives this many frames without a detection (occlusions) before it ends."""
-    age_bonus: float = 0.1
-    """Similarity bonus of an established track (full at ``age_frames`` observations): when two
-    tracks fit a detection about equally, the older one keeps it (a person briefly detected in two
-    pieces must not hand their identity to the piece's new track)."""
-    age_frames: int = 30
-    """Observations after which a track gets the full ``age_bonus``."""
 
 
 @dataclass(frozen=True)

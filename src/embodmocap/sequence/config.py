@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from embodmocap.perception.tracking import TrackingConfig
+from embodmocap.perception.config import TrackingConfig
 from embodmocap.sequence.sync import SyncConfig
 
 

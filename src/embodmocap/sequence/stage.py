@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,8 +38,9 @@ from embodmocap.io.stage_files import (
     CameraFile, Keypoints2DFile, read_keypoints2d, write_cameras, write_keypoints2d,
 )
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
-from embodmocap.perception.tracking import performer_keypoints, select_performer_two_views, track_people
+from embodmocap.perception.registry import make
 from embodmocap.sequence.config import SequenceConfig
+from embodmocap.sequence.solve import solve_performer
 from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
 from embodmocap.sequence.sync import SyncEvent, write_contact_sheet
 from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION, events_from_record, first_record
@@ -72,98 +72,70 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
         p for v in VIEWS for p in (entry.views[v].capture, entry.views[v].keypoints, entry.views[v].masks,
                                    entry.views[v].depth, entry.views[v].body_prior)])
     captures = {v: open_capture(entry.views[v].capture) for v in VIEWS}
-    skipped: list[str] = []
-
-    def step(name: str, fp: str) -> bool:
-        """True when the step must run (and logs a skip otherwise)."""
-        if not force and sm.is_current(name, fp):
-            skipped.append(name)
-            return False
-        return True
+    label = f"sequence {entry.name}"
 
     # 1. Sync.
     manual = {v: entry.views[v].sync_frame for v in VIEWS}
     geometric = cfg.sync_without_laser == "geometric"
     fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in VIEWS},
                           manual, cfg.sync, geometric)
-    if step("sync", fp_sync):
-        t0 = time.perf_counter()
-        events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name)
-        sheets = []
-        for v in VIEWS:
-            # The sheet shows the laser event when there is one (what a person confirms), else the
-            # manual frame; a view sliced from its first frame has nothing to confirm.
-            lz = record["sources"]["laser"]["views"][v]
-            ev = (SyncEvent(lz["frame"], lz["confidence"], tuple(lz["dot_xy_before"]) if lz["dot_xy_before"] else None,
-                            lz["frames_seen"]) if lz["found"] else events[v] if events[v].method == "manual" else None)
-            if ev is None:
-                log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", entry.name, v)
-                continue
-            sheets.append(write_contact_sheet(captures[v], ev, out.root / f"sync_{v}.png"))
-            lz["contact_sheet"] = sheets[-1].name
-            log.info("%s %s: sync frame %d (%s, confidence %.2f); check %s", entry.name, v, ev.frame,
-                     ev.method, ev.confidence, sheets[-1])
-        write_json(out.sync, record)
-        sm.record("sync", fp_sync, [out.sync, *sheets], time.perf_counter() - t0, {
-            f"{v}_sync_frame": events[v].frame for v in VIEWS} | {
-            f"{v}_sync_confidence": round(events[v].confidence, 3) for v in VIEWS} | {
-            "sync_slicing": record["slicing"]["source"]})
+    with sm.step("sync", fp_sync, force=force, label=label) as step:
+        if step.run:
+            events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name)
+            sheets = _contact_sheets(entry.name, captures, events, record, out)
+            write_json(out.sync, record)
+            step.record([out.sync, *sheets], {f"{v}_sync_frame": events[v].frame for v in VIEWS} | {
+                f"{v}_sync_confidence": round(events[v].confidence, 3) for v in VIEWS} | {
+                "sync_slicing": record["slicing"]["source"]})
     events = events_from_record(json.loads(out.sync.read_text()), out.sync)
 
     # 2. Slice.
     fp_slice = fingerprint("slice", fp_sync, cfg.fps, cfg.min_overlap_s)
-    if step("slice", fp_slice):
-        t0 = time.perf_counter()
-        maps = slice_views(captures, events, cfg.fps, cfg.min_overlap_s)
-        outs = []
-        for v in VIEWS:
-            vl = out.view(v)
-            vl.root.mkdir(parents=True, exist_ok=True)
-            write_json(vl.frame_map, frame_map_to_json(maps[v]))
-            _write_cameras(vl, captures[v], maps[v])
-            outs += [vl.frame_map, vl.cameras]
-        T = len(maps[VIEWS[0]].raw_frames)
-        sm.record("slice", fp_slice, outs, time.perf_counter() - t0, {
-            "frames": T, "fps": maps[VIEWS[0]].fps,
-            **{f"{v}_dropped_frames": int(maps[v].dropped.sum()) for v in VIEWS}})
+    with sm.step("slice", fp_slice, force=force, label=label) as step:
+        if step.run:
+            maps = slice_views(captures, events, cfg.fps, cfg.min_overlap_s)
+            outs = []
+            for v in VIEWS:
+                vl = out.view(v)
+                vl.root.mkdir(parents=True, exist_ok=True)
+                write_json(vl.frame_map, frame_map_to_json(maps[v]))
+                _write_cameras(vl, captures[v], maps[v])
+                outs += [vl.frame_map, vl.cameras]
+            step.record(outs, {"frames": len(maps[VIEWS[0]].raw_frames), "fps": maps[VIEWS[0]].fps,
+                               **{f"{v}_dropped_frames": int(maps[v].dropped.sum()) for v in VIEWS}})
     maps = {v: frame_map_from_json(json.loads(out.view(v).frame_map.read_text()), out.view(v).frame_map) for v in VIEWS}
-    T = len(maps[VIEWS[0]].raw_frames)
 
     # 3. Keypoints and the performer's identity.
     fp_kp = fingerprint("keypoints", fp_slice, cfg.keypoints, cfg.detector, cfg.keypoints_model, cfg.detector_model,
                         cfg.tracking, {v: path_fingerprint(entry.views[v].keypoints) if entry.views[v].keypoints else None
                                        for v in VIEWS})
-    if step("keypoints", fp_kp):
-        t0 = time.perf_counter()
-        figs = _keypoints_step(cfg, entry, captures, maps, out)
-        sm.record("keypoints", fp_kp, [out.view(v).keypoints for v in VIEWS], time.perf_counter() - t0, figs)
+    with sm.step("keypoints", fp_kp, force=force, label=label) as step:
+        if step.run:
+            figs = _keypoints_step(cfg, entry, captures, maps, out)
+            step.record([out.view(v).keypoints for v in VIEWS], figs)
 
     # 4. Masks, depth, body prior (per view; each its own step so a change redoes only it).
     for v in VIEWS:
         vl, view, cap, fm = out.view(v), entry.views[v], captures[v], maps[v]
         if cfg.masks != "none":
             fp = fingerprint("masks", fp_kp, cfg.masks, cfg.masks_model, path_fingerprint(view.masks) if view.masks else None)
-            if step(f"masks_{v}", fp):
-                t0 = time.perf_counter()
-                missing = _masks_step(cfg, view, cap, fm, vl)
-                sm.record(f"masks_{v}", fp, [vl.masks], time.perf_counter() - t0, {f"{v}_frames_missing_mask": missing})
+            with sm.step(f"masks_{v}", fp, force=force, label=label) as step:
+                if step.run:
+                    step.record([vl.masks], {f"{v}_frames_missing_mask": _masks_step(cfg, view, cap, fm, vl)})
         fp = fingerprint("depth", fp_slice, cfg.depth, cfg.depth_model, cfg.min_depth_confidence,
                          path_fingerprint(view.depth) if view.depth else None)
-        if step(f"depth_{v}", fp):
-            t0 = time.perf_counter()
-            missing = _depth_step(cfg, view, cap, fm, vl)
-            sm.record(f"depth_{v}", fp, [vl.depth], time.perf_counter() - t0, {f"{v}_frames_missing_depth": missing})
+        with sm.step(f"depth_{v}", fp, force=force, label=label) as step:
+            if step.run:
+                step.record([vl.depth], {f"{v}_frames_missing_depth": _depth_step(cfg, view, cap, fm, vl)})
         if cfg.body_prior != "none" and view.body_prior is not None:
             fp = fingerprint("body_prior", fp_slice, path_fingerprint(view.body_prior))
-            if step(f"body_prior_{v}", fp):
-                t0 = time.perf_counter()
-                missing = _body_prior_step(view, fm, vl)
-                sm.record(f"body_prior_{v}", fp, [vl.body_prior], time.perf_counter() - t0,
-                          {f"{v}_frames_missing_body_prior": missing})
+            with sm.step(f"body_prior_{v}", fp, force=force, label=label) as step:
+                if step.run:
+                    step.record([vl.body_prior], {f"{v}_frames_missing_body_prior": _body_prior_step(view, fm, vl)})
 
-    if skipped:
-        log.info("sequence %s: up to date, skipped: %s", entry.name, ", ".join(skipped))
-    return SequenceOutputs(entry.name, out, sm.figures(), tuple(skipped))
+    if sm.skipped:
+        log.info("%s: up to date, skipped: %s", label, ", ".join(sm.skipped))
+    return SequenceOutputs(entry.name, out, sm.figures(), tuple(sm.skipped))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -201,43 +173,48 @@ def _chunks(n: int, size: int):
         yield np.arange(s, min(n, s + size))
 
 
-def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, out: SequenceLayout) -> dict:
-    """Every person per frame -> tracks -> the performer (one identity, consistent across views)."""
-    people, tracks, layouts = {}, {}, {}
-    figs: dict = {}
+def _contact_sheets(name: str, captures, events, record: dict, out: SequenceLayout) -> list[Path]:
+    """One contact sheet per view with a laser or manual event (noted in ``record``); their paths."""
+    sheets = []
     for v in VIEWS:
-        fm, cap = maps[v], captures[v]
-        people[v], missing, layouts[v] = _all_people(cfg, entry.views[v], cap, fm)
-        tracks[v] = track_people(people[v], (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height), cfg.tracking)
+        # The sheet shows the laser event when there is one (what a person confirms), else the
+        # manual frame; a view sliced from its first frame has nothing to confirm.
+        lz = record["sources"]["laser"]["views"][v]
+        ev = (SyncEvent(lz["frame"], lz["confidence"], tuple(lz["dot_xy_before"]) if lz["dot_xy_before"] else None,
+                        lz["frames_seen"]) if lz["found"] else events[v] if events[v].method == "manual" else None)
+        if ev is None:
+            log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", name, v)
+            continue
+        sheets.append(write_contact_sheet(captures[v], ev, out.root / f"sync_{v}.png"))
+        lz["contact_sheet"] = sheets[-1].name
+        log.info("%s %s: sync frame %d (%s, confidence %.2f); check %s", name, v, ev.frame,
+                 ev.method, ev.confidence, sheets[-1])
+    return sheets
+
+
+def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, out: SequenceLayout) -> dict:
+    """Every person per frame (the backends) -> the performer (:func:`solve_performer`) -> checks, files."""
+    people, layouts, figs = {}, {}, {}
+    for v in VIEWS:
+        people[v], missing, layouts[v] = _all_people(cfg, entry.views[v], captures[v], maps[v])
         figs[f"{v}_frames_missing_keypoint_file"] = missing
         if missing:
             log.warning("%s %s: %d of %d frames have no keypoint file (kept as zero confidence)",
-                        entry.name, v, missing, len(fm.raw_frames))
-    T = len(maps[VIEWS[0]].raw_frames)
-    frames = np.arange(T)
+                        entry.name, v, missing, len(maps[v].raw_frames))
     sizes = {v: (captures[v].rgb_intrinsics.width, captures[v].rgb_intrinsics.height) for v in VIEWS}
-    best = select_performer_two_views(tracks["v1"], tracks["v2"], frames, frames, sizes["v1"], sizes["v2"], T, T)
-    for v, track in zip(VIEWS, best):
-        kp, boxes = performer_keypoints(track, T)
-        seen = kp[..., 2].max(axis=1) > 0
-        frac = float(seen.mean()) if T else 0.0
-        gap = _longest_run(~seen) / maps[v].fps
-        if frac < cfg.min_person_fraction:
-            raise InputError(captures[v].path, f"the performer is seen in only {100 * frac:.0f}% of the "
+    found = solve_performer(people, sizes, {v: maps[v].fps for v in VIEWS}, cfg.tracking)
+    for v in VIEWS:
+        p, T = found[v], len(maps[v].raw_frames)
+        if p.seen_fraction < cfg.min_person_fraction:
+            raise InputError(captures[v].path, f"the performer is seen in only {100 * p.seen_fraction:.0f}% of the "
                              f"{T} sliced frames of view {v}",
                              "check the view's keypoint folder / detector, or the sync frames")
-        if gap > cfg.long_gap_s:
-            log.warning("%s %s: no performer for %.1f s in a row (longest gap)", entry.name, v, gap)
-        conf = kp[..., 2][seen]
+        if p.longest_gap_s > cfg.long_gap_s:
+            log.warning("%s %s: no performer for %.1f s in a row (longest gap)", entry.name, v, p.longest_gap_s)
         write_keypoints2d(out.view(v).keypoints, Keypoints2DFile(
-            version=np.int64(1), keypoints=kp, boxes=boxes, raw_frames=maps[v].raw_frames, seen=seen,
-            track_id=np.int64(track.track_id if track else -1), layout=np.array(layouts[v])))
-        figs.update({
-            f"{v}_frames_with_person": int(seen.sum()),
-            f"{v}_mean_keypoint_confidence": round(float(conf.mean()) if conf.size else 0.0, 4),
-            f"{v}_longest_gap_s": round(gap, 2),
-            f"{v}_tracks": len(tracks[v]),
-        })
+            version=np.int64(1), keypoints=p.keypoints, boxes=p.boxes, raw_frames=maps[v].raw_frames, seen=p.seen,
+            track_id=np.int64(p.track_id), layout=np.array(layouts[v])))
+        figs.update(p.figures(v))
     return figs
 
 
@@ -245,15 +222,12 @@ def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[
     """Per sliced frame, (N, 17, 3) keypoints of everyone the backend sees; missing files; the
     layout of the detector that produced them (its hip definition matters to Stage IV)."""
     if cfg.keypoints == "precomputed":
-        if view.keypoints is None:
-            raise InputError(cap.path, "keypoints = precomputed but the view names no keypoint folder",
-                             "add `keypoints = \"...\"` for the view in session.toml, or pick a model backend")
-        from embodmocap.perception.precomputed import PrecomputedKeypoints
-
-        src = PrecomputedKeypoints(view.keypoints)
+        src = make("keypoints", "precomputed", view, cfg)
         people = src.read(fm.raw_frames)
         return people, len(src.missing_frames), src.layout or "COCO17"
-    detector, estimator = _model_backends(cfg, view)
+    shared: dict = {}  # one MediaPipe model serves both roles
+    detector = make("detector", cfg.detector, view, cfg, shared)
+    estimator = make("keypoints", cfg.keypoints, view, cfg, shared)
     people = []
     for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
         ids = [int(i) for i in fm.raw_frames[idx]]
@@ -264,51 +238,11 @@ def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[
     return people, 0, "COCO17"
 
 
-def _model_backends(cfg: SequenceConfig, view):
-    if cfg.keypoints == "mediapipe" or cfg.detector == "mediapipe":
-        from embodmocap.perception.mediapipe_backend import MediaPipePose
-
-        mp = MediaPipePose()
-    if cfg.detector == "precomputed":
-        from embodmocap.perception.precomputed import PrecomputedDetector
-
-        if view.keypoints is None:
-            raise InputError(None, "detector = precomputed needs the view's keypoint folder", "pick detector = rtdetr or mediapipe")
-        detector = PrecomputedDetector(view.keypoints)
-    elif cfg.detector == "rtdetr":
-        from embodmocap.perception.hf_backends import make_backend
-
-        detector = make_backend("detector", "rtdetr", model=cfg.detector_model, device=cfg.device)
-    else:
-        detector = mp
-    if cfg.keypoints == "vitpose":
-        from embodmocap.perception.hf_backends import make_backend
-
-        estimator = make_backend("keypoints", "vitpose", model=cfg.keypoints_model, device=cfg.device)
-    else:
-        estimator = mp
-    return detector, estimator
-
-
 def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
     """Person masks of the sliced frames (bit-packed stack, ``io.frame_stack``); returns frames missing."""
     size = (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height)
     boxes = read_keypoints2d(vl.keypoints).boxes
-    if cfg.masks == "precomputed":
-        if view.masks is None:
-            raise InputError(cap.path, "masks = precomputed but the view names no mask folder",
-                             "add `masks = \"...\"` for the view in session.toml, or use --masks none")
-        from embodmocap.perception.precomputed import PrecomputedMasks
-
-        backend = PrecomputedMasks(view.masks)
-    elif cfg.masks == "sam2":
-        from embodmocap.perception.hf_backends import make_backend
-
-        backend = make_backend("masks", "sam2", model=cfg.masks_model, device=cfg.device)
-    else:
-        from embodmocap.perception.mediapipe_backend import MediaPipePose
-
-        backend = MediaPipePose()
+    backend = make("masks", cfg.masks, view, cfg)
     T, W, H = len(fm.raw_frames), size[0], size[1]
     with write_stack(vl.masks, (T, H, (W + 7) // 8), np.uint8) as stack:
 
@@ -340,18 +274,10 @@ def _parallel(fn, items) -> None:
 
 def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewLayout) -> int:
     """Depth of the sliced frames (uint16 mm stack, ``io.frame_stack``); returns frames with no valid depth."""
-    refiner = None
-    if cfg.depth == "precomputed":
-        if view.depth is None:
-            raise InputError(cap.path, "depth = precomputed but the view names no depth folder",
-                             "add `depth = \"...\"` for the view in session.toml, or use --depth lidar")
-        from embodmocap.perception.precomputed import PrecomputedDepth
+    # lidar: the capture's own depth (confidence-filtered); else a registered depth backend.
+    src = make("depth", cfg.depth, view, cfg) if cfg.depth != "lidar" else None
+    refiner = src if cfg.depth == "promptda" else None
 
-        src = PrecomputedDepth(view.depth)
-    elif cfg.depth == "promptda":
-        from embodmocap.perception.depth_refine import make_depth_refiner
-
-        refiner = make_depth_refiner("promptda", model=cfg.depth_model, device=cfg.device, output="rgb")
     def lidar(i: int) -> np.ndarray:
         d = cap.frames.depth_m(i)
         c = cap.frames.confidence(i)
@@ -360,7 +286,7 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         return np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
 
     T = len(fm.raw_frames)
-    first = src.depth(int(fm.raw_frames[0])) if cfg.depth == "precomputed" else lidar(int(fm.raw_frames[0]))
+    first = src.depth_maps(None, [int(fm.raw_frames[0])], None)[0] if cfg.depth == "precomputed" else lidar(int(fm.raw_frames[0]))
     if refiner is not None:
         shape = (cap.rgb_intrinsics.height, cap.rgb_intrinsics.width)
     else:
@@ -376,33 +302,22 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
             empty[t] = not np.any(stack[t])
 
         if refiner is None:
-            read = (lambda i: src.depth(i)) if cfg.depth == "precomputed" else lidar
+            read = (lambda i: src.depth_maps(None, [i], None)[0]) if cfg.depth == "precomputed" else lidar
             _parallel(lambda t: write(t, read(int(fm.raw_frames[t]))), range(T))
         else:
             for idx in _chunks(T, cfg.batch_size):
                 ids = [int(i) for i in fm.raw_frames[idx]]
-                depths = refiner.refine([cap.frames.rgb(i) for i in ids], [lidar(i) for i in ids])
+                depths = refiner.depth_maps([cap.frames.rgb(i) for i in ids], ids, [lidar(i) for i in ids])
                 for t, d in zip(idx, depths):
                     write(t, d)
     return int(empty.sum())
 
 
 def _body_prior_step(view, fm: FrameMap, vl: ViewLayout) -> int:
-    from embodmocap.perception.precomputed import PrecomputedBodyPrior
-
-    src = PrecomputedBodyPrior(view.body_prior)
+    src = make("body_prior", "precomputed", view)
     prior, found = src.take(fm.raw_frames)
     # Re-index by sequence frame; rows absent from the file are zeros and counted.
     seq = BodyPriorSeq(prior.global_orient_cam, prior.body_pose, prior.betas, prior.transl_cam,
                        np.arange(len(fm.raw_frames)))
     write_body_prior(vl.body_prior, seq)
     return int((~found).sum())
-
-
-def _longest_run(mask: np.ndarray) -> int:
-    """Length of the longest run of True values."""
-    if not mask.any():
-        return 0
-    padded = np.concatenate([[0], mask.astype(np.int8), [0]])
-    d = np.diff(padded)
-    return int((np.nonzero(d == -1)[0] - np.nonzero(d == 1)[0]).max())

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
@@ -185,6 +184,8 @@ class BodyFrames:
 
     def _pose(self, start: int, stop: int) -> NDArray[np.float32]:
         p = self.params
+        import torch  # on first use: the viewer's and renderer's settings load without it
+
         with torch.no_grad():
             out = self.model.forward(p.betas, p.global_orient[start:stop], p.body_pose[start:stop],
                                      p.transl[start:stop], dtype=torch.float32)

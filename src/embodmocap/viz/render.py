@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,40 +27,10 @@ from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
 from embodmocap.geometry.raycast import camera_ray_dirs, cast_rays, raycasting_scene
 from embodmocap.types import Intrinsics
+from embodmocap.viz.config import RenderConfig
 from embodmocap.viz import SequenceData, BodyFrames, load_sequence
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class RenderConfig:
-    """How the overlay videos look."""
-
-    alpha: float = 0.6
-    """Opacity of the body over the frame (0 = invisible, 1 = opaque)."""
-    body_rgb: tuple[int, int, int] = (110, 170, 255)
-    """Base colour of the body, 0..255 RGB."""
-    ambient: float = 0.35
-    """Light reaching every body surface whatever its orientation (0..1)."""
-    diffuse: float = 0.75
-    """Strength of the Lambertian term; the light comes from the camera, slightly from above."""
-    occlude_with_scene: bool = True
-    """Hide body parts behind the scene mesh (needs the scene's mesh file; skipped without it)."""
-    scene_mesh: Literal["simplified", "full"] = "simplified"
-    """Which Stage I mesh occludes the body: ``mesh_simplified.ply`` or ``mesh_raw.ply``."""
-    occlusion_margin_m: float = 0.03
-    """The scene hides a body pixel only when it is nearer by more than this (metres): feet on the
-    floor and a seated body stay visible despite the mesh's noise."""
-    max_side: int = 1280
-    """Frames larger than this (longest side, pixels) are scaled down before drawing; 0 = never."""
-    side_by_side: bool = True
-    """Also write ``side_by_side.mp4`` with both views at a common height."""
-    crf: int = 20
-    """H.264 quality (lower = better, larger files)."""
-    chunk_frames: int = 64
-    """Frames posed at once (memory: chunk x 6890 x 3 float32)."""
-    progress: bool = True
-    """Show a tqdm progress bar."""
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +30,7 @@ from numpy.typing import NDArray
 from embodmocap.errors import require
 from embodmocap.geometry.transforms import matrix_to_quat
 from embodmocap.io.layout import SessionLayout
+from embodmocap.viz.config import ViewerConfig
 from embodmocap.viz import BodyFrames, SequenceData, load_sequence
 
 log = logging.getLogger(__name__)
@@ -40,36 +40,6 @@ VIEW_COLOURS: dict[str, tuple[int, int, int]] = {"v1": (220, 60, 60), "v2": (60,
 
 #: Scene node names the viewer creates (also the layer names of the checkboxes).
 LAYERS: tuple[str, ...] = ("scene", "body", "cameras", "keypoints", "path")
-
-
-@dataclass(frozen=True)
-class ViewerConfig:
-    """Settings of the web viewer."""
-
-    host: str = "127.0.0.1"
-    """Interface to listen on; ``0.0.0.0`` makes the viewer reachable from other machines."""
-    port: int = 8080
-    """TCP port of the page (http://host:port)."""
-    mesh: Literal["simplified", "full", "none"] = "simplified"
-    """Scene mesh to show: ``mesh_simplified.ply``, ``mesh_raw.ply`` or none."""
-    max_image_side: int = 320
-    """Longest side, pixels, of the frame shown inside each frustum (0 = no images)."""
-    frustum_scale: float = 0.25
-    """Size of the camera frusta, metres."""
-    jpeg_quality: int = 80
-    """JPEG quality of the frustum images sent to the browser (1..100)."""
-    point_size: float = 0.04
-    """Diameter of the keypoint markers, metres."""
-    body_rgb: tuple[int, int, int] = (110, 170, 255)
-    """Body colour, 0..255 RGB."""
-    body_opacity: float = 1.0
-    """Body opacity (0..1)."""
-    chunk_frames: int = 64
-    """Frames posed at once (memory: 2 chunks x V x 3 float32)."""
-    playback_fps: float | None = None
-    """Playback speed at 1x, frames per second; None = the motion's own frame rate."""
-    start_playing: bool = False
-    """Start the timeline playing as soon as the server is up."""
 
 
 class ViewerHandle:

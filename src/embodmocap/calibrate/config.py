@@ -1,0 +1,115 @@
+"""Stage III settings: :class:`CalibrateConfig` (the ``[calibrate]`` table and ``embodmocap calibrate``'s
+options; also importable from :mod:`embodmocap.calibrate.stage`) and the joint refinement's
+:class:`RefineConfig` (also importable from :mod:`embodmocap.calibrate.refine`).
+
+This module imports no solver code (no torch), so the command line can build its options from it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from embodmocap.calibrate.offset import RobustOffsetConfig
+from embodmocap.calibrate.register import RegisterConfig
+from embodmocap.sequence.geosync import GeoSyncConfig
+
+
+Solver = Literal["adam", "lm", "both"]
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of the joint refinement."""
+
+    w_track: float = 2.0
+    """Weight of the cross-view track term (the release weights it 2x the per-view terms)."""
+    w_chamfer: float = 1.0
+    """Weight of each view's Chamfer (view -> scene) term."""
+    w_reproj: float = 1.0
+    """Weight of each view's reprojection term."""
+    track_kernel: str = "huber"
+    """Robust kernel of the track term: "l2", "huber" or "geman_mcclure"."""
+    track_scale_m: float = 0.05
+    """Robust scale of the track term, metres (keypoint noise plus joint-vs-surface mismatch)."""
+    chamfer_max_distance_m: float = 0.5
+    """Background points farther than this from every scene sample are left out of the Chamfer
+    term (objects the mesh lacks, mesh holes); the initial offset must be better than this."""
+    chamfer_kernel: str = "huber"
+    """Robust kernel of the Chamfer term."""
+    chamfer_scale_m: float = 0.03
+    """Robust scale of the Chamfer term, metres (LiDAR noise plus mesh error)."""
+    reproj_kernel: str = "huber"
+    """Robust kernel of the reprojection term."""
+    reproj_scale_px: float = 3.0
+    """Robust scale of the reprojection term, pixels."""
+    solver: Solver = "both"
+    """Which solver(s) to run: "adam", "lm" or "both" (keeps the lower final loss)."""
+    adam_lr: float = 1e-2
+    """Adam's initial learning rate (the release's value)."""
+    adam_lr_final: float = 1e-4
+    """Learning rate reached at the last iteration by cosine decay (= adam_lr: constant)."""
+    adam_iterations: int = 200
+    """Adam iterations (the release's value)."""
+    adam_clip_norm: float = 1.0
+    """Gradient-norm clipping of Adam's steps (the paper's clipping); <= 0 disables it."""
+    chamfer_refresh: int = 5
+    """Adam re-finds the Chamfer nearest neighbours every this many iterations."""
+    lm_iterations: int = 30
+    """Maximum Levenberg-Marquardt iterations."""
+    lm_damping: float = 1e-3
+    """Initial LM damping (multiplies diag(J^T J)); divided by 10 on success, times 10 on failure."""
+    lm_step_tol: float = 1e-9
+    """LM stops when the step's largest component is below this (radians / metres)."""
+    max_translation_m: float = 0.5
+    """A translation change larger than this is flagged as diverged, metres."""
+    max_yaw_deg: float = 10.0
+    """A yaw change larger than this is flagged as diverged, degrees."""
+    inlier_ratio: float = 3.0
+    """A residual counts as an inlier when its norm is below this many robust scales."""
+    min_inlier_fraction: float = 0.75
+    """After refinement, a term with fewer inliers than this gets a warning: the terms disagree
+    (one pulls the view away from where another wants it) or that term's data are bad."""
+
+
+@dataclass(frozen=True)
+class CalibrateConfig:
+    """How Stage III registers and refines the two views."""
+
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+    """Registration of view frames into the scene's sparse model."""
+    offset: RobustOffsetConfig = field(default_factory=RobustOffsetConfig)
+    """Robust yaw-only fit of the initial offset."""
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    """Joint refinement (losses, weights, solvers)."""
+    refine_views: bool = True
+    """Run the joint refinement (False = keep the registration-only offsets)."""
+    retry_below_fraction: float = 0.5
+    """A view registering fewer of its sampled frames than this is registered again against
+    ``retry_candidates_factor`` times more candidate key frames."""
+    retry_candidates_factor: int = 3
+    """How many times more candidate key frames the retry matches against."""
+    min_registered_fraction: float = 0.2
+    """Fewer registered frames than this fraction of those tried is an error for the view."""
+    vio_max_disagreement_m: float = 0.10
+    """VIO check (:mod:`embodmocap.calibrate.consistency`): two registered frames whose relative
+    motion differs from the VIO's by more than this (metres) disagree."""
+    vio_max_disagreement_deg: float = 3.0
+    """VIO check: the rotation limit of the same test, degrees."""
+    min_consistent_fraction: float = 0.25
+    """A view whose largest VIO-consistent group of registered frames holds fewer than this share
+    of them (or fewer than ``min_registered_frames``) disagrees with its VIO everywhere: an error
+    (the wrong scene capture, most likely)."""
+    min_registered_frames: int = 5
+    """Fewer registered frames than this is an error for the view."""
+    max_refine_shift_m: float = 0.15
+    """A refinement moving a view further than this from its registration offset is warned about."""
+    max_refine_yaw_deg: float = 3.0
+    """A refinement turning a view more than this from its registration offset is warned about."""
+    chamfer_frames: int = 30
+    """Frames per view whose background depth feeds the Chamfer term (evenly spread)."""
+    chamfer_points_per_frame: int = 400
+    """Background points per frame for the Chamfer term."""
+    scene_points: int = 50000
+    """Points sampled on the scene mesh for the Chamfer term."""
+    geosync: GeoSyncConfig = field(default_factory=GeoSyncConfig)
+    """Geometric sync after registration (keypoint rays meeting) and the choice of sync source."""

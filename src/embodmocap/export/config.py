@@ -1,0 +1,21 @@
+"""Settings of the exports (:class:`ExportConfig`, ``embodmocap export``); also importable from
+:mod:`embodmocap.export.run`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """Options of the exports (defaults suit most users)."""
+
+    amass_hands: bool = False
+    """AMASS: write the (T, 156) SMPL+H pose layout with zero hands instead of SMPL's (T, 72)."""
+    bvh_units: Literal["cm", "m"] = "cm"
+    """BVH: length unit of offsets and root positions (most BVH tools expect centimetres)."""
+    mimickit_loop: Literal["clamp", "wrap"] = "clamp"
+    """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
+    heightmap_cell_m: float = 0.05
+    """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""

@@ -1,0 +1,163 @@
+"""Stage IV settings: :class:`MotionConfig` (the ``[motion]`` table and ``embodmocap motion``'s options; also
+importable from :mod:`embodmocap.motion.stage`), :class:`SmplifyConfig` (also from
+:mod:`embodmocap.motion.smplify`) and :class:`ContactConfig` (also from :mod:`embodmocap.motion.contact`).
+
+This module imports no solver code (no torch), so the command line can build its options from it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from embodmocap.geometry.triangulation import TriangulationConfig
+
+
+@dataclass(frozen=True)
+class SmplifyConfig:
+    """Weights, schedules and robust scales of the world-space SMPLify."""
+
+    w_kp3d: float = 1.0
+    """Weight of the 3D keypoint term (robust, dimensionless)."""
+    w_reproj: float = 0.5
+    """Weight of the reprojection term of each view (robust, dimensionless)."""
+    w_joint_vel: float = 0.0
+    """Weight of the joint velocity term (per m^2 of frame-to-frame joint displacement). Off by
+    default: it biases every real movement towards standing still; acceleration smooths without
+    that bias."""
+    w_joint_acc: float = 30.0
+    """Weight of the joint acceleration term (per m^2 of second difference per frame^2)."""
+    w_transl_vel: float = 0.0
+    """Weight of the translation velocity term (per m^2)."""
+    w_transl_acc: float = 30.0
+    """Weight of the translation acceleration term (per m^2)."""
+    w_pose_prior: float = 0.01
+    """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
+    used only when a prior pose is given."""
+    w_joint_limits: float = 1.0
+    """Weight of the one-way hinge term for knees and elbows (per rad^2)."""
+    w_rest_pose: float = 0.01
+    """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
+    hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
+    what the keypoints cannot see stays plausible instead of drifting."""
+    w_joint_range: float = 1.0
+    """Weight of the per-axis anatomical ranges of every joint (per rad^2 outside the range,
+    :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
+    w_shape_prior: float = 0.01
+    """Weight of the betas L2 prior (per unit of mean squared beta)."""
+    kp3d_kernel: str = "geman_mcclure"
+    """Robust kernel of the 3D term: ``l2``, ``huber`` or ``geman_mcclure``."""
+    kp3d_scale_m: float = 0.05
+    """Robust scale of the 3D term, metres (a triangulation error of a few cm is normal; a
+    mis-triangulated point 20 cm off stops pulling)."""
+    reproj_kernel: str = "geman_mcclure"
+    """Robust kernel of the reprojection term."""
+    reproj_scale_px: float = 20.0
+    """Robust scale of the reprojection term, pixels."""
+    min_conf: float = 0.1
+    """Keypoints (3D and 2D) with confidence below this are ignored."""
+    solver: str = "adam"
+    """``adam`` or ``lbfgs`` (torch's L-BFGS with strong-Wolfe line search)."""
+    phase1_iterations: int = 60
+    """Iterations of phase 1 (Adam steps, or L-BFGS outer iterations)."""
+    phase1_lr: float = 0.03
+    """Adam learning rate of phase 1 (radians / metres / beta units per step at the start)."""
+    torso_iterations: int = 0
+    """Iterations of the torso stage (between phase 1 and the limbs); 0 = skipped. Off by default:
+    after the keypoint start (whose own steps are global, torso, limbs) it changed nothing on the
+    hard benchmark, and from a start perturbed everywhere it slowed phase 2's convergence."""
+    limbs_iterations: int = 0
+    """Iterations of the limbs stage (between the torso and phase 2); 0 = skipped (see above)."""
+    stage_pose_lr: float = 0.03
+    """Adam learning rate of the pose in the torso and limbs stages."""
+    phase2_iterations: int = 300
+    """Iterations of phase 2."""
+    phase2_lr: float = 0.03
+    """Adam learning rate of phase 2."""
+    lr_final_ratio: float = 0.02
+    """Adam learning rates decay (cosine) to this fraction of their start within each phase:
+    large steps find the basin, small ones settle in it without Adam's jitter."""
+    betas_lr_scale: float = 3.0
+    """Betas learn this many times faster than the rest (they move by O(1) units, the angles by
+    O(0.1) rad)."""
+    window_frames: int = 300
+    """Frames per window for long sequences (a sequence this long or shorter is one window)."""
+    overlap_frames: int = 30
+    """Frames shared by consecutive windows, blended linearly."""
+    shape_frames: int = 100
+    """Frames (spread evenly over the sequence) on which betas are fitted when there are several
+    windows."""
+    device: str = "auto"
+    """``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``."""
+    dtype: str = "float64"
+    """``float64`` or ``float32``; the keypoint body is cheap, so double precision costs little on
+    CPU and keeps the finest steps exact."""
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """How the contact-marker alignment is fitted and when it is refused."""
+
+    max_residual_m: float = 0.10
+    """Largest distance (metres) allowed between a contact point and its marker *after* the fit
+    (horizontal distance, or 3D with ``fit_z``). Above it the markers disagree with the motion
+    (or with each other) and the alignment is refused. People never stand exactly centred on a
+    marker: a few centimetres are normal."""
+    fit_z: bool = False
+    """Also fit a vertical shift (the mean height gap between markers and feet). Off by default:
+    the world is gravity-aligned and the floor height from Stage I is trusted."""
+    min_yaw_baseline_m: float = 0.5
+    """The yaw is fitted only when the markers spread at least this far (RMS horizontal distance
+    from their centroid, metres). With one marker, or markers close together, the yaw would be
+    fitted to noise, so only the translation is corrected."""
+    max_yaw_deg: float = 10.0
+    """Largest yaw correction (degrees) accepted. Stage III leaves errors of a degree or two; a
+    larger fit means wrong annotations, and the alignment is refused."""
+    max_shift_m: float = 0.5
+    """Largest translation (metres, at the contacts' centroid) accepted; larger is refused like
+    ``max_yaw_deg``."""
+    sole_band_m: float = 0.01
+    """A foot's contact point is the centre of its vertices within this height (metres) of its
+    lowest vertex (its sole patch), so that the point does not jump between heel and toe when the
+    foot pitches by a fraction of a degree."""
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """How Stage IV triangulates, fits and aligns the motion."""
+
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    """Triangulation of the two views' 2D keypoints."""
+    smplify: SmplifyConfig = field(default_factory=SmplifyConfig)
+    """The two-phase world SMPLify (weights, iterations, windows, device)."""
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    """Contact-marker alignment (used when the manifest lists contacts for the sequence)."""
+    use_body_prior: bool = True
+    """Initialise from the camera-space body prior (and pull the pose towards it) when the
+    sequence has one; False = start from the triangulated keypoints, no pose prior."""
+    align_contacts: bool = True
+    """Apply the contact-marker alignment when the manifest lists contacts."""
+    fix_swaps: bool = True
+    """Find and undo left/right swaps of the 2D keypoints (a detector labelling an arm, a leg or
+    the whole body the wrong way round in one view) before triangulating and fitting."""
+    min_prior_fraction: float = 0.5
+    """A view's body prior is used only when at least this share of its frames has an estimate."""
+    min_frame_joints: int = 8
+    """A frame needs this many triangulated joints to count as well observed; a sequence where
+    more than ``max_poor_fraction`` of the frames has fewer is refused (one clear error)."""
+    max_poor_fraction: float = 0.5
+    """Largest share of frames with fewer than ``min_frame_joints`` triangulated joints."""
+    min_valid_joints: int = 4
+    """A frame where fewer joints are triangulated, or fewer than two of the hips and shoulders,
+    cannot place the body: it is fitted from its neighbours but flagged ``valid = False`` in
+    ``smpl_world.npz``."""
+    bone_tol: float = 0.3
+    """Triangulated limb points whose bone to the parent point is off by more than this fraction
+    of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
+    (a left/right confusion in one view triangulates at the wrong depth with no reprojection
+    error); 0 = keep every point."""
+    init_median_frames: int = 0
+    """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
+    many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
+    prior_disagree_m: float = 0.2
+    """A frame whose prior-started body is this much further (median over the triangulated joints)
+    from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
+    gets no pull towards the prior's pose: the triangulation wins."""
