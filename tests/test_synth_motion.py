@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from embodmocap.body.model import load_body_model
 from embodmocap.synth.motion import (
-    MotionConfig, _in_footprint, foot_contact_frames, foot_vertex_ids, script_motion,
+    MotionScriptConfig, _in_footprint, foot_contact_frames, foot_vertex_ids, script_motion,
 )
 from embodmocap.synth.scene import build_scene
 
@@ -25,7 +25,7 @@ def body():
 def run(request, body):
     """A 60 s script in a generated room, skinned."""
     spec = build_scene("indoor", np.random.default_rng(request.param)).spec
-    script = script_motion(spec, body, BETAS, 60.0, FPS, np.random.default_rng(request.param), MotionConfig())
+    script = script_motion(spec, body, BETAS, 60.0, FPS, np.random.default_rng(request.param), MotionScriptConfig())
     out = body.from_params(script.params)
     v = out.vertices.numpy().astype(np.float64)
     j = out.joints.numpy().astype(np.float64)

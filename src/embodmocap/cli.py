@@ -478,11 +478,10 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     require_sequence_stages(lay, load_manifest(lay.manifest).sequence(seq))
 
 
-def _setup_logging(debug: bool) -> None:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S"))
-    log.addHandler(handler)
-    log.setLevel(logging.DEBUG if debug else logging.INFO)
+def _setup_logging(debug: bool):
+    from embodmocap import logs
+
+    return logs.setup(log, debug)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -492,7 +491,15 @@ def main(argv: list[str] | None = None) -> int:
     # "body make-test-model" and "session import" read naturally as two words.
     if len(argv) >= 2 and argv[0] in ("body", "session"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
-    _setup_logging(debug)
+    handler = _setup_logging(debug)
+    try:
+        return _run(argv, debug)
+    finally:
+        handler.flush_repeats()  # a run of repeated lines at the very end is still counted
+        log.removeHandler(handler)
+
+
+def _run(argv: list[str], debug: bool) -> int:
     try:
         cmd = tyro.cli(
             Commands, args=argv, prog="embodmocap",

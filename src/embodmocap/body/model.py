@@ -303,5 +303,12 @@ def load_body_model(path: str | Path | None) -> BodyModel:
         return _test_model()
     path = Path(path)
     model = BodyModel(load_model_arrays(path), source=str(path))
-    log.info("loaded body model %s (%d vertices, %d betas)", path, model.num_vertices, model.num_betas)
+    # Every stage loads the model: say so once per file and process, not once per stage.
+    level = logging.DEBUG if str(path) in _ANNOUNCED else logging.INFO
+    _ANNOUNCED.add(str(path))
+    log.log(level, "loaded body model %s (%d vertices, %d betas)", path, model.num_vertices, model.num_betas)
     return model
+
+
+#: Body model files already announced in the log by :func:`load_body_model`.
+_ANNOUNCED: set[str] = set()

@@ -179,8 +179,8 @@ def triangulate(P: F, points2d: F, conf: F, cfg: TriangulationConfig | None = No
     points, filled = fill_gaps(X, valid, cfg.max_gap_frames)
     long_gaps = [g for g in _gap_runs(valid) if not filled[g[1], g[0]]]
     err = np.where(seen, _reproj_err(P[:, None], points, xy), np.nan)
-    if long_gaps:
-        log.info("%d gaps longer than %d frames left unfilled", len(long_gaps), cfg.max_gap_frames)
+    if long_gaps:  # debug: callers triangulate many times per step; Stage IV reports the gaps once
+        log.debug("%d gaps longer than %d frames left unfilled", len(long_gaps), cfg.max_gap_frames)
     return Triangulation(
         points=points, conf=point_conf, reproj_err_px=err, used=used & valid[..., None],
         filled=filled, long_gaps=long_gaps,

@@ -68,7 +68,7 @@ SLAB_DEPTH: dict[str, float] = {"chair": 0.2}
 
 
 @dataclass(frozen=True)
-class MotionConfig:
+class MotionScriptConfig:
     """How the performer moves."""
 
     idle_s: float = 1.5
@@ -137,7 +137,7 @@ def script_motion(
     seconds: float,
     fps: float,
     rng: np.random.Generator,
-    cfg: MotionConfig = MotionConfig(),
+    cfg: MotionScriptConfig = MotionScriptConfig(),
 ) -> MotionScript:
     """Script ``seconds`` of the performer's motion in the scene (see the module docstring).
 
@@ -361,7 +361,7 @@ class _Piece:
 class _Planner:
     """Builds the list of pieces; keeps the current pelvis position, heading and gait phase."""
 
-    def __init__(self, spec: SceneSpec, cfg: MotionConfig, calib: _Calib, fps: float, rng: np.random.Generator):
+    def __init__(self, spec: SceneSpec, cfg: MotionScriptConfig, calib: _Calib, fps: float, rng: np.random.Generator):
         self.spec, self.cfg, self.calib, self.fps, self.rng = spec, cfg, calib, fps, rng
         self.lo = np.asarray(spec.walk_area_min_xy, dtype=np.float64)
         self.hi = np.asarray(spec.walk_area_max_xy, dtype=np.float64)
@@ -638,7 +638,7 @@ def _first_locked(pieces: list[_Piece], i: int) -> int:
 # --------------------------------------------------------------------------------------------
 
 
-def _joint_angles(ch: dict, c: _Calib, cfg: MotionConfig) -> tuple[NDArray, NDArray]:
+def _joint_angles(ch: dict, c: _Calib, cfg: MotionScriptConfig) -> tuple[NDArray, NDArray]:
     """Channels -> pelvis tilt (T,) and per-joint XYZ Euler angles (T, 23, 3), radians.
 
     Sign conventions (SMPL frame, rotations about the joint's x axis): hip flexion is a negative

@@ -39,7 +39,7 @@ from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import SceneEntry, SequenceEntry, SessionManifest, ViewEntry, write_manifest
 from embodmocap.io.openpose import write_openpose_json
 from embodmocap.synth import lidar, perception, trajectory
-from embodmocap.synth.motion import MotionConfig, script_motion
+from embodmocap.synth.motion import MotionScriptConfig, script_motion
 from embodmocap.synth import laser as laser_look
 from embodmocap.synth.render import Renderer, RenderConfig
 from embodmocap.synth.config import SynthConfig
@@ -103,7 +103,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     betas[:4] = brng.normal(0.0, [0.8, 0.6, 0.5, 0.5])
     lead_max_s = max(cfg.lead_min_s + 0.6, 1.0)
     total_s = lead_max_s + cfg.seconds + 0.2
-    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _rng(cfg.seed, 3), MotionConfig())
+    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _rng(cfg.seed, 3), MotionScriptConfig())
     params = script.params
     M = len(params)
     out_body = body.from_params(params)

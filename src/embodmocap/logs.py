@@ -1,0 +1,56 @@
+"""The command line's log output: one line per record, repeated lines folded.
+
+A message logged several times in a row by the same logger at the same level (a warning raised
+per window, per view or per retry) is printed once, followed by one ``(the line above repeated N
+more times)`` line when something else is logged or the run ends.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import TextIO
+
+FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class FoldingHandler(logging.StreamHandler):
+    """A stream handler that folds runs of identical records (same logger, level and message)."""
+
+    def __init__(self, stream: TextIO | None = None) -> None:
+        super().__init__(stream if stream is not None else sys.stderr)
+        self._last: tuple[str, int, str] | None = None
+        self._repeats = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            key = (record.name, record.levelno, record.getMessage())
+        except Exception:  # noqa: BLE001 - a bad format string: let the base class report it
+            super().emit(record)
+            return
+        if key == self._last:
+            self._repeats += 1
+            return
+        self.flush_repeats()
+        self._last = key
+        super().emit(record)
+
+    def flush_repeats(self) -> None:
+        """Write the pending ``repeated N more times`` line, if any."""
+        if self._repeats:
+            self.stream.write(f"(the line above repeated {self._repeats} more times)\n")
+            self.stream.flush()
+        self._repeats = 0
+
+    def close(self) -> None:
+        self.flush_repeats()
+        super().close()
+
+
+def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None) -> FoldingHandler:
+    """Attach one folding handler to ``logger`` (the package logger): INFO, or DEBUG with ``debug``."""
+    handler = FoldingHandler(stream)
+    handler.setFormatter(logging.Formatter(FORMAT, "%H:%M:%S"))
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG if debug else logging.INFO)
+    return handler
