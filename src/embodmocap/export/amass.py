@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_npz
+from embodmocap.io.npz_file import load_npz
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -88,14 +89,9 @@ def read_amass(path: str | Path) -> tuple[SmplParams, NDArray[np.int64]]:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "motion file not found", "check the path")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as err:
-        raise InputError(path, f"not a readable npz file ({err})", "write the file again") from err
-    missing = [k for k in ("poses", "trans", "betas") if k not in data]
-    if missing:
-        raise InputError(path, f"missing keys {missing} of an AMASS-style motion", "write it with poses, trans, betas")
+    # Any version: AMASS files from other tools carry none.
+    data = load_npz(path, what="AMASS-style motion", fix="write it with poses, trans, betas",
+                    required=("poses", "trans", "betas"), versions=None)
     poses = np.asarray(data["poses"], dtype=np.float64)
     trans = np.asarray(data["trans"], dtype=np.float64)
     betas = np.asarray(data["betas"], dtype=np.float64).reshape(-1)

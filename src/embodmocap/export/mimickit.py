@@ -43,6 +43,7 @@ from scipy.spatial.transform import Rotation
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import atomic_dir, write_bytes, write_json, write_npz, write_text
+from embodmocap.io.npz_file import load_npz
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -204,11 +205,9 @@ def write_heightmap(path: str | Path, hm: HeightMap) -> Path:
 def read_heightmap(path: str | Path) -> HeightMap:
     """Read a height map npz written by :func:`write_heightmap`."""
     path = Path(path)
-    try:
-        with np.load(path) as z:
-            return HeightMap(heights=z["heights"], origin=z["origin"], cell_m=float(z["cell_m"]))
-    except (OSError, KeyError, ValueError) as err:
-        raise InputError(path, f"not a height map file ({err})", "write it again with the mimickit export") from err
+    z = load_npz(path, what="height map", fix="write it again with the mimickit export",
+                 required=("heights", "origin", "cell_m"), versions=(MIMICKIT_EXPORT_VERSION,))
+    return HeightMap(heights=z["heights"], origin=z["origin"], cell_m=float(z["cell_m"]))
 
 
 def egocentric_heightmap(heightmap: HeightMap, xy: NDArray, yaw: NDArray, size: int = 11, spacing: float = 0.2,

@@ -31,6 +31,7 @@ from embodmocap.export.gltf import write_glb
 from embodmocap.export.mimickit import write_mimickit
 from embodmocap.export.config import ExportConfig
 from embodmocap.io.layout import SessionLayout
+from embodmocap.io.stage_files import read_world_joints
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +64,7 @@ def _scene_mesh(layout: SessionLayout, manifest, seq: str, prefer_simplified: bo
 
 
 def _read_joints(path: Path, T: int) -> np.ndarray:
-    try:
-        with np.load(path) as z:
-            joints = np.asarray(z["joints"], dtype=np.float64)
-    except (OSError, KeyError, ValueError) as err:
-        raise InputError(path, f"not a readable joints file ({err})", "run the motion stage again") from err
+    joints = np.asarray(read_world_joints(path).joints, dtype=np.float64)
     if joints.shape != (T, 24, 3):
         raise InputError(path, f"joints {joints.shape} do not match the {T} frames of smpl_world.npz", "run the motion stage again")
     return joints
