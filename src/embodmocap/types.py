@@ -1,4 +1,6 @@
-"""Typed, frozen data passed between stages.
+"""Typed, frozen data shared by the stages in memory (cameras, keypoints, SMPL parameters, captures).
+
+The files one stage hands to the next are read and written by :mod:`embodmocap.io.stage_files`.
 
 Shapes use ``T`` frames, ``J`` joints, ``N`` points, ``H x W`` image sizes. World: Z up, metres.
 Cameras: OpenCV axes. ``T_world_cam`` maps camera points into the world (camera-to-world).
@@ -252,16 +254,6 @@ class Keypoints2D:
     def conf(self) -> NDArray[np.float64]:
         """(T, 17) confidences."""
         return self.data[..., 2]
-
-
-class MaskSource(Protocol):
-    """Lazy per-frame person masks."""
-
-    def __len__(self) -> int: ...
-
-    def mask(self, index: int) -> NDArray[np.bool_]:
-        """(H, W) bool person mask of sequence frame ``index``."""
-        ...
 
 
 @dataclass(frozen=True)
