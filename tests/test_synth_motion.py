@@ -7,9 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from embodmocap.body.model import load_body_model
-from embodmocap.synth.motion import (
-    MotionScriptConfig, _in_footprint, foot_contact_frames, foot_vertex_ids, script_motion,
-)
+from embodmocap.body.vertex_sets import foot_vertex_ids
+from embodmocap.synth.motion import MotionScriptConfig, _in_footprint, foot_contact_frames, script_motion
 from embodmocap.synth.scene import build_scene
 
 FPS = 30.0

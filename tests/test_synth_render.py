@@ -8,7 +8,8 @@ import pytest
 
 from embodmocap.geometry.transforms import apply_T, invert_T, look_at_R, make_T
 from embodmocap.synth import lidar, trajectory
-from embodmocap.synth.render import Renderer, RenderConfig, _cast, _raycasting_scene, camera_ray_dirs
+from embodmocap.geometry.raycast import camera_ray_dirs, raycasting_scene
+from embodmocap.synth.render import Renderer, RenderConfig, _cast
 from embodmocap.synth.scene import box_mesh, build_scene, scene_mesh_trimesh
 from embodmocap.types import Intrinsics
 
@@ -60,7 +61,7 @@ def test_plane_at_known_distance_gives_exact_depth(indoor):
 def test_depth_matches_the_scene_mesh(which, request):
     built, r = request.getfixturevalue(which)
     mesh = scene_mesh_trimesh(built)
-    whole = _raycasting_scene(built.vertices, built.faces)
+    whole = raycasting_scene(built.vertices, built.faces)
     rng = np.random.default_rng(0)
     for T in _walk_poses(built.spec, n=3):
         out = r.render(K, T, depth_intrinsics=K_LR)

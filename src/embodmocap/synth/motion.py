@@ -37,7 +37,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from embodmocap.body.vertex_sets import foot_vertex_ids  # noqa: F401 (moved to body; used by the studio)
 from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _joint_angles
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
@@ -187,7 +186,7 @@ def foot_contact_frames(
     Args:
         spec: the scene.
         vertices: (T, V, 3) posed vertices in the scene frame.
-        foot_ids: (left ids, right ids) from :func:`foot_vertex_ids`.
+        foot_ids: (left ids, right ids) from :func:`embodmocap.body.vertex_sets.foot_vertex_ids`.
         tol_m: a foot within this height of its support counts as in contact.
 
     Returns:
