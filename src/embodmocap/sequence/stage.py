@@ -9,13 +9,15 @@
 2. ``slice``: one sequence timeline from the event on, mapped to each view's raw frames through
    timestamps (different rates and dropped frames handled); the view's intrinsics and VIO poses
    for those frames (``<view>/frame_map.json``, ``<view>/cameras.npz``);
-3. ``keypoints``: every person's COCO-17 keypoints per frame from the chosen backend, linked into
-   tracks, and the performer's track chosen consistently across both views
+3. ``keypoints``: every person's COCO-17 keypoints per frame from the chosen backend
+   (:func:`embodmocap.perception.registry.make`), linked into tracks, and the performer's track
+   chosen consistently across both views by the pure :func:`~embodmocap.sequence.solve.solve_performer`
    (``<view>/keypoints2d.npz``: keypoints (T, 17, 3) and boxes (T, 4));
 4. ``masks``, ``depth``, ``body_prior``: the other observations, per sliced frame.
 
 Frames stream through in chunks, so memory does not grow with the sequence length. Each step is
-skipped when its fingerprint matches the manifest and its outputs exist.
+skipped when its fingerprint matches the manifest and its outputs exist (``StageManifest.step``);
+files are written through :mod:`embodmocap.io.stage_files`.
 """
 
 from __future__ import annotations
