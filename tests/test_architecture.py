@@ -5,7 +5,8 @@
   sessions it measures);
 - no package imports another package's private (underscore) names, neither by ``from ... import _x``
   nor as ``module._x`` through an imported module;
-- ``embodmocap --help`` imports neither torch nor open3d.
+- ``embodmocap --help`` imports neither torch nor open3d;
+- no module is over 600 lines (two known exceptions, to be split).
 """
 
 from __future__ import annotations
@@ -23,6 +24,14 @@ SYNTH_IMPORTERS = {
     "embodmocap/cli.py": "the `synth` and `demo` commands run the studio",
     "embodmocap/evaluate/benchmark.py": "the `benchmark` command synthesises the sessions it measures",
 }
+
+
+#: Modules allowed over the size limit for now, and why.
+LONG_MODULES = {
+    "embodmocap/scene/sfm.py": "Stage I's sparse model; to split when its branch has landed",
+    "embodmocap/calibrate/register.py": "Stage III's registration; to split when its branch has landed",
+}
+MAX_LINES = 600
 
 
 def _package(rel: Path) -> str:
@@ -116,3 +125,9 @@ def test_help_imports_neither_torch_nor_open3d():
                          env={"PYTHONPATH": env_path, "PATH": "/usr/bin:/bin"})
     loaded = json.loads(out.stdout.strip().splitlines()[-1])
     assert "torch" not in loaded and "open3d" not in loaded, loaded
+
+
+def test_no_module_is_over_600_lines():
+    long = {p.relative_to(SRC).as_posix(): n for p in sorted((SRC / "embodmocap").rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert set(long) <= set(LONG_MODULES), {k: v for k, v in long.items() if k not in LONG_MODULES}
