@@ -58,7 +58,7 @@ def load_npz(path: str | Path, *, what: str, fix: str, required: Iterable[str] =
     if "version" not in data and default_version is None:
         missing.insert(0, "version")
     if missing:
-        raise InputError(path, f"keys {missing} missing (not a {what}?)", fix)
+        raise InputError(path, f"keys {missing} missing (the {what} lacks them)", fix)
     if versions is None:
         return data
     version = int(np.asarray(data["version"]).reshape(-1)[0]) if "version" in data else default_version
