@@ -16,7 +16,7 @@ from typing import Annotated, Literal, Union
 
 import tyro
 
-from embodmocap.errors import EmbodMocapError, os_error_line
+from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_watching_interrupts, watch_interrupts
 from embodmocap.scene.config import SceneConfig
 from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.check.config import CheckConfig
@@ -492,9 +492,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(argv) >= 2 and argv[0] in ("body", "session"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     handler = _setup_logging(debug)
+    previous = watch_interrupts()
     try:
         return _run(argv, debug)
     finally:
+        stop_watching_interrupts(previous)
         handler.flush_repeats()  # a run of repeated lines at the very end is still counted
         log.removeHandler(handler)
 
@@ -521,6 +523,9 @@ def _run(argv: list[str], debug: bool) -> int:
         print(f"error: {os_error_line(err)}", file=sys.stderr)
         return 2
     except Exception as err:  # noqa: BLE001 - a bug or an unforeseen input: still one line
+        if interrupted(err):  # Ctrl-C during an import of a compiled module (see errors.watch_interrupts)
+            print("interrupted: run the same command again to resume", file=sys.stderr)
+            return 130
         if debug:
             raise
         first = (str(err).splitlines() or [""])[0][:300]

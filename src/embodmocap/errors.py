@@ -64,3 +64,44 @@ def os_error_line(err: OSError) -> str:
     else:
         what, fix = err.strerror or str(err), "check the file, then run the same command again"
     return f"{where}{what} ({fix})"
+
+
+# Ctrl-C. The default handler raises KeyboardInterrupt wherever Python is; inside the import of a
+# compiled extension (torch, open3d, cv2 load on first use) that surfaces as "ImportError:
+# initialization failed" instead. The CLI records that SIGINT arrived, so such an error still counts
+# as an interruption (status 130, manifest "interrupted") and not as a bug.
+_sigint_seen = [False]
+
+
+def _on_sigint(signum, frame) -> None:
+    _sigint_seen[0] = True
+    import signal
+
+    signal.default_int_handler(signum, frame)
+
+
+def watch_interrupts():
+    """Note SIGINT from now on (main thread only; a SIGINT that is ignored stays ignored).
+    Returns the previous handler for :func:`stop_watching_interrupts`, or None when unchanged."""
+    import signal
+    import threading
+
+    _sigint_seen[0] = False
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return None
+    return signal.signal(signal.SIGINT, _on_sigint)
+
+
+def stop_watching_interrupts(previous) -> None:
+    """Put back the handler :func:`watch_interrupts` replaced."""
+    import signal
+
+    if previous is not None:
+        signal.signal(signal.SIGINT, previous)
+
+
+def interrupted(err: BaseException | None = None) -> bool:
+    """True for a KeyboardInterrupt, or for any error raised after a watched SIGINT arrived."""
+    return isinstance(err, KeyboardInterrupt) or _sigint_seen[0]

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence, TypeVar
 
 from embodmocap import __version__
-from embodmocap.errors import InputError
+from embodmocap.errors import InputError, interrupted
 from embodmocap.io.atomic import remove_stale_temps, write_json
 
 log = logging.getLogger(__name__)
@@ -424,7 +424,7 @@ def tracked_stage(fn: F) -> F:
         try:
             result = fn(*args, **kwargs)
         except BaseException as err:
-            status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
+            status = "interrupted" if interrupted(err) else "failed"
             for sm in opened:
                 try:
                     sm.finish(status, err)
