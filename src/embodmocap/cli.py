@@ -510,6 +510,9 @@ def _run(argv: list[str], debug: bool) -> int:
         _preflight(cmd)
         return int(cmd.run())
     except EmbodMocapError as err:
+        if interrupted(err):  # e.g. a missing-extra error made by an import that Ctrl-C cut short
+            print("interrupted: run the same command again to resume", file=sys.stderr)
+            return 130
         if debug:
             raise
         print(f"error: {err}", file=sys.stderr)

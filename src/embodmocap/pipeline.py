@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from embodmocap.calibrate.config import CalibrateConfig
-from embodmocap.errors import EmbodMocapError, os_error_line
+from embodmocap.errors import EmbodMocapError, interrupted, os_error_line
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.motion.config import MotionConfig
@@ -94,6 +94,8 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
         except (EmbodMocapError, RuntimeError, ValueError, OSError) as err:
             # Expected failures of one target (bad capture, too few registered frames, ...): report
             # and go on with the others. Programming errors (TypeError, KeyError, ...) propagate.
+            if interrupted(err):  # Ctrl-C cut an import short: stop the whole run, as Ctrl-C does
+                raise
             seconds = time.perf_counter() - t0
             msg = (str(err) if isinstance(err, EmbodMocapError) else os_error_line(err) if isinstance(err, OSError)
                    else f"{type(err).__name__}: {err}")
