@@ -99,14 +99,43 @@ def _seen(points: NDArray, conf: NDArray, min_conf: float) -> NDArray[np.bool_]:
     return np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
 
 
+#: Left/right pairs of :data:`BONES` (indices into it): a body is symmetric, so each pair has one length.
+BONE_PAIRS: tuple[tuple[int, int], ...] = ((0, 1), (2, 3), (4, 5), (6, 7))
+
+
+def symmetric_length(d_left: NDArray, d_right: NDArray, tol: float = 0.15, min_frames: int = 3) -> float:
+    """One length for a left/right pair of bones from their per-frame lengths (T,) each (NaN where
+    not seen): the median over the frames where both are seen and agree within ``tol`` (relative
+    to their mean).
+
+    A plain median is skewed when a limb swap in one view lasts for a good part of the sequence
+    (with two views it triangulates both limbs at wrong depths, one bone too long, the other too
+    short, for every frame of the run); a real body's two sides agree. With fewer than
+    ``min_frames`` agreeing frames: the median of every seen length of either side (NaN if none).
+    """
+    dl, dr = np.asarray(d_left, dtype=np.float64), np.asarray(d_right, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        mean = 0.5 * (dl + dr)
+        agree = np.isfinite(mean) & (np.abs(dl - dr) <= tol * mean)
+    if agree.sum() >= min_frames:
+        return float(np.median(mean[agree]))
+    both = np.concatenate([dl[np.isfinite(dl)], dr[np.isfinite(dr)]])
+    return float(np.median(both)) if len(both) >= min_frames else float("nan")
+
+
 def observed_bone_lengths(points: NDArray, seen: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Median length of each of :data:`BONES` and of the trunk over the frames that see both ends
-    ((len(BONES) + 1,), NaN when never seen)."""
+    """Length of each of :data:`BONES` and of the trunk over the frames that see both ends
+    ((len(BONES) + 1,), NaN when never seen): left/right pairs by :func:`symmetric_length`, the
+    widths and the trunk by their median."""
     out = np.full(len(BONES) + 1, np.nan)
+    d = np.full((len(points), len(BONES)), np.nan)
     for k, (a, b) in enumerate(BONES):
         ok = seen[:, a] & seen[:, b]
+        d[ok, k] = np.linalg.norm(points[ok, a] - points[ok, b], axis=-1)
         if ok.sum() >= 3:
-            out[k] = np.median(np.linalg.norm(points[ok, a] - points[ok, b], axis=-1))
+            out[k] = np.median(d[ok, k])
+    for l, r in BONE_PAIRS:
+        out[l] = out[r] = symmetric_length(d[:, l], d[:, r])
     ok = seen[:, list(_TORSO)].all(1)
     if ok.sum() >= 3:
         mid = lambda i, j: 0.5 * (points[ok, i] + points[ok, j])  # noqa: E731
