@@ -83,6 +83,9 @@ class MotionConfig:
     of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
     (a left/right confusion in one view triangulates at the wrong depth with no reprojection
     error); 0 = keep every point."""
+    bone_anchor_torso: bool = True
+    """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
+    shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""
     init_median_frames: int = 0
     """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
     many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
@@ -173,7 +176,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
@@ -189,12 +192,16 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         min_conf = cfg.smplify.min_conf
         points, conf3 = k3["points"], k3["conf"]
         if cfg.bone_tol > 0:
-            from embodmocap.motion.ik import betas_from_bone_lengths, implausible_points, observed_bone_lengths, rest_skeleton
+            from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
+                                              rest_skeleton, torso_anchors)
 
             sk = rest_skeleton(model, layout)
             seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
-            gated = implausible_points(sk, betas_from_bone_lengths(sk, observed_bone_lengths(points, seen)), points,
-                                       seen, cfg.bone_tol)
+            b_bones = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
+            # An elbow (knee) whose shoulder (hip) was not triangulated is judged against the
+            # shoulder of the torso placed on the other torso points.
+            anchors = torso_anchors(sk, b_bones, points, seen) if cfg.bone_anchor_torso else None
+            gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors)
             conf3 = np.where(gated, 0.0, conf3)
         else:
             gated = np.zeros(points.shape[:2], dtype=bool)

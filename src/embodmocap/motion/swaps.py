@@ -55,8 +55,8 @@ class SwapConfig:
     swap along the epipolar lines (cameras at one height, a horizontal confusion) leaves no
     reprojection error but puts the limbs at wrong depths: the view whose swap makes every bone
     plausible again (and no reprojection worse by ``bone_max_extra_px``) is swapped back. The
-    expected length of each bone is the same on both sides: the median over the frames where the
-    two sides agree (:func:`embodmocap.motion.ik.symmetric_length`). 0 = off."""
+    expected length of each bone is the same on both sides: the length most frames of either side
+    share (:func:`embodmocap.motion.ik.symmetric_length`). 0 = off."""
     bone_max_extra_px: float = 5.0
     """Largest increase of the group's reprojection error a bone-length swap may cause, pixels."""
 
@@ -159,8 +159,8 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
 
     bones = _LIMB_BONES[name]
     d = [np.linalg.norm(X0[:, a] - X0[:, b], axis=-1) for a, b in bones]
-    # The expected lengths: one per left/right pair, from the frames where both sides agree (a
-    # long swapped run skews a plain median of each side).
+    # The expected lengths: one per left/right pair, the value most frames share (a long swapped
+    # run skews a plain median of each side).
     L = np.array([symmetric_length(d[0], d[1])] * 2 + [symmetric_length(d[2], d[3])] * 2)
     if not np.isfinite(L).all():
         return kp, 0
