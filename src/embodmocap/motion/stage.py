@@ -86,6 +86,10 @@ class MotionConfig:
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""
+    propagate_limbs: bool = True
+    """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
+    carried over from the neighbouring frames where it agrees fits them better, start from that
+    (:mod:`embodmocap.motion.propagate`)."""
     init_median_frames: int = 0
     """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
     many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""
@@ -176,7 +180,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso, cfg.propagate_limbs,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
@@ -233,6 +237,18 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         else:
             init = kp_init
         init = _with_fps(init, fps, manifest.gender)
+        n_propagated = 0
+        if cfg.propagate_limbs:
+            from embodmocap.motion.propagate import propagate_limbs
+            from embodmocap.motion.smplify import KeypointBody
+
+            # Limbs whose start both views and the 3D points reject take the pose carried over from
+            # the frames where the limb fits its evidence.
+            init, carried = propagate_limbs(
+                KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in VIEWS]),
+                np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
+                cfg.smplify.reproj_scale_px, min_conf)
+            n_propagated = int(carried.sum())
         res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                              prior_weight=prior_w)
         write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender), valid=valid)
@@ -241,6 +257,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             "init_frames_from_keypoints": n_replaced if v_best else int(T),
             "keypoint_layout": layout,
             "points_dropped_bone_length": int(gated.sum()),
+            "limb_starts_propagated": n_propagated,
             "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
             "terms_before": res.terms_before, "terms_after": res.terms_after,
             **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
