@@ -86,6 +86,10 @@ class MotionConfig:
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""
+    kp3d_conf: str = "mean"
+    """Confidence of a triangulated point in the fit: ``mean`` (the triangulation's: mean of the
+    views' confidences times the share of views used) or ``min`` (the lowest confidence of the
+    views used, if lower)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that
@@ -180,7 +184,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso, cfg.propagate_limbs,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.kp3d_conf,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
@@ -195,6 +199,13 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                  for i, v in enumerate(VIEWS)]
         min_conf = cfg.smplify.min_conf
         points, conf3 = k3["points"], k3["conf"]
+        if cfg.kp3d_conf == "min":
+            # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
+            # the triangulated point along the other view's ray without any reprojection error.
+            c2 = np.nan_to_num(kp2d[..., 2])
+            used = c2 >= cfg.triangulation.min_conf
+            weakest = np.where(used, c2, np.inf).min(axis=1)
+            conf3 = np.where(np.isfinite(weakest), np.minimum(conf3, weakest), conf3)
         if cfg.bone_tol > 0:
             from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
                                               rest_skeleton, torso_anchors)
