@@ -143,3 +143,25 @@ def test_limb_start_rejected_by_its_keypoints_is_carried_over_from_good_frames(b
     assert wrist(start).min() > 0.2
     assert wrist(out).max() < 0.06  # the arm held from frame 6: a fifth of a second of motion off
     np.testing.assert_array_equal(np.asarray(out.body_pose)[6:], np.asarray(start.body_pose)[6:])
+
+
+def test_evaluation_aligns_chunks_on_valid_frames_and_reports_the_flagged_ones(motion):
+    """Frames the fit flagged invalid are left out of the errors (each chunk is aligned on its first
+    two *valid* frames), counted, and the figures with them kept are reported beside."""
+    from embodmocap.evaluate.session import SequenceTruth, motion_errors
+
+    params, _ = motion
+    T = len(params)
+    rng = np.random.default_rng(2)
+    truth_j = rng.normal(size=(T, 24, 3)) * 0.3 + np.linspace(0, 3, T)[:, None, None] * [1.0, 0, 0]
+    truth = SequenceTruth(truth_j, {}, {}, {}, np.ones(T, dtype=bool))
+    pred = truth_j + rng.normal(size=truth_j.shape) * 0.01
+    pred[:2, 20:] += 0.5  # the first two frames: a hand half a metre off, flagged invalid
+    valid = np.ones(T, dtype=bool)
+    valid[:2] = False
+    frames = np.arange(T)
+    e = motion_errors(pred, frames, truth, valid)
+    assert e["invalid_frames"] == 2 and e["evaluated_frames"] == T - 2
+    assert e["w_mpjpe_mm"] < 25  # aligned on frames 2 and 3: only the 1 cm noise
+    assert e["w_mpjpe_mm_incl_invalid"] > 2 * e["w_mpjpe_mm"]  # frames 0-1 would tilt the alignment
+    assert "w_mpjpe_mm_incl_invalid" not in motion_errors(pred, frames, truth, np.ones(T, dtype=bool))
