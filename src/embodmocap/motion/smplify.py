@@ -91,6 +91,9 @@ class SmplifyConfig:
     """Without a prior pose: weight of a pull of the joints that no keypoint pins (feet, wrists,
     hands, collars, neck, head) towards SMPL's neutral pose (per rad^2 summed over them), so that
     what the keypoints cannot see stays plausible instead of drifting."""
+    rest_pose_ankles: bool = False
+    """Also pull the ankles (SMPL 7, 8) towards neutral without a prior: COCO-17 has no foot
+    keypoint, so nothing else pins the foot's angle to the shin."""
     w_joint_range: float = 1.0
     """Weight of the per-axis anatomical ranges of every joint (per rad^2 outside the range,
     :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
@@ -418,7 +421,8 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
     elif cfg.w_rest_pose > 0:
-        idx = [3 * (j - 1) + a for j in UNPINNED_JOINTS for a in range(3)]
+        joints = UNPINNED_JOINTS + ((7, 8) if cfg.rest_pose_ankles else ())
+        idx = [3 * (j - 1) + a for j in joints for a in range(3)]
         out["rest_pose"] = cfg.w_rest_pose * (s.pose[:, idx] ** 2).sum(-1).mean()
     out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
     out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
