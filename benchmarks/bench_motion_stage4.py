@@ -10,8 +10,8 @@ with the new evaluation (:func:`embodmocap.evaluate.session.sequence_errors`).
 
 Prior settings: ``none`` (keypoints only), ``realistic`` (the session's own prior, the studio's
 default regressor noise), ``poor`` (a prior drawn again from the session's true motion with the
-studio's ``POOR_PRIOR_NOISE``: depth 20 %, 15 degrees per joint; written into the work copy's
-``sequences/<seq>/<view>/body_prior.npz`` exactly as Stage II slices it, seeded per seed and view).
+studio's ``POOR_PRIOR_NOISE``: depth 20 %, 15 degrees per joint, seeded per seed and view; see
+:func:`write_poor_prior`).
 
     .venv/bin/python benchmarks/bench_motion_stage4.py --sessions /work/bench/11/sessions \
         --seeds 0 1 2 3 4 5 6 7 8 9 --priors none realistic poor --old-src /tmp/old/src \
@@ -54,18 +54,28 @@ def work_copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def write_poor_prior(session: Path, seed: int, seq: str = "seq0") -> None:
-    """Replace the work copy's sliced body priors by ones drawn from the truth with the studio's
-    poor-regressor noise (one generator per seed and view)."""
+def write_poor_prior(session: Path, seed: int, seq: str = "seq0") -> str:
+    """Replace the work copy's body priors by ones drawn from the truth with the studio's
+    poor-regressor noise (one generator per seed and view). Sessions whose Stage II manifest
+    records its outputs' fingerprints get the detector-side files (``perception/``, as the studio
+    writes them) and Stage II re-slices them (its other steps are current: checked); older ones get
+    the sliced ``sequences/<seq>/<view>/body_prior.npz`` written as Stage II's body-prior step
+    writes it. Returns which of the two was done."""
+    import json
+
     from embodmocap.body.model import load_body_model
     from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
     from embodmocap.io.layout import VIEWS, SessionLayout
+    from embodmocap.sequence import stage as stage2
+    from embodmocap.sequence.config import SequenceConfig
     from embodmocap.synth import perception
     from embodmocap.types import SmplParams
 
     lay = SessionLayout(session)
     g = np.load(lay.ground_truth.sequence(seq))
     body = load_body_model(None)
+    steps = json.loads(lay.sequence(seq).manifest.read_text())["steps"]
+    recorded = all("output_fingerprints" in steps.get(f"body_prior_{v}", {}) for v in VIEWS)
     for k, v in enumerate(VIEWS):
         T_scene_cam = g[f"{v}_T_scene_cam"]
         start = int(g[f"{v}_motion_start"])
@@ -74,10 +84,22 @@ def write_poor_prior(session: Path, seed: int, seq: str = "seq0") -> None:
                             float(g["fps"]), "neutral")
         rng = np.random.default_rng([seed, 1100 + k])
         prior = perception.body_prior(params, T_scene_cam, body, rng, perception.POOR_PRIOR_NOISE)
-        vl = lay.sequence(seq).view(v)
-        raw = np.load(vl.cameras)["raw_frames"].astype(np.int64)
-        write_body_prior(vl.body_prior, BodyPriorSeq(prior.global_orient_cam[raw], prior.body_pose[raw],
-                                                     prior.betas[raw], prior.transl_cam[raw], np.arange(len(raw))))
+        if recorded:
+            path = lay.perception(seq, v).body_prior
+            path.unlink()  # a hard link to the prepared session's file: never write through it
+            write_body_prior(path, prior)
+        else:
+            vl = lay.sequence(seq).view(v)
+            raw = np.load(vl.cameras)["raw_frames"].astype(np.int64)
+            write_body_prior(vl.body_prior, BodyPriorSeq(prior.global_orient_cam[raw], prior.body_pose[raw],
+                                                         prior.betas[raw], prior.transl_cam[raw], np.arange(len(raw))))
+    if not recorded:
+        return "sliced priors written"
+    out = stage2.run(SequenceConfig(), session, seq)
+    ran = [n for n in steps if n not in out.skipped]
+    if any(not n.startswith("body_prior") for n in ran):
+        raise RuntimeError(f"{session}: Stage II redid {ran}, not only the body priors")
+    return f"Stage II re-sliced ({', '.join(ran)})"
 
 
 def stage4(session: Path, prior: str, src: Path) -> tuple[float, dict]:
@@ -148,8 +170,8 @@ def main() -> None:
         for prior in args.priors:
             dst = work_copy(src, args.work / (f"{src.name}_poor" if prior == "poor" else src.name))
             if prior == "poor" and not (dst / ".poor_prior").exists():
-                write_poor_prior(dst, seed)
-                (dst / ".poor_prior").write_text("body priors redrawn with POOR_PRIOR_NOISE\n")
+                how = write_poor_prior(dst, seed)
+                (dst / ".poor_prior").write_text(f"body priors redrawn with POOR_PRIOR_NOISE: {how}\n")
             for code in codes:
                 wall, errs = stage4(dst, prior, args.old_src if code == "old" else new_src)
                 row[f"{code}_{prior}"] = {"s": round(wall, 2), **{k: errs.get(k) for k in KEYS}}
