@@ -162,6 +162,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     new_src = Path(__file__).resolve().parents[1] / "src"
+    sys.path.insert(0, str(new_src))  # the evaluation and the poor priors from this tree, whatever is installed
     codes = (["old"] if args.old_src else []) + ["new"]
     rows = []
     for seed in args.seeds:
