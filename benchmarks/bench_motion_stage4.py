@@ -123,9 +123,11 @@ def table(rows: list[dict], codes: list[str], priors: list[str]) -> None:
             for p in priors:
                 x = r.get(f"{c}_{p}")
                 if x:
+                    incl = x.get("w_mpjpe_mm_incl_invalid")
+                    incl = f"{incl:.1f}" if incl is not None else ("-" if x["invalid_frames"] else f"{x['w_mpjpe_mm']:.1f}")
                     print(f"| {r['seed']} | {c}, prior {p} | {x['w_mpjpe_mm']:.1f} | {x['wa_mpjpe_mm']:.1f} | {x['pa_mpjpe_mm']:.1f} | "
                           f"{x['rte_pct']:.2f} | {x['fit_vs_triangulation']:.3f} | {x['invalid_frames']} | "
-                          f"{x.get('w_mpjpe_mm_incl_invalid') or x['w_mpjpe_mm']:.1f} | {x['s']:.1f} |")
+                          f"{incl} | {x['s']:.1f} |")
     print(f"\n**medians over {len(rows)} sessions**\n")
     print("| variant | W-MPJPE | WA-MPJPE | PA-MPJPE | RTE % | fit / tri | invalid frames (sum) | Stage IV s (sum) |")
     print("|---|---|---|---|---|---|---|---|")
