@@ -73,8 +73,9 @@ class SmplifyConfig:
     reprojection weights together: a triangulated point fuses both views, so one view's wrong
     detection moves it (with two views, along the other view's ray, unseen), while each view's
     robust 2D term writes off that view's blunder alone. Measured on ten hard studio sessions
-    without a prior (BENCHMARKS.md, issue 11): 1.0 -> 0.25 took the median PA-MPJPE from 39.9 to
-    35.5 mm and RTE from 1.44 to 1.25 %, the clean session's PA-MPJPE from 16.9 to 14.2 mm."""
+    without a prior (BENCHMARKS.md, issue 11, second pass): 1.0 -> 0.25 (with ``w_kp3d_start``)
+    took the median PA-MPJPE from 39.9 to 36.2 mm and RTE from 1.44 to 1.25 %, the clean session's
+    PA-MPJPE from 16.9 to 14.2 mm."""
     w_kp3d_start: float = 1.0
     """Weight of the 3D keypoint term in phase 1 and at the start of phase 2, from where it shrinks
     geometrically to ``w_kp3d`` over the first ``gnc_fraction`` of phase 2: from a start far off
