@@ -57,7 +57,7 @@ def limb_costs(body, params, points: NDArray, conf3: NDArray, K: NDArray, T_worl
         K: (V, 3, 3); T_world_cam: (T, V, 4, 4); kp2d: (T, V, 17, 3) pixels and confidence.
         scale3_m, scale2_px: the robust scales; min_conf: weaker observations are ignored.
     """
-    tt = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=torch.float64)  # noqa: E731
+    tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=torch.float64)  # noqa: E731 (a copy: inputs may be read-only)
     with torch.no_grad():
         _, coco = body(tt(params.betas), tt(params.global_orient), tt(params.body_pose), tt(params.transl))
         s3 = ((coco - tt(np.nan_to_num(points))) ** 2).sum(-1)  # (T, 17)
