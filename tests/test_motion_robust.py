@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from embodmocap.body.joints import smpl_to_coco17
 from embodmocap.body.model import load_body_model
 from embodmocap.geometry.transforms import look_at_T
-from embodmocap.motion.ik import (BONES, betas_from_bone_lengths, implausible_points, observed_bone_lengths,
+from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
                                   rest_skeleton, symmetric_length, torso_anchors)
 from embodmocap.motion.propagate import limb_costs, propagate_limbs
 from embodmocap.motion.smplify import KeypointBody

@@ -3,8 +3,9 @@
 No regressor is needed (a user on a CPU machine, or anyone with only 2D keypoints). Three steps,
 all vectorised over frames:
 
-1. :func:`betas_from_bone_lengths`: the median length of each observed bone (upper arms, forearms,
-   thighs, shins, shoulder and hip width, trunk) over the sequence, and the betas whose rest
+1. :func:`betas_from_bone_lengths`: the length of each observed bone (upper arms, forearms,
+   thighs, shins: one per left/right pair, the value most frames share, :func:`symmetric_length`;
+   shoulder and hip width, trunk: the median) over the sequence, and the betas whose rest
    skeleton has those lengths (Gauss-Newton on the first betas, a small ridge keeps them near 0).
 2. :func:`place_torso`: per frame, the rigid rotation and translation that put the rest body's hips
    and shoulders on the triangulated ones (weighted Kabsch; hips count more, the spine bends), then

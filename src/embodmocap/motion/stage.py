@@ -10,7 +10,8 @@
    smoothness, anatomical joint ranges and the pose prior, started from the camera-space body
    prior moved into the world, or without a prior from the 3D keypoints alone (shape from bone
    lengths, torso fit, limb IK: :mod:`embodmocap.motion.ik`); the prior loses to the triangulation
-   where it is grossly off. Too few triangulated joints is one clear error; frames where the body
+   where it is grossly off; limbs whose start their keypoints reject take the pose carried over
+   from the frames where they fit (:mod:`embodmocap.motion.propagate`). Too few triangulated joints is one clear error; frames where the body
    cannot be placed are flagged ``valid = False`` -> ``smpl_fit.npz``;
 3. ``align``: with contact markers in the manifest, the yaw + translation that puts the feet on
    the markers, applied to the body (pelvis-consistent) and the cameras; refused, with the
@@ -184,12 +185,15 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = _priors(lay, entry.name, T, cfg) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.kp3d_conf,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
+                         cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.kp3d_conf,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
                          path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
     if step("fit", fp_fit):
+        if cfg.kp3d_conf not in ("mean", "min"):
+            raise ValueError(f"MotionConfig.kp3d_conf must be 'mean' or 'min', got {cfg.kp3d_conf!r}")
         t0 = time.perf_counter()
         k3 = np.load(out.keypoints3d)
         valid = placeable_frames(out.keypoints3d, entry.name, k3["points"], k3["conf"], cfg)
