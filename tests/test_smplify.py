@@ -252,9 +252,13 @@ def test_windows_are_seamless_and_match_one_window(body, motion):
     assert _mpjpe(c, coco) < 0.005
     # No jump at the seams: the fitted frame-to-frame motion follows the true one everywhere,
     # about as closely as the one-window fit does (max over frames and keypoints, metres/frame).
+    # (The largest deviation of both is at the clip's sharpest turn, frame 100, not at a seam: the
+    # acceleration term rounds it off; 8 mm/frame with w_kp3d 1, about 18 with the default 0.25.)
     dv = np.linalg.norm(np.diff(c, axis=0) - np.diff(coco, axis=0), axis=-1).max()
     dv1 = np.linalg.norm(np.diff(c1, axis=0) - np.diff(coco, axis=0), axis=-1).max()
-    assert dv < 0.01 and dv < dv1 + 0.003
+    assert dv < 0.025 and dv < dv1 + 0.003
+    ev = np.linalg.norm(np.diff(c, axis=0) - np.diff(coco, axis=0), axis=-1)
+    assert np.percentile(ev, 99) < 0.012
 
 
 def test_window_ranges_and_blend_weights():

@@ -3,8 +3,9 @@
 No regressor is needed (a user on a CPU machine, or anyone with only 2D keypoints). Three steps,
 all vectorised over frames:
 
-1. :func:`betas_from_bone_lengths`: the median length of each observed bone (upper arms, forearms,
-   thighs, shins, shoulder and hip width, trunk) over the sequence, and the betas whose rest
+1. :func:`betas_from_bone_lengths`: the length of each observed bone (upper arms, forearms,
+   thighs, shins: one per left/right pair, the value most frames share, :func:`symmetric_length`;
+   shoulder and hip width, trunk: the median) over the sequence, and the betas whose rest
    skeleton has those lengths (Gauss-Newton on the first betas, a small ridge keeps them near 0).
 2. :func:`place_torso`: per frame, the rigid rotation and translation that put the rest body's hips
    and shoulders on the triangulated ones (weighted Kabsch; hips count more, the spine bends), then
@@ -99,14 +100,45 @@ def _seen(points: NDArray, conf: NDArray, min_conf: float) -> NDArray[np.bool_]:
     return np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
 
 
+#: Left/right pairs of :data:`BONES` (indices into it): a body is symmetric, so each pair has one length.
+BONE_PAIRS: tuple[tuple[int, int], ...] = ((0, 1), (2, 3), (4, 5), (6, 7))
+
+
+def symmetric_length(d_left: NDArray, d_right: NDArray, tol: float = 0.1, min_frames: int = 3) -> float:
+    """One length for a left/right pair of bones from their per-frame lengths (T,) each (NaN where
+    not seen): the densest value of both sides' lengths pooled (the length with the most others
+    within ``tol``, relative), refined as the median of those.
+
+    A plain median is skewed when a limb swap in one view lasts for a good part of the sequence
+    (with two views it triangulates the limbs at wrong depths: bones too long or too short, by an
+    amount that changes as the limbs move), and the two sides can then even agree with each other
+    on a wrong length; the right length is the one most frames share. NaN with fewer than
+    ``min_frames`` lengths.
+    """
+    d = np.concatenate([np.asarray(d_left, dtype=np.float64).ravel(), np.asarray(d_right, dtype=np.float64).ravel()])
+    d = np.sort(d[np.isfinite(d) & (d > 0)])
+    if len(d) < min_frames:
+        return float("nan")
+    # For each length x, how many lie in [x / (1 + tol), x * (1 + tol)] (sorted: two searches).
+    lo = np.searchsorted(d, d / (1.0 + tol), side="left")
+    hi = np.searchsorted(d, d * (1.0 + tol), side="right")
+    k = int(np.argmax(hi - lo))
+    return float(np.median(d[lo[k]:hi[k]]))
+
+
 def observed_bone_lengths(points: NDArray, seen: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Median length of each of :data:`BONES` and of the trunk over the frames that see both ends
-    ((len(BONES) + 1,), NaN when never seen)."""
+    """Length of each of :data:`BONES` and of the trunk over the frames that see both ends
+    ((len(BONES) + 1,), NaN when never seen): left/right pairs by :func:`symmetric_length`, the
+    widths and the trunk by their median."""
     out = np.full(len(BONES) + 1, np.nan)
+    d = np.full((len(points), len(BONES)), np.nan)
     for k, (a, b) in enumerate(BONES):
         ok = seen[:, a] & seen[:, b]
+        d[ok, k] = np.linalg.norm(points[ok, a] - points[ok, b], axis=-1)
         if ok.sum() >= 3:
-            out[k] = np.median(np.linalg.norm(points[ok, a] - points[ok, b], axis=-1))
+            out[k] = np.median(d[ok, k])
+    for l, r in BONE_PAIRS:
+        out[l] = out[r] = symmetric_length(d[:, l], d[:, r])
     ok = seen[:, list(_TORSO)].all(1)
     if ok.sum() >= 3:
         mid = lambda i, j: 0.5 * (points[ok, i] + points[ok, j])  # noqa: E731
@@ -160,18 +192,25 @@ _LIMB_BONES: tuple[tuple[int, int], ...] = (
 
 
 def implausible_points(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.bool_],
-                       tol: float = 0.3) -> NDArray[np.bool_]:
+                       tol: float = 0.3, anchors: NDArray | None = None) -> NDArray[np.bool_]:
     """(T, 17) limb points whose bone to the parent point is more than ``tol`` (relative) longer
     or shorter than the body's (shape ``b``).
 
     With two views a detector's left/right confusion or a wrong guess along the epipolar line
     triangulates without a reprojection error, at the wrong depth: the bone lengths give it away.
     A point whose parent is itself implausible is judged against the grandparent (the sum of the
-    two bones, as an upper bound only).
+    two bones, as an upper bound only). ``anchors`` (T, 17, 3), finite where known: where a
+    shoulder or hip was not triangulated, the elbow or knee is judged against the anchor's
+    (:func:`torso_anchors`: the torso placed on the other torso points), so an arm whose shoulder
+    no view saw is checked too.
     """
     P = sk.keypoints(b)
     bad = np.zeros(seen.shape, dtype=bool)
     parent_of = {c: p for p, c in _LIMB_BONES}
+    if anchors is not None:
+        use_anchor = ~seen & np.isfinite(anchors).all(-1)
+        points = np.where(use_anchor[..., None], anchors, points)
+        seen = seen | use_anchor
     with np.errstate(invalid="ignore"):
         for par, child in _LIMB_BONES:
             L = np.linalg.norm(P[child] - P[par])
@@ -186,7 +225,35 @@ def implausible_points(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDAr
                 use_gp = ~ok_par & seen[:, gp] & ~bad[:, gp] & seen[:, child]
                 wrong |= use_gp & (dg > (1 + tol) * reach)
             bad[:, child] = wrong
+    if anchors is not None:
+        bad &= ~use_anchor
     return bad
+
+
+def torso_anchors(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.bool_]) -> NDArray:
+    """(T, 17, 3) the shoulders and hips of the rest body (shape ``b``) placed on the triangulated
+    torso (:func:`place_torso`, with the spine), NaN elsewhere and in frames with fewer than three
+    torso points seen. Points must be in the layout of ``sk``."""
+    out = np.full(points.shape, np.nan)
+    try:
+        root, pelvis, spine, placed = place_torso(sk, b, points, seen)
+    except ValueError:
+        return out
+    T = len(points)
+    R_local = np.broadcast_to(np.eye(3), (T, 24, 3, 3)).copy()
+    R_local[:, 0] = Rotation.from_rotvec(root).as_matrix()
+    for j in _SPINE:
+        R_local[:, j] = Rotation.from_rotvec(spine).as_matrix()
+    Rw, pos = _fk(sk, b, R_local)
+    # Shoulders and hips are combinations of joints only (no face vertices): the layout's rows.
+    rel = sk.K0 + sk.Kd @ b - sk.joints(b)[0]  # rest keypoints about the rest pelvis
+    Jrel = sk.joints(b) - sk.joints(b)[0]
+    for k in _TORSO:
+        # Each torso keypoint follows the joint it is nearest to in the rest pose, offset rigidly.
+        j = int(np.argmin(np.linalg.norm(Jrel - rel[k], axis=-1)))
+        out[:, k] = pelvis + pos[:, j] + np.einsum("tij,j->ti", Rw[:, j], rel[k] - Jrel[j])
+    out[~placed] = np.nan
+    return out
 
 
 def _kabsch(q: NDArray, p: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:

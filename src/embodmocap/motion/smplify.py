@@ -301,14 +301,17 @@ class _State:
 
 
 def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: float, names: list[str],
-           smooth: bool = True) -> dict[str, torch.Tensor]:
+           smooth: bool = True, gnc: float = 1.0, w3d: float | None = None) -> dict[str, torch.Tensor]:
     """Weighted terms of ``phase`` for the state ``s`` on data ``d``: 1 (3D keypoints, smoothness,
-    shape), 1.25 (the same on the trunk's keypoints only), 1.5 (1 + joint limits and ranges), 2 (all)."""
+    shape), 1.25 (the same on the trunk's keypoints only), 1.5 (1 + joint limits and ranges), 2 (all).
+    ``gnc`` >= 1 widens the robust scales of the keypoint terms by that factor (terms times its
+    square: the same weight for small residuals, more pull from far ones). ``w3d`` replaces
+    ``cfg.w_kp3d`` (its schedule)."""
     joints, coco = body(s.betas, s.go, s.pose, s.transl)
     conf3d = d.conf3d
     if phase == 1.25:  # global and torso stages: the limbs, still at their start, must not tilt the trunk
         conf3d = conf3d * torch.as_tensor(_TRUNK_KEYPOINTS, dtype=conf3d.dtype, device=conf3d.device)
-    out = {"kp3d": cfg.w_kp3d * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, cfg.kp3d_scale_m)}
+    out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
         out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
@@ -322,13 +325,14 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
         return out
     for v, name in enumerate(names):
-        out[f"reproj/{name}"] = cfg.w_reproj * TM.reproj_term(
+        out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * TM.reproj_term(
             coco, d.K[v : v + 1], d.T_world_cam[:, v : v + 1], d.kp2d[:, v : v + 1], d.conf2d[:, v : v + 1],
-            cfg.reproj_kernel, cfg.reproj_scale_px)
+            cfg.reproj_kernel, gnc * cfg.reproj_scale_px)
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
     elif cfg.w_rest_pose > 0:
-        idx = [3 * (j - 1) + a for j in UNPINNED_JOINTS for a in range(3)]
+        joints = UNPINNED_JOINTS + ((7, 8) if cfg.rest_pose_ankles else ())
+        idx = [3 * (j - 1) + a for j in joints for a in range(3)]
         out["rest_pose"] = cfg.w_rest_pose * (s.pose[:, idx] ** 2).sum(-1).mean()
     out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
     out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
@@ -336,8 +340,9 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
 
 
 def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[], torch.Tensor], iterations: int,
-              cfg: SmplifyConfig) -> None:
-    """Minimise ``loss_fn`` over ``params`` in place (Adam with cosine decay, or L-BFGS)."""
+              cfg: SmplifyConfig, on_step: Callable[[int], None] | None = None) -> None:
+    """Minimise ``loss_fn`` over ``params`` in place (Adam with cosine decay, or L-BFGS).
+    ``on_step(it)`` is called before each Adam step (schedules that change the loss)."""
     if iterations <= 0 or not params:
         return
     if cfg.solver == "lbfgs":
@@ -354,6 +359,8 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
         return
     opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
     for it in range(iterations):
+        if on_step is not None:
+            on_step(it)
         frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
         for g, lr in zip(opt.param_groups, lrs):
             g["lr"] = lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac)
@@ -368,7 +375,8 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     s = _State(*(x.detach().clone().requires_grad_(True) for x in (init.betas, init.go, init.pose, init.transl)))
     if not free_betas:
         s.betas.requires_grad_(False)
-    total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth).values())  # noqa: E731
+    gnc = {"k": 1.0, "w3d": cfg.w_kp3d_start if cfg.w_kp3d > 0 else 0.0}  # w_kp3d = 0: no 3D term at all
+    total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
 
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
@@ -387,7 +395,15 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     t1 = time.perf_counter()
     p2 = p1 + [s.pose]
     lr2 = ([cfg.phase2_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase2_lr] * 3
-    _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg)
+    n_gnc = max(int(cfg.gnc_fraction * cfg.phase2_iterations), 1)
+
+    def schedule(it: int) -> None:  # geometric shrink from gnc_factor to 1, w_kp3d_start to w_kp3d
+        left = max(1.0 - it / n_gnc, 0.0)
+        gnc["k"] = cfg.gnc_factor ** left if cfg.gnc_factor > 1 else 1.0
+        gnc["w3d"] = cfg.w_kp3d * (cfg.w_kp3d_start / cfg.w_kp3d) ** left if cfg.w_kp3d > 0 else 0.0
+
+    _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
+    gnc["k"], gnc["w3d"] = 1.0, cfg.w_kp3d
     t2 = time.perf_counter()
     timing[f"{label}phase1"] = timing.get(f"{label}phase1", 0.0) + t1 - t0
     timing[f"{label}phase2"] = timing.get(f"{label}phase2", 0.0) + t2 - t1

@@ -10,7 +10,8 @@
    smoothness, anatomical joint ranges and the pose prior, started from the camera-space body
    prior moved into the world, or without a prior from the 3D keypoints alone (shape from bone
    lengths, torso fit, limb IK: :mod:`embodmocap.motion.ik`); the prior loses to the triangulation
-   where it is grossly off. Too few triangulated joints is one clear error; frames where the body
+   where it is grossly off; limbs whose start their keypoints reject take the pose carried over
+   from the frames where they fit (:mod:`embodmocap.motion.propagate`). Too few triangulated joints is one clear error; frames where the body
    cannot be placed are flagged ``valid = False`` -> ``smpl_fit.npz``;
 3. ``align``: with contact markers in the manifest, the yaw + translation that puts the feet on
    the markers, applied to the body (pelvis-consistent) and the cameras; refused, with the
@@ -132,11 +133,14 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
                          cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
+                         cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.kp3d_conf,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
                          path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
     if step("fit", fp_fit):
+        if cfg.kp3d_conf not in ("mean", "min"):
+            raise ValueError(f"MotionConfig.kp3d_conf must be 'mean' or 'min', got {cfg.kp3d_conf!r}")
         t0 = time.perf_counter()
         k3 = read_keypoints3d(out.keypoints3d)
         valid = placeable_frames(out.keypoints3d, entry.name, k3["points"], k3["conf"], cfg)
@@ -146,13 +150,24 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                  for i, v in enumerate(VIEWS)]
         min_conf = cfg.smplify.min_conf
         points, conf3 = k3["points"], k3["conf"]
+        if cfg.kp3d_conf == "min":
+            # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
+            # the triangulated point along the other view's ray without any reprojection error.
+            c2 = np.nan_to_num(kp2d[..., 2])
+            used = c2 >= cfg.triangulation.min_conf
+            weakest = np.where(used, c2, np.inf).min(axis=1)
+            conf3 = np.where(np.isfinite(weakest), np.minimum(conf3, weakest), conf3)
         if cfg.bone_tol > 0:
-            from embodmocap.motion.ik import betas_from_bone_lengths, implausible_points, observed_bone_lengths, rest_skeleton
+            from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
+                                              rest_skeleton, torso_anchors)
 
             sk = rest_skeleton(model, layout)
             seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
-            gated = implausible_points(sk, betas_from_bone_lengths(sk, observed_bone_lengths(points, seen)), points,
-                                       seen, cfg.bone_tol)
+            b_bones = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
+            # An elbow (knee) whose shoulder (hip) was not triangulated is judged against the
+            # shoulder of the torso placed on the other torso points.
+            anchors = torso_anchors(sk, b_bones, points, seen) if cfg.bone_anchor_torso else None
+            gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors)
             conf3 = np.where(gated, 0.0, conf3)
         else:
             gated = np.zeros(points.shape[:2], dtype=bool)
@@ -184,6 +199,18 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         else:
             init = kp_init
         init = _with_fps(init, fps, manifest.gender)
+        n_propagated = 0
+        if cfg.propagate_limbs:
+            from embodmocap.motion.propagate import propagate_limbs
+            from embodmocap.motion.smplify import KeypointBody
+
+            # Limbs whose start both views and the 3D points reject take the pose carried over from
+            # the frames where the limb fits its evidence.
+            init, carried = propagate_limbs(
+                KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in VIEWS]),
+                np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
+                cfg.smplify.reproj_scale_px, min_conf)
+            n_propagated = int(carried.sum())
         res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                              prior_weight=prior_w)
         write_smpl_npz(out.smpl_fit, _with_fps(res.params, fps, manifest.gender), valid=valid)
@@ -192,6 +219,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             "init_frames_from_keypoints": n_replaced if v_best else int(T),
             "keypoint_layout": layout,
             "points_dropped_bone_length": int(gated.sum()),
+            "limb_starts_propagated": n_propagated,
             "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
             "terms_before": res.terms_before, "terms_after": res.terms_after,
             **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},

@@ -54,7 +54,9 @@ class SwapConfig:
     length is off the sequence's median by more than this fraction is implausible. With two views a
     swap along the epipolar lines (cameras at one height, a horizontal confusion) leaves no
     reprojection error but puts the limbs at wrong depths: the view whose swap makes every bone
-    plausible again (and no reprojection worse by ``bone_max_extra_px``) is swapped back. 0 = off."""
+    plausible again (and no reprojection worse by ``bone_max_extra_px``) is swapped back. The
+    expected length of each bone is the same on both sides: the length most frames of either side
+    share (:func:`embodmocap.motion.ik.symmetric_length`). 0 = off."""
     bone_max_extra_px: float = 5.0
     """Largest increase of the group's reprojection error a bone-length swap may cause, pixels."""
 
@@ -153,9 +155,13 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
     """Two views, arms or legs: swap back the view whose swap makes the group's bones plausible
     (see :attr:`SwapConfig.bone_tol`); marks ``swapped`` in place; returns the keypoints and how
     many frames were changed."""
+    from embodmocap.motion.ik import symmetric_length
+
     bones = _LIMB_BONES[name]
     d = [np.linalg.norm(X0[:, a] - X0[:, b], axis=-1) for a, b in bones]
-    L = np.array([np.median(x[np.isfinite(x)]) if np.isfinite(x).any() else np.nan for x in d])
+    # The expected lengths: one per left/right pair, the value most frames share (a long swapped
+    # run skews a plain median of each side).
+    L = np.array([symmetric_length(d[0], d[1])] * 2 + [symmetric_length(d[2], d[3])] * 2)
     if not np.isfinite(L).all():
         return kp, 0
     joints = [j for pair in pairs for j in pair]
