@@ -90,6 +90,10 @@ class CalibrateConfig:
     """Background points per frame for the Chamfer term."""
     scene_points: int = 50000
     """Points sampled on the scene mesh for the Chamfer term."""
+    track_frames: int = 300
+    """At most this many sequence frames (evenly spread) give the cross-view track term its
+    keypoint pairs (a 6 s sequence uses all its frames; a 60 s one 1 in 6: the term fixes 8
+    parameters, and each frame read costs two depth maps)."""
     geosync: GeoSyncConfig = field(default_factory=GeoSyncConfig)
     """Geometric sync after registration (keypoint rays meeting) and the choice of sync source."""
 
@@ -186,7 +190,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     use_tracks = slicing != "start"
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
-                         use_tracks)
+                         cfg.scene_points, cfg.track_frames, use_tracks)
     calib_path = out.calibration
     if not force and sm.is_current("refine", fp_ref):
         skipped.append("refine")
@@ -399,7 +403,7 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
     if cfg.refine_views:
         mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
         scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
-        tracks = _track_pairs(lay, entry.name) if use_tracks else None
+        tracks = _track_pairs(lay, entry.name, cfg.track_frames) if use_tracks else None
         if not use_tracks:
             warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
                             "pairs are not used by the refinement")
@@ -435,14 +439,22 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
     return report
 
 
-def _track_pairs(lay: SessionLayout, seq: str):
-    """Cross-view performer correspondences from the Stage II keypoints, back-projected with depth."""
+def _track_pairs(lay: SessionLayout, seq: str, max_frames: int = 0):
+    """Cross-view performer correspondences from the Stage II keypoints, back-projected with depth;
+    from at most ``max_frames`` evenly spread frames (0 = all)."""
+    from dataclasses import replace as _replace
+
     from embodmocap.calibrate import losses as L
 
     sl = lay.sequence(seq)
     kp = {v: np.load(sl.view(v).keypoints)["keypoints"] for v in VIEWS}
     cams = {v: np.load(sl.view(v).cameras) for v in VIEWS}
     corr = L.KeypointCorrespondences(kp["v1"], kp["v2"]).correspondences()
+    n = min(len(kp["v1"]), len(kp["v2"]))
+    if 0 < max_frames < n:
+        keep = np.isin(corr.frames, np.unique(np.linspace(0, n - 1, max_frames).round().astype(np.int64)))
+        corr = _replace(corr, frames=corr.frames[keep], xy_a=corr.xy_a[keep], xy_b=corr.xy_b[keep],
+                        weight=corr.weight[keep], behind_surface_m=corr.behind_surface_m[keep])
     if len(corr.frames) == 0:
         return None
     return L.track_pairs_from_depth(
