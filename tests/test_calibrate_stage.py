@@ -95,7 +95,9 @@ def test_too_few_registered_frames_names_the_view_and_causes(session, tmp_path):
 def test_vio_check_is_reported_and_rejected_frames_stay_out_of_the_fit(session, done):
     for v in VIEWS:
         chk = done.report["views"][v]["vio_check"]
-        assert set(chk) >= {"runs", "rejected_runs", "rejected_frames"}
+        assert set(chk) >= {"runs", "rejected_runs", "rejected_frames", "off_chain_frames"}
+        reg_off = np.load(SessionLayout(session).sequence("seq0").view(v).registration)["off_chain"]
+        assert chk["off_chain_frames"] == int(reg_off.sum())
         reg = np.load(SessionLayout(session).sequence("seq0").view(v).registration)
         assert reg["accepted"].shape == reg["t"].shape and chk["rejected_frames"] == int((~reg["accepted"]).sum())
         init = stage.YawOffset(*_offset_of(done.report["views"][v]["T_world_vio_registration"]))

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from embodmocap.calibrate.consistency import check_against_vio
+from embodmocap.calibrate.consistency import check_against_vio, off_chain_frames
 from embodmocap.calibrate.offset import RobustOffsetConfig, YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import RefineConfig, ViewData, refine_offsets
 from embodmocap.calibrate.register import (RegisterConfig, Registration, load_or_build_scene_index, load_view_frames,
@@ -153,17 +153,24 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
                                       cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
             _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
-            _save_registration(reg_path, reg, check)
+            # Frames the run check kept but that sit off the whole chain's offset (an error ramping
+            # up along a run passes the neighbour-to-neighbour test): out of the fit as well.
+            off = off_chain_frames(reg.T_world_cam, T_vio[reg.t], check.accepted, cfg.vio_max_disagreement_m,
+                                   cfg.vio_max_disagreement_deg, offset_cfg=cfg.offset)
+            _save_registration(reg_path, reg, check, off)
             sm.record(f"register_{v}", fp, [reg_path], time.perf_counter() - t0, {
                 f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
                 f"{v}_registered_fraction": round(reg.registered_fraction, 3),
                 f"{v}_vio_rejected_runs": check.rejected_runs, f"{v}_vio_rejected_frames": check.rejected_frames,
+                f"{v}_vio_off_chain_frames": int(off.sum()),
                 f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
             })
         regs[v] = dict(np.load(reg_path))
         if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
             regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
             regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
+        if "off_chain" not in regs[v]:  # written before the whole-chain check (version 2)
+            regs[v]["off_chain"] = np.zeros(len(regs[v]["t"]), dtype=bool)
 
     # 2. Initial yaw-only offsets.
     init: dict[str, YawOffset] = {}
@@ -176,13 +183,15 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
         init[v] = fit.offset
         runs = np.asarray(r["run"])
+        off = np.asarray(r["off_chain"], dtype=bool)
         init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
                           "vio_consistent": int(acc.sum()),
                           "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None}
+        by_runs = ~acc & ~off  # rejected by the run check (off-chain frames are counted apart)
         init_report[v]["vio_check"] = {
-            "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[~acc]))),
-            "rejected_frames": int((~acc).sum()), "max_disagreement_m": cfg.vio_max_disagreement_m,
-            "max_disagreement_deg": cfg.vio_max_disagreement_deg}
+            "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[by_runs]))),
+            "rejected_frames": int((~acc).sum()), "off_chain_frames": int(off.sum()),
+            "max_disagreement_m": cfg.vio_max_disagreement_m, "max_disagreement_deg": cfg.vio_max_disagreement_deg}
 
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
@@ -215,7 +224,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                             report, tuple(skipped))
 
 
-REGISTER_VERSION = 2
+REGISTER_VERSION = 3
 
 
 def _register_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.ndarray, name: str) -> Registration:
@@ -288,17 +297,20 @@ def _check_view(cfg: CalibrateConfig, capture: Path, v: str, reg: Registration, 
                          "lighting for registration to be reliable")
 
 
-def _save_registration(path: Path, reg, check=None) -> None:
+def _save_registration(path: Path, reg, check=None, off_chain=None) -> None:
     """Registered poses and their 2D-3D inlier matches (flattened with a frame column), and the
-    VIO check's verdict per registered frame (``accepted``, ``run``)."""
+    VIO check's verdict per registered frame (``accepted``: kept by the run check and on the
+    whole chain's offset; ``run``; ``off_chain``: kept by the run check but off the chain)."""
     fr = np.concatenate([np.full(len(c.xy), c.t) for c in reg.correspondences]) if reg.correspondences else np.zeros(0, int)
     xy = np.concatenate([c.xy for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 2))
     xyz = np.concatenate([c.xyz for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 3))
     acc = np.ones(len(reg.t), dtype=bool) if check is None else check.accepted
     run = np.zeros(len(reg.t), dtype=np.int64) if check is None else check.run
+    off = np.zeros(len(reg.t), dtype=bool) if off_chain is None else np.asarray(off_chain, dtype=bool)
+    acc = acc & ~off
     write_npz(path, version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
               t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
-              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run)
+              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run, off_chain=off)
 
 
 def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, init: YawOffset, reg) -> ViewData:
