@@ -110,6 +110,21 @@ class SfmConfig:
     repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
+    refine_poses: bool = True
+    """After triangulating with the capture's poses, bundle-adjust poses and points together, then
+    put the model back on the capture's poses by the similarity that fits them best (all key
+    frames at once). The capture's VIO drifts slowly (~1 cm over 15 s); points triangulated from
+    key frames of different moments then disagree by that much, and frames registered to them later
+    (Stage III) inherit a bias of 1-3 cm. The adjusted key frames agree with each other through the
+    images; the world stays the VIO's (on average over the scan). False = poses kept as given (also
+    with fewer than ``2 * correction_window`` key frames)."""
+    correction_window: int = 7
+    """``refine_poses``: running-median window (key frames) over which each key frame's drift
+    correction is smoothed."""
+    max_pose_change_m: float = 0.10
+    """``refine_poses``: if the adjustment moves any key frame further than this from its capture
+    pose (after the fit), or changes the scale by more than 2 %, the adjusted model is not trusted
+    and the capture's poses are kept (with a warning)."""
 
 
 @dataclass(frozen=True)
@@ -330,6 +345,12 @@ def build_sparse_model(
             num_verified = _match(pycolmap, tmp, cfg)
         with _timer(seconds, "triangulate"):
             rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T, cfg)
+        # A handful of key frames is no chain to correct a drift along (and the smoothing needs some).
+        if cfg.refine_poses and rec.num_points3D() > 0 and len(ids) >= 2 * cfg.correction_window:
+            with _timer(seconds, "adjust"):
+                T_fixed = _refine_poses(pycolmap, rec, ids, T, cfg)
+                if T_fixed is not None:  # triangulated again with the corrected poses held fixed
+                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T_fixed, cfg)
         with _timer(seconds, "finish"):
             _drop_short_tracks(rec, cfg.min_track_length)
             if rec.num_points3D() == 0:
@@ -552,6 +573,69 @@ def _triangulate(pycolmap, root: Path, names: list[str], ids: list[int], cam_id:
     (root / "sparse").mkdir(exist_ok=True)
     return pycolmap.triangulate_points(rec, root / "database.db", root / "images", root / "sparse",
                                        clear_points=True, options=opts, refine_intrinsics=False)
+
+
+def _refine_poses(pycolmap, rec, ids: list[int], T_prior: NDArray, cfg: SfmConfig) -> NDArray[np.float64] | None:
+    """Drift-corrected key frame poses (K, 4, 4) camera-to-world, or None to keep ``T_prior``.
+
+    Bundle adjustment of poses and points (intrinsics fixed) on the triangulated model, mapped back
+    onto ``T_prior`` (the capture's poses of ``ids``) by the similarity that fits them best. The
+    correction each key frame got (its adjusted pose against its capture pose) is then smoothed
+    over neighbouring key frames (running median of ``cfg.correction_window``): VIO drift is slow,
+    while a key frame with few observations can slide in the adjustment on its own. None when the
+    adjustment moved a key frame more than ``cfg.max_pose_change_m`` or changed the scale by > 2 %.
+    """
+    from scipy.ndimage import median_filter
+    from scipy.spatial.transform import Rotation
+
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = False
+    opts.refine_principal_point = False
+    opts.refine_extra_params = False
+    pycolmap.bundle_adjustment(rec, opts)
+    T_ba = []
+    for image_id in ids:
+        P = np.eye(4)
+        P[:3, :4] = rec.image(image_id).cam_from_world().matrix()
+        T_ba.append(invert_T(P))
+    T_ba = np.stack(T_ba)
+    T_prior = np.asarray(T_prior, dtype=np.float64)
+    S = _fit_similarity(T_ba, T_prior)
+    scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
+    T_adj = S @ T_ba
+    T_adj[:, :3, :3] /= scale
+    shift = T_adj[:, :3, 3] - T_prior[:, :3, 3]
+    moved = np.linalg.norm(shift, axis=1)
+    if not np.all(np.isfinite(moved)) or moved.max() > cfg.max_pose_change_m or abs(scale - 1.0) > 0.02:
+        log.warning("sparse model: the bundle adjustment moved a key frame %.1f cm from its capture pose (scale "
+                    "%.4f); keeping the capture's poses", 100 * float(np.nanmax(moved)), scale)
+        return None
+    turn = Rotation.from_matrix(T_adj[:, :3, :3] @ np.swapaxes(T_prior[:, :3, :3], -1, -2)).as_rotvec()
+    w = max(1, int(cfg.correction_window))
+    shift = median_filter(shift, size=(w, 1), mode="nearest")
+    turn = median_filter(turn, size=(w, 1), mode="nearest")
+    T_out = T_prior.copy()
+    T_out[:, :3, :3] = Rotation.from_rotvec(turn).as_matrix() @ T_prior[:, :3, :3]
+    T_out[:, :3, 3] = T_prior[:, :3, 3] + shift
+    log.info("sparse model: drift correction of the key frames %.2f cm median, %.2f cm max (adjustment scale %.5f)",
+             100 * float(np.median(np.linalg.norm(shift, axis=1))), 100 * float(np.linalg.norm(shift, axis=1).max()), scale)
+    return T_out
+
+
+def _fit_similarity(T_from: NDArray, T_to: NDArray) -> NDArray[np.float64]:
+    """(4, 4) similarity ``S = [s R | t]`` putting cameras ``T_from`` (K, 4, 4) on ``T_to`` (K, 4, 4):
+    R the chordal mean of the per-camera rotations (orientations fix the tilt, which centres on a
+    nearly level path would not), then s and t by least squares on the centres."""
+    M = np.einsum("kij,klj->il", T_to[:, :3, :3], T_from[:, :3, :3])  # sum R_to R_from^T
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    a = T_from[:, :3, 3] - T_from[:, :3, 3].mean(0)
+    b = T_to[:, :3, 3] - T_to[:, :3, 3].mean(0)
+    s = float(np.sum((a @ R.T) * b) / max(np.sum(a * a), 1e-12))
+    S = np.eye(4)
+    S[:3, :3] = s * R
+    S[:3, 3] = T_to[:, :3, 3].mean(0) - s * R @ T_from[:, :3, 3].mean(0)
+    return S
 
 
 def _drop_short_tracks(rec, min_track_length: int) -> None:
