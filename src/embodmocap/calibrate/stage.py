@@ -80,6 +80,17 @@ class CalibrateConfig:
     (the wrong scene capture, most likely)."""
     min_registered_frames: int = 5
     """Fewer registered frames than this is an error for the view."""
+    place_by_performer: bool = True
+    """A view whose registered frames disagree with its VIO (too little texture, other light) while
+    the other view registers is placed through the performer both film: its keypoints, back-projected
+    with depth, are fitted onto the other view's (yaw + translation), and the placement is kept
+    only if the view's background depth then lies on the scene mesh (``performer_min_on_mesh``);
+    otherwise (the wrong scene, most likely) the view's error stands."""
+    performer_min_on_mesh: float = 0.6
+    """Share of a performer-placed view's background depth points that must lie within
+    ``performer_on_mesh_m`` of the scene mesh."""
+    performer_on_mesh_m: float = 0.10
+    """Distance to the scene mesh within which a background point counts as on it, metres."""
     max_refine_shift_m: float = 0.15
     """A refinement moving a view further than this from its registration offset is warned about."""
     max_refine_yaw_deg: float = 3.0
@@ -134,6 +145,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # 1. Registration per view.
     index = None
     regs = {}
+    pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
     for v in VIEWS:
         vl = out.view(v)
         reg_path = vl.registration
@@ -152,7 +164,13 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             reg = _register_view(cfg, frames, K, index, T_vio, f"{entry.name} {v}")
             check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
                                       cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
-            _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
+            try:
+                _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
+            except _VioDisagreement as err:
+                if not cfg.place_by_performer:
+                    raise
+                pending[v] = (err, reg, check, fp, t0)
+                continue
             # Frames the run check kept but that sit off the whole chain's offset (an error ramping
             # up along a run passes the neighbour-to-neighbour test): out of the fit as well.
             off = off_chain_frames(reg.T_world_cam, T_vio[reg.t], check.accepted, cfg.vio_max_disagreement_m,
@@ -165,7 +183,19 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                 f"{v}_vio_off_chain_frames": int(off.sum()),
                 f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
             })
-        regs[v] = dict(np.load(reg_path))
+        regs[v] = _load_registration(reg_path)
+    for v, (err, reg, check, fp, t0) in pending.items():
+        T_place = _place_by_performer(cfg, lay, entry, v, regs, err)  # raises err when it does not fit
+        # None of its frames is trusted: all stay out of the fit, the offset is the placement.
+        _save_registration(out.view(v).registration, reg, replace(check, accepted=np.zeros(len(reg.t), dtype=bool)),
+                           None, T_place)
+        sm.record(f"register_{v}", fp, [out.view(v).registration], time.perf_counter() - t0, {
+            f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
+            f"{v}_registered_fraction": round(reg.registered_fraction, 3), f"{v}_placed_by_performer": True,
+            f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
+        })
+        regs[v] = _load_registration(out.view(v).registration)
+    for v in VIEWS:
         if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
             regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
             regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
@@ -179,14 +209,20 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         cams = np.load(out.view(v).cameras)
         r = regs[v]
         acc = np.asarray(r["accepted"], dtype=bool)
-        # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
-        fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
-        init[v] = fit.offset
         runs = np.asarray(r["run"])
         off = np.asarray(r["off_chain"], dtype=bool)
-        init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
-                          "vio_consistent": int(acc.sum()),
-                          "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None}
+        if "T_world_vio_performer" in r:  # placed through the performer (step 1): no frame of its own
+            init[v] = _yaw_offset_of(r["T_world_vio_performer"])
+            init_report[v] = {"inliers": 0, "registered": int(len(r["t"])), "vio_consistent": 0,
+                              "median_residual_m": None, "placement": "performer"}
+        else:
+            # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
+            fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
+            init[v] = fit.offset
+            init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
+                              "vio_consistent": int(acc.sum()),
+                              "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None,
+                              "placement": "registration"}
         by_runs = ~acc & ~off  # rejected by the run check (off-chain frames are counted apart)
         init_report[v]["vio_check"] = {
             "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[by_runs]))),
@@ -290,14 +326,84 @@ def _check_view(cfg: CalibrateConfig, capture: Path, v: str, reg: Registration, 
                          "texture, the wrong scene capture, very different lighting, or the performer filling the view")
     n_ok = int(check.accepted.sum())
     if n_ok < cfg.min_registered_frames or n_ok < cfg.min_consistent_fraction * n_reg:
-        raise InputError(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
+        raise _VioDisagreement(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
                          f"(largest consistent group {n_ok} of {n_reg} frames, {check.runs} runs)",
                          "likely causes: the sequence was not filmed in this scene (wrong scene capture in "
                          "session.toml), broken VIO poses, or too little background texture / very different "
                          "lighting for registration to be reliable")
 
 
-def _save_registration(path: Path, reg, check=None, off_chain=None) -> None:
+class _VioDisagreement(InputError):
+    """The view's registered frames disagree with its VIO (a view the performer may still place)."""
+
+
+def _load_registration(path: Path) -> dict:
+    return dict(np.load(path))
+
+
+def _yaw_offset_of(T: np.ndarray) -> YawOffset:
+    T = np.asarray(T, dtype=np.float64)
+    return YawOffset(float(np.arctan2(T[1, 0], T[0, 0])), T[:3, 3].copy(), 1.0)
+
+
+def _place_by_performer(cfg: CalibrateConfig, lay: SessionLayout, entry, v: str, regs: dict, err: InputError) -> np.ndarray:
+    """``T_world_vio`` (4, 4) of view ``v`` from the performer both views film, or ``err`` raised.
+
+    The other view's offset comes from its own VIO-consistent registrations; each cross-view
+    keypoint pair (back-projected with depth) gives a point in the world through the other view
+    and the same point in ``v``'s VIO world; the robust yaw fit of the second onto the first
+    places ``v``. Kept only when ``v``'s background depth then lies on the scene mesh (a capture
+    of another scene does not)."""
+    from embodmocap.calibrate import losses as L
+    from embodmocap.calibrate.offset import robust_yaw_offset
+    from embodmocap.scene.mesh import read_mesh_ply
+
+    others = [w for w in VIEWS if w != v and w in regs]
+    note = "; placing it through the performer filmed by the other view did not fit the scene either"
+    if not others or _sync_record(lay.sequence(entry.name), entry.name)["slicing"]["source"] == "start":
+        raise err
+    w = others[0]
+    sl = lay.sequence(entry.name)
+    r = regs[w]
+    cams = {x: np.load(sl.view(x).cameras) for x in (v, w)}
+    acc = np.asarray(r["accepted"], dtype=bool)
+    T_w = chain_yaw_offset(cams[w]["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset).offset.T
+    tracks = _track_pairs(lay, entry.name, cfg.track_frames)
+    if tracks is None or len(tracks) < 20:
+        raise InputError(err.path, err.problem + note, err.fix) from err
+    f = tracks.frames.numpy()
+    p = {tracks.view_a: tracks.p_a.numpy(), tracks.view_b: tracks.p_b.numpy()}
+
+    def world(T_cams, pts):
+        return np.einsum("nij,nj->ni", T_cams[f, :3, :3], pts) + T_cams[f, :3, 3]
+
+    target = world(T_w @ cams[w]["T_world_cam"], p[w])
+    fit = robust_yaw_offset(world(cams[v]["T_world_cam"], p[v]), target, cfg.offset)
+    # Check on the scene mesh: the view's background through the placement.
+    data = build_view_data(cfg, lay, entry.name, v, fit.offset, {**{"t": np.zeros(0, np.int64)},
+                           "accepted": np.zeros(0, bool), "match_frames": np.zeros(0, np.int64),
+                           "match_xy": np.zeros((0, 2)), "match_xyz": np.zeros((0, 3)),
+                           "T_world_cam": np.zeros((0, 4, 4))})
+    bg = data.background
+    on = 0.0
+    if bg is not None and len(bg):
+        Tc = np.asarray(data.T_world_cam)[bg.frames.numpy()]
+        q = np.einsum("nij,nj->ni", Tc[:, :3, :3], bg.p_cam.numpy()) + Tc[:, :3, 3]
+        mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
+        scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
+        d, _ = scene_pts.tree.query(q, distance_upper_bound=cfg.performer_on_mesh_m, workers=1)
+        on = float(np.mean(np.isfinite(d)))
+    log.info("%s %s: placed through the performer in %s (%d keypoint pairs, %d inliers); %.0f%% of its background "
+             "on the scene mesh", entry.name, v, w, len(f), fit.num_inliers, 100 * on)
+    if fit.num_inliers < 20 or on < cfg.performer_min_on_mesh:
+        raise InputError(err.path, err.problem + note + f" ({100 * on:.0f} % of its background on the mesh)",
+                         err.fix) from err
+    log.warning("%s %s: %s; placed through the performer instead (%.0f%% of its background on the scene mesh)",
+                entry.name, v, err.problem, 100 * on)
+    return fit.offset.T
+
+
+def _save_registration(path: Path, reg, check=None, off_chain=None, T_world_vio_performer=None) -> None:
     """Registered poses and their 2D-3D inlier matches (flattened with a frame column), and the
     VIO check's verdict per registered frame (``accepted``: kept by the run check and on the
     whole chain's offset; ``run``; ``off_chain``: kept by the run check but off the chain)."""
@@ -310,7 +416,8 @@ def _save_registration(path: Path, reg, check=None, off_chain=None) -> None:
     acc = acc & ~off
     write_npz(path, version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
               t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
-              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run, off_chain=off)
+              match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run, off_chain=off,
+              **({} if T_world_vio_performer is None else {"T_world_vio_performer": np.asarray(T_world_vio_performer)}))
 
 
 def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, init: YawOffset, reg) -> ViewData:
