@@ -69,6 +69,9 @@ def main() -> None:
     ap.add_argument("--old-src", required=True, help="src folder of the checkout to compare with")
     ap.add_argument("--workers", action="store_true", help="also time this checkout with 1 registration thread")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--old-first", action="store_true",
+                    help="time the other checkout first (a second run in the other order shows how much the order and "
+                         "the machine's changing load move the ratio)")
     args = ap.parse_args()
     from embodmocap.io.layout import SessionLayout
 
@@ -82,10 +85,10 @@ def main() -> None:
         subprocess.run([sys.executable, "-c", cli, "sequence", str(args.session)], check=True,
                        env=dict(os.environ, PYTHONPATH=new_src))
     snap = _snapshot(args.session)
-    rows = {"new": stage3(args.session, new_src, snap=snap)}
-    print("new", json.dumps(rows["new"]), flush=True)
-    rows["old"] = stage3(args.session, args.old_src, snap=snap)
-    print("old", json.dumps(rows["old"]), flush=True)
+    rows = {}
+    for name in (("old", "new") if args.old_first else ("new", "old")):
+        rows[name] = stage3(args.session, new_src if name == "new" else args.old_src, snap=snap)
+        print(name, json.dumps(rows[name]), flush=True)
     if args.workers:
         rows["new_1_thread"] = stage3(args.session, new_src, workers=1, snap=snap)
         print("new_1_thread", json.dumps(rows["new_1_thread"]), flush=True)
