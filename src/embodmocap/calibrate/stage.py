@@ -86,9 +86,9 @@ class CalibrateConfig:
     with depth, are fitted onto the other view's (yaw + translation), and the placement is kept
     only if the view's background depth then lies on the scene mesh (``performer_min_on_mesh``);
     otherwise (the wrong scene, most likely) the view's error stands."""
-    performer_min_on_mesh: float = 0.6
-    """Share of a performer-placed view's background depth points that must lie within
-    ``performer_on_mesh_m`` of the scene mesh."""
+    performer_min_on_mesh: float = 0.8
+    """A performer-placed view's share of background depth points within ``performer_on_mesh_m``
+    of the scene mesh must reach this fraction of the registered view's own share."""
     performer_on_mesh_m: float = 0.10
     """Distance to the scene mesh within which a background point counts as on it, metres."""
     max_refine_shift_m: float = 0.15
@@ -384,18 +384,26 @@ def _place_by_performer(cfg: CalibrateConfig, lay: SessionLayout, entry, v: str,
                            "accepted": np.zeros(0, bool), "match_frames": np.zeros(0, np.int64),
                            "match_xy": np.zeros((0, 2)), "match_xyz": np.zeros((0, 3)),
                            "T_world_cam": np.zeros((0, 4, 4))})
-    bg = data.background
-    on = 0.0
-    if bg is not None and len(bg):
+    mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
+    scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
+
+    def on_mesh(data) -> float:
+        """Share of a view's background points within ``performer_on_mesh_m`` of the mesh."""
+        bg = data.background
+        if bg is None or not len(bg):
+            return 0.0
         Tc = np.asarray(data.T_world_cam)[bg.frames.numpy()]
         q = np.einsum("nij,nj->ni", Tc[:, :3, :3], bg.p_cam.numpy()) + Tc[:, :3, 3]
-        mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
-        scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
         d, _ = scene_pts.tree.query(q, distance_upper_bound=cfg.performer_on_mesh_m, workers=1)
-        on = float(np.mean(np.isfinite(d)))
+        return float(np.mean(np.isfinite(d)))
+
+    on = on_mesh(data)
+    # The registered view's own share is the yardstick: a scan that missed part of what the views
+    # see lowers both alike, a view of another scene only its own.
+    on_w = on_mesh(build_view_data(cfg, lay, entry.name, w, _yaw_offset_of(T_w), r))
     log.info("%s %s: placed through the performer in %s (%d keypoint pairs, %d inliers); %.0f%% of its background "
-             "on the scene mesh", entry.name, v, w, len(f), fit.num_inliers, 100 * on)
-    if fit.num_inliers < 20 or on < cfg.performer_min_on_mesh:
+             "on the scene mesh (%s: %.0f%%)", entry.name, v, w, len(f), fit.num_inliers, 100 * on, w, 100 * on_w)
+    if fit.num_inliers < 20 or on < cfg.performer_min_on_mesh * on_w:
         raise InputError(err.path, err.problem + note + f" ({100 * on:.0f} % of its background on the mesh)",
                          err.fix) from err
     log.warning("%s %s: %s; placed through the performer instead (%.0f%% of its background on the scene mesh)",
