@@ -83,7 +83,10 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
         T_reg = np.asarray(out.report["views"][v]["T_world_vio_registration"])
         r = regs[v]
         acc = np.asarray(r["accepted"], bool)
-        init = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset).offset
+        if "T_world_vio_performer" in r:  # placed through the performer: no registration of its own
+            init = cal._yaw_offset_of(r["T_world_vio_performer"])
+        else:
+            init = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset).offset
         data = cal.build_view_data(cfg, lay, "seq0", v, init, r)
         alone = refine_offsets({v: data}, cfg.refine, scene=scene_pts)
         # Frames of rejected runs must not reach the fit: none of their matches in the view data.
@@ -91,6 +94,8 @@ def one_seed(root: Path, seed: int, preset: str, seconds: float, scene_seconds: 
         row[f"{v}_registered"] = f"{len(r['t'])}/{len(r['attempted'])}"
         row[f"{v}_rejected_runs"] = out.report["views"][v]["vio_check"]["rejected_runs"]
         row[f"{v}_rejected_frames"] = int((~acc).sum())
+        row[f"{v}_off_chain_frames"] = int(np.sum(r["off_chain"])) if "off_chain" in r else 0
+        row[f"{v}_placement"] = out.report["views"][v]["offset_fit"].get("placement", "registration")
         row[f"{v}_rejected_in_fit"] = int(np.isin(np.unique(np.asarray(data.matches.frames)), rejected).sum())
         true_reg = np.linalg.norm(
             (truth[v] @ cams["T_world_cam"][r["t"]])[:, :3, 3] - r["T_world_cam"][:, :3, 3], axis=1)

@@ -34,7 +34,22 @@ print(json.dumps({"wall_s": time.perf_counter() - t0, "rss_mb": resource.getrusa
 """
 
 
-def stage3(session: Path, src: str, workers: int | None = None) -> dict:
+def _snapshot(session: Path) -> dict[Path, bytes]:
+    """Stage II's sync.json and manifest.json of the session's sequences: Stage III completes them
+    (geometric sync), and the code before issue 13 writes its own version of sync.json, which this
+    checkout's Stage III refuses; every run starts from the same Stage II files."""
+    return {p: p.read_bytes() for p in sorted((session / "sequences").glob("*/*.json"))
+            if p.name in ("sync.json", "manifest.json")}
+
+
+def _restore(snap: dict[Path, bytes]) -> None:
+    for p, b in snap.items():
+        p.write_bytes(b)
+
+
+def stage3(session: Path, src: str, workers: int | None = None, snap: dict | None = None) -> dict:
+    if snap:
+        _restore(snap)
     env = dict(os.environ, PYTHONPATH=src)
     args = [sys.executable, "-c", _CODE, str(session)] + ([str(workers)] if workers else [])
     t0 = time.perf_counter()
@@ -54,6 +69,9 @@ def main() -> None:
     ap.add_argument("--old-src", required=True, help="src folder of the checkout to compare with")
     ap.add_argument("--workers", action="store_true", help="also time this checkout with 1 registration thread")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--old-first", action="store_true",
+                    help="time the other checkout first (a second run in the other order shows how much the order and "
+                         "the machine's changing load move the ratio)")
     args = ap.parse_args()
     from embodmocap.io.layout import SessionLayout
 
@@ -66,13 +84,15 @@ def main() -> None:
     if not lay.sequence("seq0").view("v1").cameras.is_file():
         subprocess.run([sys.executable, "-c", cli, "sequence", str(args.session)], check=True,
                        env=dict(os.environ, PYTHONPATH=new_src))
-    rows = {"new": stage3(args.session, new_src)}
-    print("new", json.dumps(rows["new"]), flush=True)
-    rows["old"] = stage3(args.session, args.old_src)
-    print("old", json.dumps(rows["old"]), flush=True)
+    snap = _snapshot(args.session)
+    rows = {}
+    for name in (("old", "new") if args.old_first else ("new", "old")):
+        rows[name] = stage3(args.session, new_src if name == "new" else args.old_src, snap=snap)
+        print(name, json.dumps(rows[name]), flush=True)
     if args.workers:
-        rows["new_1_thread"] = stage3(args.session, new_src, workers=1)
+        rows["new_1_thread"] = stage3(args.session, new_src, workers=1, snap=snap)
         print("new_1_thread", json.dumps(rows["new_1_thread"]), flush=True)
+    _restore(snap)
     rows["ratio_new_over_old"] = rows["new"]["wall_s"] / rows["old"]["wall_s"]
     print(f"Stage III new/old wall time: {rows['ratio_new_over_old']:.3f}")
     if args.json:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from embodmocap.calibrate.consistency import check_against_vio, relative_disagreement
+from embodmocap.calibrate.consistency import check_against_vio, off_chain_frames, relative_disagreement
 from embodmocap.calibrate.offset import RobustOffsetConfig, YawOffset, chain_yaw_offset, robust_yaw_offset
 from embodmocap.calibrate.register import select_frames
 from embodmocap.geometry.transforms import make_T, rot_z
@@ -60,6 +60,25 @@ def test_a_consistently_wrong_run_is_rejected_and_the_rest_kept():
     C = T_vio[:, :3, 3]
     assert np.linalg.norm(fit.offset.apply_points(C) - true.apply_points(C), axis=1).mean() < 0.01
     assert abs(np.degrees(fit.offset.yaw_rad - true.yaw_rad)) < 0.2
+
+
+def test_an_error_ramping_along_a_run_passes_the_run_check_but_not_the_chain_check():
+    rng = np.random.default_rng(3)
+    T_vio = _walk(80, rng)
+    true = YawOffset(0.4, np.array([-1.0, 2.0, 0.0]))
+    T_reg = _jitter(true.apply(T_vio), rng, 0.008, 0.15)
+    # Frames 30-37 drift off and back (2, 4, 9, 10, 15, 10, 4, 2 cm): each step is within 10 cm.
+    ramp = np.array([0.02, 0.04, 0.09, 0.10, 0.15, 0.10, 0.04, 0.02])
+    T_reg[30:38, :3, 3] += ramp[:, None] * np.array([0.6, 0.8, 0.0])
+    chk = check_against_vio(T_reg, T_vio)
+    assert chk.accepted.all()  # the neighbour-to-neighbour test lets the ramp through
+    off = off_chain_frames(T_reg, T_vio, chk.accepted)
+    # The frames 9 cm or more off are caught (limit: 5 cm here, the view's scatter being small);
+    # none of the right frames is.
+    np.testing.assert_array_equal(np.flatnonzero(off), 30 + np.flatnonzero(ramp >= 0.09))
+    # A noisy but right view (4 cm scatter) keeps every frame: the limit follows its scatter.
+    noisy = _jitter(true.apply(T_vio), np.random.default_rng(4), 0.025, 0.3)
+    assert off_chain_frames(noisy, T_vio, np.ones(80, bool)).sum() <= 1
 
 
 def test_registrations_of_another_scene_disagree_everywhere():

@@ -95,7 +95,9 @@ def test_too_few_registered_frames_names_the_view_and_causes(session, tmp_path):
 def test_vio_check_is_reported_and_rejected_frames_stay_out_of_the_fit(session, done):
     for v in VIEWS:
         chk = done.report["views"][v]["vio_check"]
-        assert set(chk) >= {"runs", "rejected_runs", "rejected_frames"}
+        assert set(chk) >= {"runs", "rejected_runs", "rejected_frames", "off_chain_frames"}
+        reg_off = np.load(SessionLayout(session).sequence("seq0").view(v).registration)["off_chain"]
+        assert chk["off_chain_frames"] == int(reg_off.sum())
         reg = np.load(SessionLayout(session).sequence("seq0").view(v).registration)
         assert reg["accepted"].shape == reg["t"].shape and chk["rejected_frames"] == int((~reg["accepted"]).sum())
         init = stage.YawOffset(*_offset_of(done.report["views"][v]["T_world_vio_registration"]))
@@ -140,6 +142,38 @@ def test_view_that_disagrees_with_its_vio_is_one_clear_error_and_writes_nothing(
     assert "v1" in msg and "disagree with its own VIO" in msg and "wrong scene" in msg and len(msg.splitlines()) == 1
     assert not lay.sequence("seq0").view("v1").registration.is_file()
     assert not lay.sequence("seq0").calibration.is_file()
+
+
+def test_view_whose_registration_fails_is_placed_through_the_performer(session, tmp_path, monkeypatch):
+    """v1's registrations scattered at random (as on plain walls under other light) while its VIO
+    is right: v1 is placed through the performer v2 also films, checked on the scene mesh, and
+    ends near the truth; v2 is untouched."""
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    real = stage._register_view
+    rng = np.random.default_rng(1)
+
+    def broken(cfg, frames, K, index, T_vio, name):
+        reg = real(cfg, frames, K, index, T_vio, name)
+        if not name.endswith("v1"):
+            return reg
+        from embodmocap.geometry.transforms import make_T, rot_z
+
+        n = len(reg.t)
+        scatter = make_T(np.stack([rot_z(a) for a in rng.uniform(-np.pi, np.pi, n)]), rng.uniform(-2, 2, (n, 3)))
+        return replace(reg, T_world_cam=scatter @ reg.T_world_cam)
+
+    monkeypatch.setattr(stage, "_register_view", broken)
+    out = stage.run(CFG, work, force=True)
+    truth = true_offsets(work)
+    rep = out.report["views"]
+    assert rep["v1"]["offset_fit"]["placement"] == "performer" and rep["v2"]["offset_fit"]["placement"] == "registration"
+    reg = np.load(SessionLayout(work).sequence("seq0").view("v1").registration)
+    assert not reg["accepted"].any() and reg["T_world_vio_performer"].shape == (4, 4)
+    for v in VIEWS:
+        centres = np.load(SessionLayout(work).sequence("seq0").view(v).cameras)["T_world_cam"][:, :3, 3]
+        t_err, yaw_err = offset_error(out.T_world_vio[v], truth[v], centres)
+        assert t_err < 0.06 and yaw_err < 1.0, (v, t_err, yaw_err)
 
 
 def test_geometric_sync_after_registration(session, done):

@@ -115,8 +115,17 @@ def test_registration_version_1_reads_every_frame_accepted(tmp_path):
                                 "run": np.array([0, 1, 2, 2])})
     sf.write_registration(d / "v1" / "registration.npz", v2)
     assert sf.read_registration(d / "v1" / "registration.npz").accepted.tolist() == [True, False, True, True]
-    np.savez(d / "v1" / "registration.npz", **{**reg, "version": np.int64(3)})
-    with pytest.raises(InputError, match="registration.npz version 3, this reader knows 1, 2"):
+    back = sf.read_registration(d / "v1" / "registration.npz")
+    assert not back.off_chain.any() and back.off_chain.shape == (R,) and back.T_world_vio_performer is None
+    placed = _poses(1)[0]
+    v3 = sf.RegistrationFile(**{**v2.arrays(), "version": np.int64(3), "off_chain": np.array([0, 0, 1, 0], bool),
+                                "T_world_vio_performer": placed})
+    sf.write_registration(d / "v1" / "registration.npz", v3)
+    back = sf.read_registration(d / "v1" / "registration.npz")
+    assert back.off_chain.tolist() == [False, False, True, False]
+    np.testing.assert_array_equal(back.T_world_vio_performer, placed)
+    np.savez(d / "v1" / "registration.npz", **{**reg, "version": np.int64(4)})
+    with pytest.raises(InputError, match="registration.npz version 4, this reader knows 1, 2, 3"):
         sf.read_registration(d / "v1" / "registration.npz")
 
 

@@ -129,3 +129,41 @@ def check_against_vio(T_reg: NDArray, T_vio: NDArray, inliers: NDArray | None = 
     accepted = group == best
     rejected_runs = len(np.unique(run[~accepted]))
     return VioCheck(accepted, run, k, rejected_runs, int((~accepted).sum()), max_m, max_deg)
+
+
+def off_chain_frames(T_reg: NDArray, T_vio: NDArray, accepted: NDArray, max_m: float = 0.10, max_deg: float = 3.0,
+                     min_m: float = 0.05, min_deg: float = 1.0, spread: float = 3.0, offset_cfg=None) -> NDArray[np.bool_]:
+    """(R,) True for accepted frames that sit off the offset of their whole chain.
+
+    The run check compares neighbours, so an error that grows gradually along a run (15, 10, 9,
+    4, 2 cm: each step agrees within the limit) passes it. Here the offset is fitted on every
+    accepted frame at once (:func:`embodmocap.calibrate.offset.chain_yaw_offset`, robust) and each
+    frame is compared with it: a frame whose registered centre is further than the limit from its
+    VIO centre through that offset, or whose orientation differs by more than the rotation limit,
+    is off the chain. The limits adapt to the view's own scatter (``spread`` robust standard
+    deviations of the residuals) between ``min_m`` / ``min_deg`` and ``max_m`` / ``max_deg``, so a
+    noisy but right view (plain walls) keeps its frames while a sharp one drops a 6 cm ramp.
+
+    Args:
+        T_reg: (R, 4, 4) registered poses; T_vio: (R, 4, 4) the same frames' VIO poses.
+        accepted: (R,) bool, the frames kept by :func:`check_against_vio`.
+    """
+    from embodmocap.calibrate.offset import RobustOffsetConfig, chain_yaw_offset
+
+    T_reg = np.asarray(T_reg, dtype=np.float64).reshape(-1, 4, 4)
+    T_vio = np.asarray(T_vio, dtype=np.float64).reshape(-1, 4, 4)
+    acc = np.asarray(accepted, dtype=bool)
+    out = np.zeros(len(T_reg), dtype=bool)
+    if acc.sum() < 3:
+        return out
+    try:
+        fit = chain_yaw_offset(T_vio[acc], T_reg[acc], offset_cfg or RobustOffsetConfig())
+    except ValueError:  # the chain cannot fix a yaw: nothing to compare with
+        return out
+    mapped = fit.offset.apply(T_vio[acc])
+    dm = np.linalg.norm(mapped[:, :3, 3] - T_reg[acc, :3, 3], axis=1)
+    dd = np.degrees(rotation_angle(np.swapaxes(mapped[:, :3, :3], -1, -2) @ T_reg[acc, :3, :3]))
+    lim_m = float(np.clip(spread * 1.4826 * np.median(dm), min_m, max_m))
+    lim_d = float(np.clip(spread * 1.4826 * np.median(dd), min_deg, max_deg))
+    out[np.flatnonzero(acc)] = (dm > lim_m) | (dd > lim_d)
+    return out

@@ -333,18 +333,24 @@ class ScenePoints:
         """Area-weighted uniform samples on a triangle mesh with the faces' normals."""
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces, dtype=np.int64)
-        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        cross = np.cross(b - a, c - a)
-        area = 0.5 * np.linalg.norm(cross, axis=1)
+        # Areas of all (millions of) faces in float32, only to draw faces; the drawn faces' points
+        # and normals in float64 below. A fraction of the float64 gathers' time and memory.
+        tri = v.astype(np.float32)[f]
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
         keep = area > 1e-12
         if not keep.any():
             raise ValueError("the scene mesh has no triangle with a non-zero area")
         rng = np.random.default_rng(seed)
-        idx = rng.choice(np.nonzero(keep)[0], size=n_points, p=area[keep] / area[keep].sum())
+        # Inverse-CDF draw of faces by area (Generator.choice with p is several times slower on
+        # the millions of faces of a room mesh); zero-area faces have no CDF step, so are never drawn.
+        cdf = np.cumsum(np.where(keep, area, 0.0).astype(np.float64))
+        idx = np.minimum(np.searchsorted(cdf, rng.random(n_points) * cdf[-1], side="right"), len(f) - 1)
         r1, r2 = rng.random(n_points), rng.random(n_points)
+        a, b, c = v[f[idx, 0]], v[f[idx, 1]], v[f[idx, 2]]
         s = np.sqrt(r1)  # uniform barycentric sampling
-        pts = (1 - s)[:, None] * a[idx] + (s * (1 - r2))[:, None] * b[idx] + (s * r2)[:, None] * c[idx]
-        return ScenePoints.from_arrays(pts, cross[idx])
+        pts = (1 - s)[:, None] * a + (s * (1 - r2))[:, None] * b + (s * r2)[:, None] * c
+        return ScenePoints.from_arrays(pts, np.cross(b - a, c - a))
 
 
 @dataclass(frozen=True)
@@ -416,7 +422,8 @@ def nearest_scene(scene: ScenePoints, p_world: torch.Tensor, max_distance_m: flo
     The bound also keeps the KD-tree fast: a query far from all data (a point on an object the mesh
     lacks) would otherwise visit much of the tree.
     """
-    _, idx = scene.tree.query(p_world.detach().cpu().numpy(), distance_upper_bound=max_distance_m, workers=-1)
+    # One thread: a query is ~10^4 points, less work than starting and joining a pool each call.
+    _, idx = scene.tree.query(p_world.detach().cpu().numpy(), distance_upper_bound=max_distance_m, workers=1)
     idx = np.asarray(idx, dtype=np.int64)
     return torch.as_tensor(np.where(idx >= len(scene.tree.data), -1, idx))
 

@@ -15,8 +15,8 @@ Two solvers on the same residual blocks:
 - ``adam``: Adam with gradient-norm clipping (the paper's choice; the release uses lr 1e-2 for 200
   iterations). A cosine decay of the learning rate (to ``adam_lr_final``) is added so the last
   iterations settle instead of dithering at the lr's step size.
-- ``lm``: Levenberg-Marquardt on the 4 V parameters with forward-mode Jacobians of the stacked
-  whitened residual vector; robust kernels through IRLS weights re-computed each iteration, and
+- ``lm``: Levenberg-Marquardt on the 4 V parameters with central-difference Jacobians of the
+  stacked whitened residual vector; robust kernels through IRLS weights re-computed each iteration, and
   Chamfer neighbours re-found each iteration (ICP-style).
 
 ``both`` runs the two and keeps the lower final loss; both runs are reported.
@@ -163,6 +163,19 @@ class _Problem:
         self.reproj_views = [v for v in self.names if views[v].matches is not None and len(views[v].matches)]
         if self.tracks is None and not self.chamfer_views and not self.reproj_views:
             raise ValueError("nothing to refine on: no track pairs, background clouds or 2D-3D matches")
+        # The cameras do not change during the solve (only the offset on top of them does), so every
+        # observation is taken to the world once here; each evaluation is then one rigid motion of
+        # fixed points instead of a per-point gather of camera matrices (same values, far less work).
+        self._world: dict[str, torch.Tensor] = {}
+        if self.tracks is not None:
+            tr = self.tracks
+            self._world["track_a"] = _to_world(self.cams[tr.view_a], tr.frames, tr.p_a)
+            self._world["track_b"] = _to_world(self.cams[tr.view_b], tr.frames, tr.p_b)
+        for v in self.chamfer_views:
+            bg = views[v].background
+            self._world[f"chamfer/{v}"] = _to_world(self.cams[v], bg.frames, bg.p_cam)
+        self._reproj: dict[str, tuple[torch.Tensor, torch.Tensor]] = {
+            v: (self.cams[v].R[views[v].matches.frames], self.cams[v].c[views[v].matches.frames]) for v in self.reproj_views}
 
     def params(self, x: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
         return {v: (x[4 * i], x[4 * i + 1 : 4 * i + 4]) for i, v in enumerate(self.names)}
@@ -170,27 +183,32 @@ class _Problem:
     def neighbours(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         p = self.params(x.detach())
         return {
-            v: L.nearest_scene(
-                self.scene,
-                L.chamfer_world_points(p[v], self.cams[v], self.views[v].background),
-                self.cfg.chamfer_max_distance_m,
-            )
+            v: L.nearest_scene(self.scene, self._moved(p[v], v, f"chamfer/{v}"), self.cfg.chamfer_max_distance_m)
             for v in self.chamfer_views
         }
+
+    def _moved(self, params, v: str, key: str) -> torch.Tensor:
+        """The fixed world points ``key`` moved by view ``v``'s offset ``params`` (same as
+        :func:`embodmocap.calibrate.losses.cam_to_world` on the camera-space points)."""
+        return L.offset_points(params[0], params[1], self.cams[v].pivot, self._world[key])
 
     def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor]) -> list[_Block]:
         cfg, p = self.cfg, self.params(x)
         out = []
         if self.tracks is not None:
             a, b = self.tracks.view_a, self.tracks.view_b
-            r = L.track_residuals(p[a], p[b], self.cams[a], self.cams[b], self.tracks)
+            r = self._moved(p[a], a, "track_a") - self._moved(p[b], b, "track_b")
             out.append(_Block("track", r, self.tracks.weight, cfg.track_kernel, cfg.track_scale_m, cfg.w_track))
         for v in self.chamfer_views:
-            r = L.chamfer_residuals(p[v], self.cams[v], self.views[v].background, self.scene, nbrs[v])[:, None]
-            has_nbr = (nbrs[v] >= 0).to(r.dtype)  # points with no scene sample nearby do not count
+            pw = self._moved(p[v], v, f"chamfer/{v}")
+            j = nbrs[v].clamp(min=0)
+            valid = nbrs[v] >= 0
+            # point-to-plane distance to the scene neighbour (as losses.chamfer_residuals)
+            r = torch.where(valid, ((pw - self.scene.points[j]) * self.scene.normals[j]).sum(-1), torch.zeros_like(pw[:, 0]))[:, None]
+            has_nbr = valid.to(r.dtype)  # points with no scene sample nearby do not count
             out.append(_Block(f"chamfer/{v}", r, has_nbr, cfg.chamfer_kernel, cfg.chamfer_scale_m, cfg.w_chamfer))
         for v in self.reproj_views:
-            r = L.reproj_residuals(p[v], self.cams[v], self.K[v], self.views[v].matches)
+            r = _reproj(p[v], self.cams[v].pivot, *self._reproj[v], self.K[v], self.views[v].matches)
             out.append(_Block(f"reproj/{v}", r, torch.ones(len(r), dtype=r.dtype), cfg.reproj_kernel, cfg.reproj_scale_px, cfg.w_reproj))
         return out
 
@@ -213,6 +231,23 @@ class _Problem:
             for k, n in norms.items()
         }
         return sum(terms.values()), terms, stats
+
+
+def _to_world(cams: L.Cameras, frames: torch.Tensor, p_cam: torch.Tensor) -> torch.Tensor:
+    """(N, 3) world points of camera-space points ``p_cam`` (N, 3) of ``frames`` (N,), no offset."""
+    return torch.einsum("nij,nj->ni", cams.R[frames], p_cam) + cams.c[frames]
+
+
+def _reproj(params, pivot: torch.Tensor, R: torch.Tensor, c: torch.Tensor, K: torch.Tensor, m: L.Matches2D3D) -> torch.Tensor:
+    """(P, 2) observed minus projected pixels (as :func:`embodmocap.calibrate.losses.reproj_residuals`)
+    with each match's camera rotation ``R`` (P, 3, 3) and centre ``c`` (P, 3) gathered once."""
+    yaw, t = params
+    x_back = (m.xyz - pivot - t) @ L.rz_torch(yaw) + pivot  # the inverse offset on the points
+    p_cam = torch.einsum("nji,nj->ni", R, x_back - c)
+    z = p_cam[:, 2].clamp(min=1e-6)
+    u = K[0, 0] * p_cam[:, 0] / z + K[0, 2]
+    v = K[1, 1] * p_cam[:, 1] / z + K[1, 2]
+    return m.xy - torch.stack([u, v], -1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,7 +294,7 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
             return torch.cat([b.whitened(w) for b, w in zip(prob.blocks(xx, nbrs), irls)])
 
         r = resid(x)
-        J = torch.func.jacfwd(resid)(x)
+        J = _jacobian(resid, x)
         H, g = J.T @ J, J.T @ r
         # a tiny ridge keeps unobserved directions (e.g. the height with tracks only) solvable
         ridge = 1e-12 * max(float(H.diagonal().max()), 1e-12)
@@ -275,6 +310,22 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
         if not accepted or float(dx.abs().max()) < cfg.lm_step_tol:
             break
     return SolverRun("lm", f, it, time.perf_counter() - t0, x.numpy())
+
+
+def _jacobian(fn, x: torch.Tensor, step: float = 1e-6) -> torch.Tensor:
+    """(m, n) Jacobian of ``fn`` (n,) -> (m,) at ``x`` by central differences.
+
+    The parameters are radians and metres of order 1e-2, the residuals smooth in them (rigid
+    motions and a projection), so a 1e-6 step is exact to ~1e-9 relative. Two evaluations per
+    parameter (8 for two views) cost less than forward-mode AD, whose first use also imports
+    torch's compiler stack (seconds)."""
+    with torch.no_grad():
+        cols = []
+        for i in range(len(x)):
+            e = torch.zeros_like(x)
+            e[i] = step
+            cols.append((fn(x + e) - fn(x - e)) / (2.0 * step))
+        return torch.stack(cols, dim=1)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -49,10 +49,12 @@ class RegisterConfig:
     """Settings of view-frame registration. Defaults register 2 x 200 frames at 640x480 in about a
     minute on 2 CPU cores."""
 
-    num_frames: int = 120
+    num_frames: int = 80
     """Frames sampled per view by :func:`select_frames`: spread over time and over viewpoints
     (the VIO path and turn), the steadiest frame of each stretch (least blur). A 6 s view has
-    about 175 frames, a 60 s one 1,800: beyond ~100 well spread frames more only cost time."""
+    about 175 frames, a 60 s one 1,800. The offset has 4 parameters and the per-view error is
+    dominated by a bias common to the view's frames, not by their number: beyond ~80 well spread
+    frames more only cost time (SIFT is most of Stage III's time)."""
     workers: int = 0
     """Threads registering frames in parallel (0 = one per CPU core). OpenCV and pycolmap release
     the GIL; each frame's result does not depend on the thread count or order."""

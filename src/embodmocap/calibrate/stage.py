@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.calibrate.config import CalibrateConfig  # noqa: F401 (re-exported: defined in config.py)
-from embodmocap.calibrate.consistency import check_against_vio
+from embodmocap.calibrate.consistency import check_against_vio, off_chain_frames
 from embodmocap.calibrate.offset import YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import ViewData, refine_offsets
 from embodmocap.calibrate.register import (Registration, load_or_build_scene_index, load_view_frames,
@@ -88,6 +88,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # 1. Registration per view.
     index = None
     regs = {}
+    pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
     for v in VIEWS:
         vl = out.view(v)
         reg_path = vl.registration
@@ -106,15 +107,43 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             reg = _register_view(cfg, frames, K, index, T_vio, f"{entry.name} {v}")
             check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
                                       cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
-            _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
-            _save_registration(reg_path, reg, check)
+            try:
+                _check_view(cfg, entry.views[v].capture, v, reg, check)  # before anything of the view is written
+            except _VioDisagreement as err:
+                if not cfg.place_by_performer:
+                    raise
+                pending[v] = (err, reg, check, fp, t0)
+                continue
+            # Frames the run check kept but that sit off the whole chain's offset (an error ramping
+            # up along a run passes the neighbour-to-neighbour test): out of the fit as well.
+            off = off_chain_frames(reg.T_world_cam, T_vio[reg.t], check.accepted, cfg.vio_max_disagreement_m,
+                                   cfg.vio_max_disagreement_deg, offset_cfg=cfg.offset)
+            _save_registration(reg_path, reg, check, off)
             sm.record(f"register_{v}", fp, [reg_path], time.perf_counter() - t0, {
                 f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
                 f"{v}_registered_fraction": round(reg.registered_fraction, 3),
                 f"{v}_vio_rejected_runs": check.rejected_runs, f"{v}_vio_rejected_frames": check.rejected_frames,
+                f"{v}_vio_off_chain_frames": int(off.sum()),
                 f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
             })
-        regs[v] = read_registration(reg_path)  # a version 1 file (before the VIO check): every frame accepted
+        regs[v] = _load_registration(reg_path)
+    for v, (err, reg, check, fp, t0) in pending.items():
+        T_place = _place_by_performer(cfg, lay, entry, v, regs, err)  # raises err when it does not fit
+        # None of its frames is trusted: all stay out of the fit, the offset is the placement.
+        _save_registration(out.view(v).registration, reg, replace(check, accepted=np.zeros(len(reg.t), dtype=bool)),
+                           None, T_place)
+        sm.record(f"register_{v}", fp, [out.view(v).registration], time.perf_counter() - t0, {
+            f"{v}_frames_tried": int(len(reg.attempted)), f"{v}_frames_registered": int(len(reg.t)),
+            f"{v}_registered_fraction": round(reg.registered_fraction, 3), f"{v}_placed_by_performer": True,
+            f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
+        })
+        regs[v] = _load_registration(out.view(v).registration)
+    for v in VIEWS:
+        if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
+            regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
+            regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
+        if "off_chain" not in regs[v]:  # written before the whole-chain check (version 2)
+            regs[v]["off_chain"] = np.zeros(len(regs[v]["t"]), dtype=bool)
 
     # 2. Initial yaw-only offsets.
     init: dict[str, YawOffset] = {}
@@ -123,17 +152,25 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         cams = read_cameras(out.view(v).cameras)
         r = regs[v]
         acc = np.asarray(r["accepted"], dtype=bool)
-        # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
-        fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
-        init[v] = fit.offset
         runs = np.asarray(r["run"])
-        init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
-                          "vio_consistent": int(acc.sum()),
-                          "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None}
+        off = np.asarray(r["off_chain"], dtype=bool)
+        if "T_world_vio_performer" in r:  # placed through the performer (step 1): no frame of its own
+            init[v] = _yaw_offset_of(r["T_world_vio_performer"])
+            init_report[v] = {"inliers": 0, "registered": int(len(r["t"])), "vio_consistent": 0,
+                              "median_residual_m": None, "placement": "performer"}
+        else:
+            # Only the VIO-consistent chain: frames of rejected runs never reach the fit.
+            fit = chain_yaw_offset(cams["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset)
+            init[v] = fit.offset
+            init_report[v] = {"inliers": int(fit.num_inliers), "registered": int(len(r["t"])),
+                              "vio_consistent": int(acc.sum()),
+                              "median_residual_m": float(np.median(fit.residuals_m[fit.inliers])) if fit.num_inliers else None,
+                              "placement": "registration"}
+        by_runs = ~acc & ~off  # rejected by the run check (off-chain frames are counted apart)
         init_report[v]["vio_check"] = {
-            "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[~acc]))),
-            "rejected_frames": int((~acc).sum()), "max_disagreement_m": cfg.vio_max_disagreement_m,
-            "max_disagreement_deg": cfg.vio_max_disagreement_deg}
+            "runs": int(len(np.unique(runs))), "rejected_runs": int(len(np.unique(runs[by_runs]))),
+            "rejected_frames": int((~acc).sum()), "off_chain_frames": int(off.sum()),
+            "max_disagreement_m": cfg.vio_max_disagreement_m, "max_disagreement_deg": cfg.vio_max_disagreement_deg}
 
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
@@ -141,7 +178,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     use_tracks = slicing != "start"
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
-                         use_tracks)
+                         cfg.scene_points, cfg.track_frames, use_tracks)
     calib_path = out.calibration
     if not force and sm.is_current("refine", fp_ref):
         skipped.append("refine")
@@ -166,7 +203,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                             report, tuple(skipped))
 
 
-REGISTER_VERSION = 2
+REGISTER_VERSION = 3
 
 
 def _register_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.ndarray, name: str) -> Registration:
@@ -232,25 +269,108 @@ def _check_view(cfg: CalibrateConfig, capture: Path, v: str, reg: Registration, 
                          "texture, the wrong scene capture, very different lighting, or the performer filling the view")
     n_ok = int(check.accepted.sum())
     if n_ok < cfg.min_registered_frames or n_ok < cfg.min_consistent_fraction * n_reg:
-        raise InputError(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
+        raise _VioDisagreement(capture, f"view {v}: its registered frames disagree with its own VIO motion almost everywhere "
                          f"(largest consistent group {n_ok} of {n_reg} frames, {check.runs} runs)",
                          "likely causes: the sequence was not filmed in this scene (wrong scene capture in "
                          "session.toml), broken VIO poses, or too little background texture / very different "
                          "lighting for registration to be reliable")
 
 
-def _save_registration(path: Path, reg, check=None) -> None:
+class _VioDisagreement(InputError):
+    """The view's registered frames disagree with its VIO (a view the performer may still place)."""
+
+
+def _load_registration(path: Path) -> dict:
+    """A view's registration (checked by the typed reader) as a dict the stage can complete."""
+    return dict(read_registration(path).items())
+
+
+def _yaw_offset_of(T: np.ndarray) -> YawOffset:
+    T = np.asarray(T, dtype=np.float64)
+    return YawOffset(float(np.arctan2(T[1, 0], T[0, 0])), T[:3, 3].copy(), 1.0)
+
+
+def _place_by_performer(cfg: CalibrateConfig, lay: SessionLayout, entry, v: str, regs: dict, err: InputError) -> np.ndarray:
+    """``T_world_vio`` (4, 4) of view ``v`` from the performer both views film, or ``err`` raised.
+
+    The other view's offset comes from its own VIO-consistent registrations; each cross-view
+    keypoint pair (back-projected with depth) gives a point in the world through the other view
+    and the same point in ``v``'s VIO world; the robust yaw fit of the second onto the first
+    places ``v``. Kept only when ``v``'s background depth then lies on the scene mesh (a capture
+    of another scene does not)."""
+    from embodmocap.calibrate import losses as L
+    from embodmocap.calibrate.offset import robust_yaw_offset
+    from embodmocap.scene.mesh import read_mesh_ply
+
+    others = [w for w in VIEWS if w != v and w in regs]
+    note = "; placing it through the performer filmed by the other view did not fit the scene either"
+    if not others or _sync_record(lay.sequence(entry.name), entry.name)["slicing"]["source"] == "start":
+        raise err
+    w = others[0]
+    sl = lay.sequence(entry.name)
+    r = regs[w]
+    cams = {x: np.load(sl.view(x).cameras) for x in (v, w)}
+    acc = np.asarray(r["accepted"], dtype=bool)
+    T_w = chain_yaw_offset(cams[w]["T_world_cam"][r["t"][acc]], r["T_world_cam"][acc], cfg.offset).offset.T
+    tracks = _track_pairs(lay, entry.name, cfg.track_frames)
+    if tracks is None or len(tracks) < 20:
+        raise InputError(err.path, err.problem + note, err.fix) from err
+    f = tracks.frames.numpy()
+    p = {tracks.view_a: tracks.p_a.numpy(), tracks.view_b: tracks.p_b.numpy()}
+
+    def world(T_cams, pts):
+        return np.einsum("nij,nj->ni", T_cams[f, :3, :3], pts) + T_cams[f, :3, 3]
+
+    target = world(T_w @ cams[w]["T_world_cam"], p[w])
+    fit = robust_yaw_offset(world(cams[v]["T_world_cam"], p[v]), target, cfg.offset)
+    # Check on the scene mesh: the view's background through the placement.
+    data = build_view_data(cfg, lay, entry.name, v, fit.offset, {**{"t": np.zeros(0, np.int64)},
+                           "accepted": np.zeros(0, bool), "match_frames": np.zeros(0, np.int64),
+                           "match_xy": np.zeros((0, 2)), "match_xyz": np.zeros((0, 3)),
+                           "T_world_cam": np.zeros((0, 4, 4))})
+    mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
+    scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
+
+    def on_mesh(data) -> float:
+        """Share of a view's background points within ``performer_on_mesh_m`` of the mesh."""
+        bg = data.background
+        if bg is None or not len(bg):
+            return 0.0
+        Tc = np.asarray(data.T_world_cam)[bg.frames.numpy()]
+        q = np.einsum("nij,nj->ni", Tc[:, :3, :3], bg.p_cam.numpy()) + Tc[:, :3, 3]
+        d, _ = scene_pts.tree.query(q, distance_upper_bound=cfg.performer_on_mesh_m, workers=1)
+        return float(np.mean(np.isfinite(d)))
+
+    on = on_mesh(data)
+    # The registered view's own share is the yardstick: a scan that missed part of what the views
+    # see lowers both alike, a view of another scene only its own.
+    on_w = on_mesh(build_view_data(cfg, lay, entry.name, w, _yaw_offset_of(T_w), r))
+    log.info("%s %s: placed through the performer in %s (%d keypoint pairs, %d inliers); %.0f%% of its background "
+             "on the scene mesh (%s: %.0f%%)", entry.name, v, w, len(f), fit.num_inliers, 100 * on, w, 100 * on_w)
+    if fit.num_inliers < 20 or on < cfg.performer_min_on_mesh * on_w:
+        raise InputError(err.path, err.problem + note + f" ({100 * on:.0f} % of its background on the mesh)",
+                         err.fix) from err
+    log.warning("%s %s: %s; placed through the performer instead (%.0f%% of its background on the scene mesh)",
+                entry.name, v, err.problem, 100 * on)
+    return fit.offset.T
+
+
+def _save_registration(path: Path, reg, check=None, off_chain=None, T_world_vio_performer=None) -> None:
     """Registered poses and their 2D-3D inlier matches (flattened with a frame column), and the
-    VIO check's verdict per registered frame (``accepted``, ``run``)."""
+    VIO check's verdict per registered frame (``accepted``: kept by the run check and on the
+    whole chain's offset; ``run``; ``off_chain``: kept by the run check but off the chain)."""
     fr = np.concatenate([np.full(len(c.xy), c.t) for c in reg.correspondences]) if reg.correspondences else np.zeros(0, int)
     xy = np.concatenate([c.xy for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 2))
     xyz = np.concatenate([c.xyz for c in reg.correspondences]) if reg.correspondences else np.zeros((0, 3))
     acc = np.ones(len(reg.t), dtype=bool) if check is None else check.accepted
     run = np.zeros(len(reg.t), dtype=np.int64) if check is None else check.run
+    off = np.zeros(len(reg.t), dtype=bool) if off_chain is None else np.asarray(off_chain, dtype=bool)
+    acc = acc & ~off
     write_registration(path, RegistrationFile(
         version=np.int64(REGISTER_VERSION), attempted=reg.attempted, attempted_inliers=reg.attempted_inliers,
         t=reg.t, T_world_cam=reg.T_world_cam, inliers=reg.inliers, reproj_error_px=reg.reproj_error_px,
-        match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run))
+        match_frames=fr, match_xy=xy, match_xyz=xyz, accepted=acc, run=run, off_chain=off,
+        T_world_vio_performer=None if T_world_vio_performer is None else np.asarray(T_world_vio_performer)))
 
 
 def build_view_data(cfg: CalibrateConfig, lay: SessionLayout, seq: str, v: str, init: YawOffset, reg) -> ViewData:
@@ -355,7 +475,7 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
     if cfg.refine_views:
         mv, mf, _ = read_mesh_ply(lay.scene(entry.scene).mesh_raw)
         scene_pts = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
-        tracks = _track_pairs(lay, entry.name) if use_tracks else None
+        tracks = _track_pairs(lay, entry.name, cfg.track_frames) if use_tracks else None
         if not use_tracks:
             warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
                             "pairs are not used by the refinement")
@@ -391,14 +511,22 @@ def _refine(cfg: CalibrateConfig, lay: SessionLayout, entry, init: dict, regs: d
     return report
 
 
-def _track_pairs(lay: SessionLayout, seq: str):
-    """Cross-view performer correspondences from the Stage II keypoints, back-projected with depth."""
+def _track_pairs(lay: SessionLayout, seq: str, max_frames: int = 0):
+    """Cross-view performer correspondences from the Stage II keypoints, back-projected with depth;
+    from at most ``max_frames`` evenly spread frames (0 = all)."""
+    from dataclasses import replace as _replace
+
     from embodmocap.calibrate import losses as L
 
     sl = lay.sequence(seq)
     kp = {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS}
     cams = {v: read_cameras(sl.view(v).cameras) for v in VIEWS}
     corr = L.KeypointCorrespondences(kp["v1"], kp["v2"]).correspondences()
+    n = min(len(kp["v1"]), len(kp["v2"]))
+    if 0 < max_frames < n:
+        keep = np.isin(corr.frames, np.unique(np.linspace(0, n - 1, max_frames).round().astype(np.int64)))
+        corr = _replace(corr, frames=corr.frames[keep], xy_a=corr.xy_a[keep], xy_b=corr.xy_b[keep],
+                        weight=corr.weight[keep], behind_surface_m=corr.behind_surface_m[keep])
     if len(corr.frames) == 0:
         return None
     return L.track_pairs_from_depth(

@@ -65,12 +65,71 @@ def write_mesh_ply(path: str | Path, vertices, faces, colours=None) -> Path:
 
 def read_mesh_ply(path: str | Path) -> tuple[NDArray, NDArray, NDArray]:
     """Read a triangle mesh PLY as ``(vertices, faces, colours)`` (colours (0, 3) when absent)."""
-    import open3d as o3d
-
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "mesh file not found", "run the scene stage first")
+    fast = _read_own_ply(path)
+    if fast is not None:
+        return fast
+    import open3d as o3d
+
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) == 0 and len(mesh.vertices) == 0:
         raise InputError(path, "not a readable triangle mesh (no vertices)", "write it again")
     return from_open3d(mesh)
+
+
+# The exact binary layout :func:`write_mesh_ply` produces (through Open3D): read with NumPy alone,
+# which skips Open3D's import (~5 s, it pulls in its ML packages) for Stage III and the
+# benchmarks; any other PLY goes through Open3D.
+_OWN_VERTEX = (("x", "double"), ("y", "double"), ("z", "double"))
+_OWN_COLOUR = (("red", "uchar"), ("green", "uchar"), ("blue", "uchar"))
+
+
+def _read_own_ply(path: Path) -> tuple[NDArray, NDArray, NDArray] | None:
+    """``(vertices, faces, colours)`` of a PLY in :func:`write_mesh_ply`'s layout, or None for any
+    other layout (ASCII, other property types or order, more elements)."""
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+        end = head.find(b"end_header\n")
+        if not head.startswith(b"ply\n") or end < 0:
+            return None
+        lines = [ln.split() for ln in head[:end].decode("ascii", "replace").splitlines()[1:]]
+        lines = [ln for ln in lines if ln and ln[0] != "comment"]
+        if not lines or lines[0] != ["format", "binary_little_endian", "1.0"]:
+            return None
+        elems: list[tuple[str, int, list[tuple[str, ...]]]] = []
+        for ln in lines[1:]:
+            if ln[0] == "element" and len(ln) == 3:
+                elems.append((ln[1], int(ln[2]), []))
+            elif ln[0] == "property" and elems:
+                elems[-1][2].append(tuple(ln[1:]))
+            else:
+                return None
+        if [e[0] for e in elems] != ["vertex", "face"]:
+            return None
+        (_, nv, vprops), (_, nf, fprops) = elems
+        props = [(p[1], p[0]) for p in vprops if len(p) == 2]
+        has_colour = tuple(props) == _OWN_VERTEX + _OWN_COLOUR
+        if len(props) != len(vprops) or not (has_colour or tuple(props) == _OWN_VERTEX):
+            return None
+        if fprops != [("list", "uchar", "uint", "vertex_indices")] and fprops != [("list", "uchar", "int", "vertex_indices")]:
+            return None
+        vdt = np.dtype([("xyz", "<f8", 3)] + ([("rgb", "u1", 3)] if has_colour else []))
+        fdt = np.dtype([("n", "u1"), ("idx", "<u4" if fprops[0][2] == "uint" else "<i4", 3)])
+        fh.seek(end + len(b"end_header\n"))
+        data = fh.read()
+    if len(data) != nv * vdt.itemsize + nf * fdt.itemsize:
+        return None
+    vert = np.frombuffer(data, vdt, count=nv)
+    face = np.frombuffer(data, fdt, count=nf, offset=nv * vdt.itemsize)
+    if nf and not np.all(face["n"] == 3):
+        return None
+    v = vert["xyz"].astype(np.float64)
+    f = face["idx"].astype(np.int64)
+    c = vert["rgb"].astype(np.float64) / 255.0 if has_colour else np.zeros((0, 3))
+    if len(f) and (f.min() < 0 or f.max() >= len(v)):
+        return None
+    if nv == 0:
+        raise InputError(path, "not a readable triangle mesh (no vertices)", "write it again")
+    return v, f, c

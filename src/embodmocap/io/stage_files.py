@@ -44,8 +44,9 @@ CameraForm = Literal["cameras", "cameras_world", "cameras_final"]
 #: Stage that writes each camera form, and the command that does it.
 _WRITER = {"cameras": "sequence", "cameras_world": "calibrate", "cameras_final": "motion",
            "keypoints2d": "sequence", "registration": "calibrate", "keypoints3d": "motion", "joints_world": "motion"}
-#: Versions of the registration file this reader knows (2 added ``accepted`` and ``run``).
-REGISTRATION_VERSIONS = (1, 2)
+#: Versions of the registration file this reader knows (2 added ``accepted`` and ``run``; 3 added
+#: ``off_chain`` and the optional ``T_world_vio_performer``).
+REGISTRATION_VERSIONS = (1, 2, 3)
 
 
 def _fix(path: Path, kind: str) -> str:
@@ -261,7 +262,11 @@ class RegistrationFile(_FileRecord):
         T_world_cam: (R, 4, 4) registered camera-to-world poses.
         inliers, reproj_error_px: (R,) per registered frame.
         match_frames, match_xy, match_xyz: (M,), (M, 2), (M, 3) the inlier 2D-3D matches.
-        accepted: (R,) bool, consistent with the VIO; run: (R,) run label.
+        accepted: (R,) bool, consistent with the VIO (and on the whole chain's offset); run: (R,) run label.
+        off_chain: (R,) bool, kept by the run check but off the whole chain's offset (version 3;
+            all False when read from older files).
+        T_world_vio_performer: (4, 4) or None: the view's offset when it was placed through the
+            performer (its own registrations disagreed with its VIO; version 3, optional).
     """
 
     version: np.ndarray
@@ -276,10 +281,12 @@ class RegistrationFile(_FileRecord):
     match_xyz: np.ndarray
     accepted: np.ndarray
     run: np.ndarray
+    off_chain: np.ndarray | None = None
+    T_world_vio_performer: np.ndarray | None = None
 
 
 def read_registration(path: str | Path) -> RegistrationFile:
-    """Read and check a view's ``registration.npz`` (versions 1 and 2)."""
+    """Read and check a view's ``registration.npz`` (versions 1 to 3)."""
     path = Path(path)
     fix = _fix(path, "registration")
     keys = ("attempted", "attempted_inliers", "t", "T_world_cam", "inliers", "reproj_error_px",
@@ -288,9 +295,14 @@ def read_registration(path: str | Path) -> RegistrationFile:
     if "accepted" not in d:  # written before the VIO check: every frame counts
         d["accepted"] = np.ones(len(d["t"]), dtype=bool)
         d["run"] = np.zeros(len(d["t"]), dtype=np.int64)
+    if "off_chain" not in d:  # written before the whole-chain check (version 2)
+        d["off_chain"] = np.zeros(len(d["t"]), dtype=bool)
+    if "T_world_vio_performer" in d:
+        check_shapes(path, d, {"T_world_vio_performer": (4, 4)}, fix)
     check_shapes(path, d, {"attempted": ("A",), "attempted_inliers": ("A",), "t": ("R",), "T_world_cam": ("R", 4, 4),
                            "inliers": ("R",), "reproj_error_px": ("R",), "match_frames": ("M",),
-                           "match_xy": ("M", 2), "match_xyz": ("M", 3), "accepted": ("R",), "run": ("R",)}, fix)
+                           "match_xy": ("M", 2), "match_xyz": ("M", 3), "accepted": ("R",), "run": ("R",),
+                           "off_chain": ("R",)}, fix)
     return RegistrationFile(**_take(RegistrationFile, d))
 
 

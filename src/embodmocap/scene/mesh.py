@@ -122,4 +122,3 @@ def mesh_stats(vertices, faces) -> dict:
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
     bounds = [v.min(0).tolist(), v.max(0).tolist()] if len(v) else [[0.0] * 3, [0.0] * 3]
     return {"vertices": int(len(v)), "faces": int(len(f)), "area_m2": float(area), "bounds": bounds}
-
