@@ -105,6 +105,9 @@ class SyncConfig:
     """Red excess some pixel of a spot or the 2 px around it must reach to be examined at all."""
     max_candidates: int = 48
     """At most this many spots per frame are examined (those standing out most first)."""
+    max_excess_candidates: int = 16
+    """...plus at most this many of the spots standing out most in red excess (``r - max(g, b)``),
+    when not among those already: under warm light hundreds of texture spots saturate red."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
     min_seen_fraction: float = 0.6
@@ -145,6 +148,10 @@ class SyncConfig:
     background_change: float = 50.0
     """Mean RGB change of the ring around the dot, from the last frame with it to the first
     without, at which the confidence drops to 0 (something moved in front of the dot)."""
+    rival_drop_weight: float = 0.5
+    """When several disappearances score at least ``min_confidence``, each score is multiplied by
+    ``1 - w + w * drop / largest drop`` (drop: strength before less after): a dim reddish speck
+    that a passing hand covers goes out as completely as a laser, but by far less. 0 = off."""
     min_confidence: float = 0.4
     """Events scoring below this are not reported (the caller then asks for a manual frame). A
     bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
@@ -340,7 +347,17 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     full[sub] = contrast
     standout = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
     order = np.argsort(-standout, kind="stable")
-    ids = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    first = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    # Plus the spots standing out most in red *excess*: a scene under warm light (a white balance
+    # towards red, a terracotta floor) saturates red in hundreds of texture spots that all stand
+    # out more in red than a small red laser core, which only its red excess sets apart; ranked by
+    # red alone, the dot fell out of the examined spots.
+    full[sub] = c_redness
+    excess = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
+    order = np.argsort(-excess, kind="stable")
+    keep = (excess[order] >= 0) & (reddest[order] >= cfg.min_spot_redness)
+    extra = [i for i in ids[order][keep][: cfg.max_excess_candidates] if i not in set(first.tolist())]
+    ids = np.concatenate([first, np.asarray(extra, dtype=first.dtype)])
     out = []
     for lab in ids:
         x, y, w, h = stats[lab, :4]
@@ -591,6 +608,27 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     return contrast * background * (0.5 + 0.5 * support) * steady
 
 
+def _drop(t: _Track, cfg: SyncConfig) -> float:
+    """How much the spot's strength fell at its last sighting (the measure :func:`_score`'s
+    contrast divides by the strength before)."""
+    return float(np.median(t.strength[-3:])) - max(t.after_strength[: cfg.absent_frames])
+
+
+def _weigh_drops(scored: list[tuple[float, _Track]], cfg: SyncConfig) -> list[tuple[float, _Track]]:
+    """Scale the event candidates' scores by their strength drop relative to the largest drop among
+    them (``rival_drop_weight``). Every score is relative (a dim reddish speck covered by a passing
+    hand goes fully out, contrast 1); switching a laser off is the largest drop of red in the view.
+    A view with one candidate keeps its score, so whether an event is reported at all is unchanged."""
+    w = cfg.rival_drop_weight
+    events = [(s, t) for s, t in scored if s >= cfg.min_confidence]
+    if w <= 0 or len(events) < 2:
+        return scored
+    top = max(_drop(t, cfg) for _, t in events)
+    if top <= 0:
+        return scored
+    return [(s * (1.0 - w + w * float(np.clip(_drop(t, cfg) / top, 0.0, 1.0))), t) for s, t in scored]
+
+
 def detect_laser_event_in_frames(
     frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig = SyncConfig(), max_event_frame: int | None = None,
 ) -> SyncEvent | None:
@@ -609,6 +647,7 @@ def detect_laser_event_in_frames(
         return None
     last_allowed = n_read if max_event_frame is None else max_event_frame
     scored = [(s, t) for t in tracks if (s := _score(t, cfg, size, n_read, last_allowed)) is not None]
+    scored = _weigh_drops(scored, cfg)
     scored.sort(key=lambda st: -st[0])
     if not scored or scored[0][0] < cfg.min_confidence:
         log.info("no laser-dot event: %d dot tracks, best score %s", len(tracks),
