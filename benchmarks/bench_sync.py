@@ -12,10 +12,14 @@ Targets (issues 4 and 12): the sync frame is found exactly on at least 95 % of v
 
 Sessions are short (1.5 s after the event, a 0.3 s scene capture that is not used) at the default
 resolution (640x480 RGB). With ``--out`` on a kept folder, sessions already there are reused.
+``--seconds 6 --rooms ... --lighting`` makes the views long (the whole view is searched while the
+performer moves in front of furniture and walls), cycles the studio's room presets over the indoor
+sessions and films the views under other light than the scan: the setting in which long real
+captures failed (see BENCHMARKS.md, "Automatic sync on long views").
 
     .venv/bin/python benchmarks/bench_sync.py [--settings easy hard none] [--seeds 0 ... 9]
         [--none-seeds 100 ... 109] [--presets indoor outdoor] [--out bench_out/sync]
-        [--json bench_out/sync.json] [--keep]
+        [--json bench_out/sync.json] [--keep] [--seconds 6] [--rooms standard repetitive ...] [--lighting]
 
 Prints a per-view table and, per setting, the fraction exact, the max abs error, the misses and
 false events, then the JSON summary.
@@ -41,15 +45,26 @@ from embodmocap.synth.studio import synthesize
 WALLS = ("scene", "reddish", "magenta", "beige", "grey", "textured")
 
 
-def session_config(setting: str, seed: int, preset: str, index: int) -> SynthConfig:
-    """The benchmark's session ``index`` of a setting (hard: wall looks cycled by index)."""
+ROOMS = ("standard", "large", "high_ceiling", "low_texture", "repetitive")
+
+
+def session_config(setting: str, seed: int, preset: str, index: int, seconds: float = 1.5,
+                   rooms: tuple[str, ...] = ("standard",), lighting: bool = False) -> SynthConfig:
+    """The benchmark's session ``index`` of a setting (hard: wall looks cycled by index).
+
+    ``seconds`` after the event: 1.5 (the default) keeps the views short; 6 gives views whose
+    whole length (with the performer moving in front of the room) is searched for the event.
+    ``rooms`` are cycled over the indoor sessions by index; ``lighting`` films every view under
+    other light than the scene scan (the studio's ``lighting_change``)."""
     if setting == "easy":
         laser = LaserConfig()
     elif setting == "hard":
         laser = LaserConfig(mode="realistic", walls=(WALLS[index % len(WALLS)],))
     else:
         laser = LaserConfig(mode="none", walls=(WALLS[index % len(WALLS)],))
-    return SynthConfig(seed=seed, preset=preset, seconds=1.5, scene_seconds=0.3, laser=laser)
+    room = rooms[index % len(rooms)] if preset == "indoor" else "standard"
+    return SynthConfig(seed=seed, preset=preset, seconds=seconds, scene_seconds=0.3, laser=laser, room=room,
+                       lighting_change=lighting)
 
 
 def _blur_px(gt, v: str, info: dict, cap) -> float:
@@ -67,14 +82,18 @@ def _blur_px(gt, v: str, info: dict, cap) -> float:
     return float(np.linalg.norm(b - a) / 2 * look["shutter"])
 
 
-def run_session(root: Path, setting: str, seed: int, preset: str, index: int, keep: bool) -> list[dict]:
-    out = root / f"{setting}_{preset}_{seed}"
+def run_session(root: Path, setting: str, seed: int, preset: str, index: int, keep: bool, seconds: float = 1.5,
+                rooms: tuple[str, ...] = ("standard",), lighting: bool = False) -> list[dict]:
+    cfg = session_config(setting, seed, preset, index, seconds, rooms, lighting)
+    tag = "" if (seconds, rooms, lighting) == (1.5, ("standard",), False) else \
+        f"_{cfg.room}_{seconds:g}s" + ("_light" if lighting else "")
+    out = root / f"{setting}_{preset}_{seed}{tag}"
     gt_file = out / "ground_truth" / "ground_truth.json"
     t_synth = 0.0
     if not gt_file.exists():
         if out.exists():
             shutil.rmtree(out)
-        t_synth = synthesize(session_config(setting, seed, preset, index), out).seconds_taken
+        t_synth = synthesize(cfg, out).seconds_taken
     info = json.loads(gt_file.read_text())
     truth = info["sync_frames"]
     lay = SessionLayout(out)
@@ -90,7 +109,8 @@ def run_session(root: Path, setting: str, seed: int, preset: str, index: int, ke
         look = laser["views"].get(v) or {}
         has_laser = laser["mode"] != "none"
         rows.append({
-            "setting": setting, "preset": preset, "seed": seed, "view": v, "wall": laser["wall"],
+            "setting": setting, "preset": preset, "room": cfg.room, "lighting_change": lighting, "seed": seed,
+            "view": v, "wall": laser["wall"],
             "core_px": look.get("core_px"), "halo_px": look.get("halo_px"),
             "white": None if not look else round(look["gain"] * look["whiteness"], 2),
             "blur_px": round(_blur_px(gt, v, info, cap), 2), "occluded": len(look.get("occluded", [])),
@@ -131,6 +151,11 @@ def main() -> int:
     ap.add_argument("--none-seeds", type=int, nargs="+", default=list(range(100, 110)),
                     help="seeds of the sessions without a laser (10 sessions = 20 views)")
     ap.add_argument("--presets", nargs="+", default=["indoor", "outdoor"])
+    ap.add_argument("--seconds", type=float, default=1.5,
+                    help="seconds of each view after the event (6: long views, performer moving, all searched)")
+    ap.add_argument("--rooms", nargs="+", default=["standard"], choices=list(ROOMS),
+                    help="indoor room presets, cycled over the sessions")
+    ap.add_argument("--lighting", action="store_true", help="views filmed under other light than the scan")
     ap.add_argument("--out", type=Path, default=Path("bench_out/sync"))
     ap.add_argument("--json", type=Path, default=None, help="also write the summary here")
     ap.add_argument("--keep", action="store_true", help="keep the synthetic sessions (and reuse kept ones)")
@@ -146,7 +171,8 @@ def main() -> int:
         if setting == "none":  # 10 sessions: half indoor, half outdoor
             sessions = [(args.presets[i % len(args.presets)], s) for i, s in enumerate(seeds)]
         for index, (preset, seed) in enumerate(sessions):
-            for r in run_session(args.out, setting, seed, preset, index, args.keep):
+            for r in run_session(args.out, setting, seed, preset, index, args.keep, args.seconds,
+                                 tuple(args.rooms), args.lighting):
                 rows.append(r)
                 f = lambda x, fmt="{:.1f}": "-" if x is None else fmt.format(x)  # noqa: E731
                 print(f"{setting:7} {preset:7} {seed:>4} {r['view']:4} {r['wall']:8} {f(r['core_px']):>4} "

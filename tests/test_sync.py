@@ -285,3 +285,45 @@ def test_synced_and_sliced_views_show_the_same_instant(sessions):
     np.testing.assert_array_equal(motion["v1"], motion["v2"])
     assert motion["v1"][0] == int(gt["event_motion_frame"])
     assert not any(m.dropped.any() for m in maps.values())
+
+
+def test_dot_is_examined_among_many_warm_texture_spots():
+    # A floor under warm light: hundreds of small texture spots saturate red and stand out in red
+    # more than the laser core on its bright wall; only the core's red excess sets it apart.
+    rng = np.random.default_rng(7)
+    img = np.empty((240, 320, 3))
+    img[:] = (200, 150, 140)  # warm wall
+    img[120:] = (60, 45, 40)  # dark floor
+    for y, x in zip(rng.integers(124, 236, 400), rng.integers(2, 316, 400)):
+        img[y:y + 2, x:x + 2] = (255, 220, 205)  # saturated-red speckles of the floor's texture
+    _paint_dot(img, 160.0, 60.0, r=2.0)
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    c = find_dot_candidates(img, SyncConfig())
+    assert len(c) >= 1 and np.min(np.hypot(c.xy[:, 0] - 160, c.xy[:, 1] - 60)) < 3
+    # Examining only the spots that stand out most in red (the old ranking) loses the dot.
+    old = find_dot_candidates(img, SyncConfig(max_excess_candidates=0))
+    assert len(old) == 0 or np.min(np.hypot(old.xy[:, 0] - 160, old.xy[:, 1] - 60)) > 3
+
+
+def test_small_drop_loses_to_the_laser_switch_off():
+    # The laser shines on a faint reddish mark (so its spot does not go out completely); later a
+    # small glint with a pinkish rim on the grey wall goes out completely (the performer's shadow).
+    # By contrast (relative drop) the glint wins; the laser's drop of red is far larger and wins.
+    rng = np.random.default_rng(8)
+    base = _wall(rng, 240, 320)
+    frames = []
+    for f in range(60):
+        img = base.copy()
+        img[128:133, 218:223] = (165, 135, 125)  # faint reddish mark under the dot
+        if f < 20:
+            _paint_dot(img, 220.0, 130.0, r=3.0)
+            img[129:132, 219:222] = (255, 235, 230)  # over-exposed white core
+        if f < 45:
+            img[59:64, 79:84] = (215, 150, 145)  # the glint's pinkish rim
+            img[60:63, 80:83] = (250, 236, 232)  # and its white core
+        img += rng.normal(0, 2.0, img.shape)
+        frames.append(np.clip(img, 0, 255).astype(np.uint8))
+    ev = detect_laser_event(_capture(frames))
+    assert ev is not None and ev.frame == 20, ev
+    old = detect_laser_event(_capture(frames), SyncConfig(rival_drop_weight=0.0))
+    assert old is not None and old.frame == 45, old  # by contrast alone the glint won

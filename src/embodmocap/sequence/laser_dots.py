@@ -66,6 +66,9 @@ class SyncConfig:
     """Red excess some pixel of a spot or the 2 px around it must reach to be examined at all."""
     max_candidates: int = 48
     """At most this many spots per frame are examined (those standing out most first)."""
+    max_excess_candidates: int = 16
+    """...plus at most this many of the spots standing out most in red excess (``r - max(g, b)``),
+    when not among those already: under warm light hundreds of texture spots saturate red."""
     min_seen_frames: int = 5
     """Frames the dot must be seen (gaps allowed) before it disappears for the event to count."""
     min_seen_fraction: float = 0.6
@@ -106,6 +109,10 @@ class SyncConfig:
     background_change: float = 50.0
     """Mean RGB change of the ring around the dot, from the last frame with it to the first
     without, at which the confidence drops to 0 (something moved in front of the dot)."""
+    rival_drop_weight: float = 0.5
+    """When several disappearances score at least ``min_confidence``, each score is multiplied by
+    ``1 - w + w * drop / largest drop`` (drop: strength before less after): a dim reddish speck
+    that a passing hand covers goes out as completely as a laser, but by far less. 0 = off."""
     min_confidence: float = 0.4
     """Events scoring below this are not reported (the caller then asks for a manual frame). A
     bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
@@ -281,7 +288,17 @@ def find_dot_candidates(rgb: NDArray[np.uint8], cfg: SyncConfig = SyncConfig()) 
     full[sub] = contrast
     standout = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
     order = np.argsort(-standout, kind="stable")
-    ids = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    first = ids[order][reddest[order] >= cfg.min_spot_redness][: cfg.max_candidates]
+    # Plus the spots standing out most in red *excess*: a scene under warm light (a white balance
+    # towards red, a terracotta floor) saturates red in hundreds of texture spots that all stand
+    # out more in red than a small red laser core, which only its red excess sets apart; ranked by
+    # red alone, the dot fell out of the examined spots.
+    full[sub] = c_redness
+    excess = np.array([full[y:y + h, x:x + w].max() for x, y, w, h in boxes], dtype=np.float64).reshape(-1)
+    order = np.argsort(-excess, kind="stable")
+    keep = (excess[order] >= 0) & (reddest[order] >= cfg.min_spot_redness)
+    extra = [i for i in ids[order][keep][: cfg.max_excess_candidates] if i not in set(first.tolist())]
+    ids = np.concatenate([first, np.asarray(extra, dtype=first.dtype)])
     out = []
     for lab in ids:
         x, y, w, h = stats[lab, :4]

@@ -271,6 +271,27 @@ def _score(t: _Track, cfg: SyncConfig, size: tuple[int, int], n_read: int, last_
     return contrast * background * (0.5 + 0.5 * support) * steady
 
 
+def _drop(t: _Track, cfg: SyncConfig) -> float:
+    """How much the spot's strength fell at its last sighting (the measure :func:`_score`'s
+    contrast divides by the strength before)."""
+    return float(np.median(t.strength[-3:])) - max(t.after_strength[: cfg.absent_frames])
+
+
+def _weigh_drops(scored: list[tuple[float, _Track]], cfg: SyncConfig) -> list[tuple[float, _Track]]:
+    """Scale the event candidates' scores by their strength drop relative to the largest drop among
+    them (``rival_drop_weight``). Every score is relative (a dim reddish speck covered by a passing
+    hand goes fully out, contrast 1); switching a laser off is the largest drop of red in the view.
+    A view with one candidate keeps its score, so whether an event is reported at all is unchanged."""
+    w = cfg.rival_drop_weight
+    events = [(s, t) for s, t in scored if s >= cfg.min_confidence]
+    if w <= 0 or len(events) < 2:
+        return scored
+    top = max(_drop(t, cfg) for _, t in events)
+    if top <= 0:
+        return scored
+    return [(s * (1.0 - w + w * float(np.clip(_drop(t, cfg) / top, 0.0, 1.0))), t) for s, t in scored]
+
+
 def detect_laser_event_in_frames(
     frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig = SyncConfig(), max_event_frame: int | None = None,
 ) -> SyncEvent | None:
@@ -289,6 +310,7 @@ def detect_laser_event_in_frames(
         return None
     last_allowed = n_read if max_event_frame is None else max_event_frame
     scored = [(s, t) for t in tracks if (s := _score(t, cfg, size, n_read, last_allowed)) is not None]
+    scored = _weigh_drops(scored, cfg)
     scored.sort(key=lambda st: -st[0])
     if not scored or scored[0][0] < cfg.min_confidence:
         log.info("no laser-dot event: %d dot tracks, best score %s", len(tracks),
