@@ -14,6 +14,15 @@ from embodmocap import errors
 from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 
 
+@pytest.fixture(autouse=True)
+def default_sigint():
+    """Python's own SIGINT handler for each test: a test run started in the background (``cmd &``,
+    ``nohup``) inherits SIGINT ignored, and the CLI rightly leaves an ignored SIGINT ignored."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def _stage_interrupted_inside_an_import(path):
     @tracked_stage
     def stage():
