@@ -10,11 +10,62 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from embodmocap.calibrate.offset import RobustOffsetConfig
-from embodmocap.calibrate.register import RegisterConfig
 from embodmocap.sequence.geosync import GeoSyncConfig
 
 
 Solver = Literal["adam", "lm", "both"]
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Settings of view-frame registration. Defaults register 2 x 200 frames at 640x480 in about a
+    minute on 2 CPU cores."""
+
+    num_frames: int = 80
+    """Frames sampled per view by :func:`select_frames`: spread over time and over viewpoints
+    (the VIO path and turn), the steadiest frame of each stretch (least blur). A 6 s view has
+    about 175 frames, a 60 s one 1,800. The offset has 4 parameters and the per-view error is
+    dominated by a bias common to the view's frames, not by their number: beyond ~80 well spread
+    frames more only cost time (SIFT is most of Stage III's time)."""
+    workers: int = 0
+    """Threads registering frames in parallel (0 = one per CPU core). OpenCV and pycolmap release
+    the GIL; each frame's result does not depend on the thread count or order."""
+    coarse_frames: int = 24
+    """Frames registered first by retrieval; their VIO-consistent poses give a coarse offset from
+    which the other frames get their candidate key frames by pose (:func:`pose_candidates`)."""
+    max_features: int = 2048
+    """SIFT features kept per query frame (the strongest)."""
+    contrast_threshold: float = 0.03
+    """OpenCV SIFT contrast threshold (lower = more, weaker features; OpenCV's default is 0.04)."""
+    mask_dilation_px: int = 10
+    """The person mask is grown by this many pixels before features are excluded, so that no
+    descriptor window reaches into the performer."""
+    num_candidates: int = 8
+    """Scene key frames each query frame is matched against."""
+    candidates: Literal["auto", "retrieval", "pose"] = "auto"
+    """How candidate key frames are chosen: ``"retrieval"`` = most similar bag of visual words;
+    ``"pose"`` = key frames whose view overlaps the query's predicted view (needs predicted poses);
+    ``"auto"`` = pose where a prediction is given, retrieval elsewhere."""
+    vocabulary_size: int = 256
+    """Visual words of the retrieval vocabulary (k-means over the key frames' descriptors)."""
+    vocabulary_samples: int = 20000
+    """At most this many key frame descriptors (random) train the vocabulary."""
+    max_view_angle_deg: float = 75.0
+    """``"pose"`` candidates: key frames whose optical axis differs from the predicted one by more
+    than this are never candidates."""
+    pose_probe_depths_m: tuple[float, ...] = (1.5, 3.0, 5.0)
+    """``"pose"`` candidates: depths (metres) of the probe points cast from the predicted camera
+    (:func:`pose_overlap`); room scale by default."""
+    ratio: float = 0.8
+    """Lowe's ratio test: a match is kept when its distance is below ``ratio`` x the second best."""
+    ransac_max_error_px: float = 6.0
+    """Absolute pose RANSAC: largest reprojection error (pixels) of an inlier."""
+    min_inliers: int = 20
+    """A frame with fewer pose inliers counts as not registered."""
+    min_inlier_ratio: float = 0.1
+    """RANSAC's lowest accepted inlier share of the matches (COLMAP's option)."""
+    seed: int = 0
+    """Seed of the vocabulary's k-means and of RANSAC, so that runs repeat exactly."""
 
 
 @dataclass(frozen=True)
