@@ -138,12 +138,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             f"{v}_register_seconds": {k: round(s, 2) for k, s in reg.seconds.items()},
         })
         regs[v] = _load_registration(out.view(v).registration)
-    for v in VIEWS:
-        if "accepted" not in regs[v]:  # a registration written before the VIO check: all frames count
-            regs[v]["accepted"] = np.ones(len(regs[v]["t"]), dtype=bool)
-            regs[v]["run"] = np.zeros(len(regs[v]["t"]), dtype=np.int64)
-        if "off_chain" not in regs[v]:  # written before the whole-chain check (version 2)
-            regs[v]["off_chain"] = np.zeros(len(regs[v]["t"]), dtype=bool)
+    # (Older registration files read with every frame accepted and none off the chain: the typed reader.)
 
     # 2. Initial yaw-only offsets.
     init: dict[str, YawOffset] = {}
