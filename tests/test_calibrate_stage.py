@@ -150,7 +150,9 @@ def test_view_whose_registration_fails_is_placed_through_the_performer(session, 
     ends near the truth; v2 is untouched."""
     work = tmp_path / "s"
     shutil.copytree(session, work)
-    real = stage._register_view
+    from embodmocap.calibrate import solve
+
+    real = solve.register_frames_of_view
     rng = np.random.default_rng(1)
 
     def broken(cfg, frames, K, index, T_vio, name):
@@ -163,7 +165,7 @@ def test_view_whose_registration_fails_is_placed_through_the_performer(session, 
         scatter = make_T(np.stack([rot_z(a) for a in rng.uniform(-np.pi, np.pi, n)]), rng.uniform(-2, 2, (n, 3)))
         return replace(reg, T_world_cam=scatter @ reg.T_world_cam)
 
-    monkeypatch.setattr(stage, "_register_view", broken)
+    monkeypatch.setattr(solve, "register_frames_of_view", broken)
     out = stage.run(CFG, work, force=True)
     truth = true_offsets(work)
     rep = out.report["views"]

@@ -294,6 +294,7 @@ class StepRun:
         self.manifest, self.name, self.fp, self.label = manifest, name, fp, label
         self.run = force or not manifest.is_current(name, fp)
         self.recorded = False
+        self.postponed = False
         self._t0 = time.perf_counter()
 
     def __enter__(self) -> "StepRun":
@@ -307,10 +308,17 @@ class StepRun:
         self.recorded = True
         log.info("%s: %s done in %.1f s%s", self.label, self.name, seconds, _brief(figures))
 
+    def postpone(self) -> "StepRun":
+        """Leave the ``with`` without recording: the step is finished later (its outputs depend on
+        other steps, e.g. a view placed through the other view) by :meth:`record`, timed from the
+        start of the ``with``. Returns the step."""
+        self.postponed = True
+        return self
+
     def __exit__(self, exc_type, exc, tb) -> bool:
         if not self.run:
             self.manifest.skipped.append(self.name)
-        elif exc_type is None and not self.recorded:
+        elif exc_type is None and not self.recorded and not self.postponed:
             raise RuntimeError(f"step {self.name} of {self.manifest.stage} ran but recorded nothing")
         return False
 
