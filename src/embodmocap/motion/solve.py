@@ -1,0 +1,394 @@
+"""Stage IV's decisions as pure functions: arrays, typed stage data and configs in, results out.
+
+No function here takes a path, opens a file or touches a manifest: :mod:`embodmocap.motion.stage`
+loads Stage II/III's files with :mod:`embodmocap.io.stage_files` (both views already on view 1's
+instants, :func:`embodmocap.sequence.subframe.synced_views`), calls these one step at a time (so
+each step is fingerprinted and resumable) and writes what they return. :func:`solve` chains the
+same steps in memory, for the benchmark's variants and for tests:
+
+1. :func:`triangulate_views`: left/right swaps undone, confidence-weighted DLT over all frames
+   (``keypoints3d.npz``);
+2. :func:`fit_motion`: the world SMPLify started from the body prior or the keypoints
+   (``smpl_fit.npz``);
+3. :func:`align_motion`: the contact-marker alignment and the final body, joints and cameras
+   (``smpl_world.npz``, ``joints_world.npz``, ``<view>/cameras_final.npz``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.errors import InputError
+from embodmocap.geometry.triangulation import projection_matrices, triangulate
+from embodmocap.io.layout import VIEWS
+from embodmocap.io.stage_files import CameraFile, Keypoints3DFile, WorldJointsFile
+from embodmocap.motion.config import MotionConfig
+from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
+from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
+from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
+from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
+
+log = logging.getLogger(__name__)
+
+KEYPOINTS3D_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Triangulated:
+    """The triangulation step's results: ``keypoints3d.npz``, the manifest figures, the gaps
+    too long to fill ((joint, first, last) frames)."""
+
+    file: Keypoints3DFile
+    figures: dict
+    long_gaps: list = field(default_factory=list)
+
+
+def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray], T: int,
+                      label: str = "") -> Triangulated:
+    """Both views' 2D keypoints triangulated with their world cameras.
+
+    Args:
+        cams: view -> mapping with ``K`` (3, 3) and ``T_world_cam`` (>= T, 4, 4) (both views on
+            view 1's instants); kps: view -> (>= T, 17, 3) keypoints; T: frames; label: the
+            sequence (log lines).
+    """
+    K = np.stack([cams[v]["K"] for v in VIEWS])
+    P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
+    kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
+    if cfg.fix_swaps:
+        kp, swapped = fix_swaps(P, kp, cfg.triangulation)
+    else:
+        swapped = np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)
+    tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
+    file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
+                           reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS), keypoints2d=kp,
+                           swapped=swapped, swap_groups=np.array(list(COCO17_SWAP_GROUPS)))
+    seen = np.isfinite(tri.points[..., 0])
+    figures = {
+        "triangulated_fraction": round(float(seen.mean()), 4),
+        "filled_fraction": round(float(tri.filled.mean()), 4),
+        "long_gaps": len(tri.long_gaps),
+        "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
+        **{f"{v}_swaps_undone": {g: int(swapped[:, i, k].sum()) for k, g in enumerate(COCO17_SWAP_GROUPS)}
+           for i, v in enumerate(VIEWS)},
+    }
+    if tri.long_gaps:
+        worst = max(tri.long_gaps, key=lambda g: g[2] - g[1])
+        log.warning("%s: %d gaps in the 3D keypoints are too long to fill (the longest: joint %d, frames %d-%d); "
+                    "the fit relies on the 2D keypoints and smoothness there", label, len(tri.long_gaps), *worst)
+    return Triangulated(file, figures, list(tri.long_gaps))
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """The fit step's results: the world motion (with the frame rate and gender), (T,) frames
+    where the body can be placed, the manifest figures."""
+
+    params: object
+    valid: NDArray
+    figures: dict
+
+
+def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
+               T: int, fps: float, priors: Mapping, layout: str = "COCO17", gender: str | None = None, *,
+               label: str = "", source: object = None) -> Fitted:
+    """The world SMPLify on the 3D and both views' 2D keypoints.
+
+    Args:
+        model: the body model; k3: the triangulation (:func:`triangulate_views`' file);
+        cams, kps: as for :func:`triangulate_views`; fps: the sequence frame rate;
+        priors: view -> (camera-space body prior with one row per frame 0..T-1, (T,) bool has-estimate)
+            (:func:`embodmocap.io.body_prior.body_priors_by_frame`; empty: start from the keypoints);
+        layout: the detector's keypoint layout; gender: the session's (None: neutral);
+        label: the sequence (messages); source: what an error names (``keypoints3d.npz``).
+
+    Raises:
+        InputError: too few triangulated joints, or no starting body without a prior.
+    """
+    if cfg.kp3d_conf not in ("mean", "min"):
+        raise ValueError(f"MotionConfig.kp3d_conf must be 'mean' or 'min', got {cfg.kp3d_conf!r}")
+    valid = placeable_frames(source, label, k3["points"], k3["conf"], cfg)
+    # The 2D keypoints as the triangulation step left them (left/right swaps undone).
+    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+    views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
+             for i, v in enumerate(VIEWS)]
+    min_conf = cfg.smplify.min_conf
+    points, conf3 = k3["points"], k3["conf"]
+    if cfg.kp3d_conf == "min":
+        # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
+        # the triangulated point along the other view's ray without any reprojection error.
+        c2 = np.nan_to_num(kp2d[..., 2])
+        used = c2 >= cfg.triangulation.min_conf
+        weakest = np.where(used, c2, np.inf).min(axis=1)
+        conf3 = np.where(np.isfinite(weakest), np.minimum(conf3, weakest), conf3)
+    if cfg.bone_tol > 0:
+        from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
+                                          rest_skeleton, torso_anchors)
+
+        sk = rest_skeleton(model, layout)
+        seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
+        b_bones = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
+        # An elbow (knee) whose shoulder (hip) was not triangulated is judged against the
+        # shoulder of the torso placed on the other torso points.
+        anchors = torso_anchors(sk, b_bones, points, seen) if cfg.bone_anchor_torso else None
+        gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors)
+        conf3 = np.where(gated, 0.0, conf3)
+    else:
+        gated = np.zeros(points.shape[:2], dtype=bool)
+    try:
+        kp_init = init_from_keypoints(model, running_median(points, cfg.init_median_frames), conf3, fps,
+                                      gender or "neutral", min_conf, layout)
+    except ValueError as err:
+        kp_init = None
+        if not priors:
+            raise InputError(source, f"cannot place a starting body in sequence {label}: {err}",
+                             "both views must see the hips and shoulders in some frames; or give a body prior "
+                             "(body_prior in session.toml)") from err
+    prior_pose, v_best, prior_w, n_replaced = None, None, None, 0
+    if priors:
+        v_best = max(priors, key=lambda v: priors[v][1].mean())
+        prior, has = priors[v_best]
+        init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, gender or "neutral")
+        # The prior's depth can be far off; start where the triangulation says the body is.
+        init = snap_to_keypoints(model, init, points, conf3)
+        prior_pose = init.body_pose
+        if kp_init is not None:
+            # Where the prior disagrees with the triangulation (a flipped body, limbs elsewhere),
+            # the triangulation wins: start there from the keypoints, and do not pull to the prior.
+            init, worse = prefer_keypoints(model, init, kp_init, points, conf3, min_conf,
+                                           cfg.prior_disagree_m, layout)
+            prior_w, n_replaced = (~worse).astype(np.float64), int(worse.sum())
+        log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)",
+                 label, v_best, 100 * has.mean(), n_replaced)
+    else:
+        init = kp_init
+    init = with_fps(init, fps, gender)
+    n_propagated = 0
+    if cfg.propagate_limbs:
+        from embodmocap.motion.propagate import propagate_limbs
+        from embodmocap.motion.smplify import KeypointBody
+
+        # Limbs whose start both views and the 3D points reject take the pose carried over from
+        # the frames where the limb fits its evidence.
+        init, carried = propagate_limbs(
+            KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in VIEWS]),
+            np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
+            cfg.smplify.reproj_scale_px, min_conf)
+        n_propagated = int(carried.sum())
+    res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
+                         prior_weight=prior_w)
+    figures = {
+        "init": f"body prior {v_best}" if v_best else "keypoints",
+        "init_frames_from_keypoints": n_replaced if v_best else int(T),
+        "keypoint_layout": layout,
+        "points_dropped_bone_length": int(gated.sum()),
+        "limb_starts_propagated": n_propagated,
+        "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
+        "terms_before": res.terms_before, "terms_after": res.terms_after,
+        **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
+        "fit_seconds": {k: round(float(x), 2) for k, x in res.phase_seconds.items()},
+    }
+    return Fitted(with_fps(res.params, fps, gender), valid, figures)
+
+
+@dataclass(frozen=True)
+class Aligned:
+    """The align step's results: the final motion, its frames and valid flags, the joints of the
+    final body, view -> final cameras, the manifest figures."""
+
+    params: object
+    frames: NDArray
+    valid: NDArray
+    joints: WorldJointsFile
+    cameras_final: dict[str, CameraFile]
+    figures: dict
+
+
+def align_motion(cfg: MotionConfig, model, params, frames: NDArray, valid: NDArray,
+                 contacts: Sequence[tuple[int, NDArray]], cams: Mapping[str, Mapping], *, label: str = "",
+                 source: object = None) -> Aligned:
+    """With contact markers, the yaw + translation that puts the feet on them, applied to the body
+    (pelvis-consistent) and the cameras (refused, with the residual, when the markers disagree);
+    then the final body's joints.
+
+    Args:
+        params, frames, valid: the fitted motion (:func:`fit_motion`); contacts: (sequence frame,
+            (3,) world point) per marker (empty: no alignment); cams: view -> its ``cameras_world``
+            (each view's own frames); label: the sequence; source: what an error names (the manifest).
+    """
+    import torch
+
+    # Every contact figure is written on every run: the stage manifest merges figures, and a
+    # stale message from an earlier run must not survive.
+    T_align = np.eye(4)
+    figures = {"contact_alignment": "none (no contacts)", "contact_residuals_before_m": [],
+               "contact_residuals_after_m": [], "contact_message": ""}
+    if contacts:
+        bad = [f for f, _ in contacts if not 0 <= f < len(params)]
+        if bad:
+            raise InputError(source, f"sequence {label}: contact frames {bad} outside 0..{len(params) - 1}",
+                             "give contact frames in sequence frames (after sync and slicing)")
+        al = align_to_contacts(model, params, contacts, cfg.contact)
+        figures.update({"contact_residuals_before_m": [round(float(r), 4) for r in al.residuals_before_m],
+                        "contact_residuals_after_m": [round(float(r), 4) for r in al.residuals_after_m],
+                        "contact_alignment": "refused" if al.refused else "applied"})
+        if al.refused:
+            log.warning("%s: contact alignment refused: %s", label, al.message)
+            figures["contact_message"] = al.message
+        else:
+            T_align = al.T
+            params = apply_alignment(model, params, T_align)
+    body = model.from_params(params, dtype=torch.float64)
+    joints = WorldJointsFile(version=np.int64(1), joints=body.joints.detach().numpy(),
+                             coco17=body.coco17.detach().numpy(), frames=frames)
+    final = {v: CameraFile(version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"],
+                           T_world_cam=apply_alignment_to_cameras(cams[v]["T_world_cam"], T_align),
+                           raw_frames=cams[v]["raw_frames"]) for v in VIEWS}
+    figures["T_align"] = T_align.tolist()
+    return Aligned(params, frames, valid, joints, final, figures)
+
+
+@dataclass(frozen=True)
+class MotionInputs:
+    """Everything Stage IV reads, in memory.
+
+    Attributes:
+        sequence: the name (messages).
+        model: the body model.
+        cameras: view -> ``cameras_world`` (each view's own frames).
+        keypoints: view -> (T, 17, 3) the Stage II keypoints.
+        fps: the sequence frame rate.
+        synced_cameras, synced_keypoints: the same on view 1's instants (the sub-frame sync,
+            :func:`embodmocap.sequence.subframe.synced_views`); None: the views' own.
+        priors: view -> (body prior per frame, (T,) has-estimate); empty: no prior.
+        layout: the detector's keypoint layout; gender: the session's.
+        contacts: (sequence frame, (3,) world point) per contact marker.
+    """
+
+    sequence: str
+    model: object
+    cameras: dict[str, CameraFile]
+    keypoints: dict[str, NDArray]
+    fps: float
+    synced_cameras: dict | None = None
+    synced_keypoints: dict | None = None
+    priors: dict = field(default_factory=dict)
+    layout: str = "COCO17"
+    gender: str | None = None
+    contacts: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class MotionResult:
+    """What Stage IV decides for one sequence (the content of its files)."""
+
+    keypoints3d: Keypoints3DFile
+    fit: Fitted
+    final: Aligned
+
+
+def solve(cfg: MotionConfig, inputs: MotionInputs) -> MotionResult:
+    """Stage IV in memory: the same steps, in the same order, as :func:`embodmocap.motion.stage.run`."""
+    cams = inputs.synced_cameras if inputs.synced_cameras is not None else inputs.cameras
+    kps = inputs.synced_keypoints if inputs.synced_keypoints is not None else inputs.keypoints
+    T = min(len(kps[v]) for v in VIEWS)
+    tri = triangulate_views(cfg, cams, kps, T, inputs.sequence)
+    priors = inputs.priors if cfg.use_body_prior else {}
+    fit = fit_motion(cfg, inputs.model, tri.file, cams, kps, T, inputs.fps, priors, inputs.layout, inputs.gender,
+                     label=inputs.sequence)
+    contacts = list(inputs.contacts) if cfg.align_contacts else []
+    final = align_motion(cfg, inputs.model, fit.params, np.arange(len(fit.params), dtype=np.int64), fit.valid,
+                         contacts, inputs.cameras, label=inputs.sequence)
+    return MotionResult(tri.file, fit, final)
+
+
+def running_median(points: NDArray, frames: int) -> NDArray:
+    """(T, J, 3) points through a centred running median of ``frames`` frames per coordinate,
+    ignoring NaN (a point stays NaN where it was NaN: only the seen ones are replaced)."""
+    if frames <= 1:
+        return points
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    h = frames // 2
+    pad = np.concatenate([np.full((h,) + points.shape[1:], np.nan), points, np.full((h,) + points.shape[1:], np.nan)])
+    win = sliding_window_view(pad, 2 * h + 1, axis=0)  # (T, J, 3, w)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(win, axis=-1)
+    return np.where(np.isfinite(points), med, np.nan)
+
+
+def placeable_frames(path, seq: str, points: NDArray, conf: NDArray, cfg: MotionConfig) -> NDArray[np.bool_]:
+    """(T,) frames where the body can be placed (see :attr:`MotionConfig.min_valid_joints`);
+    ``path`` is what the error names (``keypoints3d.npz``).
+
+    Raises:
+        InputError: more than ``cfg.max_poor_fraction`` of the frames have fewer than
+            ``cfg.min_frame_joints`` triangulated joints.
+    """
+    # Any triangulated point counts (the triangulation already ignored weak detections); points
+    # filled over short gaps count too: they are what the fit follows there.
+    seen = np.isfinite(points).all(-1)
+    n = seen.sum(1)
+    poor = float((n < cfg.min_frame_joints).mean()) if len(n) else 1.0
+    if poor > cfg.max_poor_fraction:
+        raise InputError(path, f"sequence {seq}: {100 * poor:.0f}% of the {len(n)} frames have fewer than "
+                         f"{cfg.min_frame_joints} triangulated joints (at most {100 * cfg.max_poor_fraction:.0f}% "
+                         "allowed): too little to place a body",
+                         "check that both views see the performer (keypoints2d.npz, the sync and the cameras)")
+    torso = seen[:, [5, 6, 11, 12]].sum(1)
+    return (n >= cfg.min_valid_joints) & (torso >= 2)
+
+
+def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_conf: float, margin_m: float,
+                     layout: str = "COCO17"):
+    """``init`` with the frames where it is more than ``margin_m`` further from the 3D keypoints
+    than ``kp_init`` (median over the triangulated joints) taken from ``kp_init``; and those frames
+    (T,) bool. Betas stay ``init``'s."""
+    import torch
+    from dataclasses import replace
+
+    from embodmocap.body.joints import smpl_to_coco17
+
+    seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
+
+    def err(p):
+        with torch.no_grad():
+            out = model.from_params(p, dtype=torch.float64)
+            kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
+        n = seen.sum(1)
+        # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).
+        d = np.sort(np.where(seen, d, np.inf), axis=1)
+        mid = np.take_along_axis(d, np.clip((n - 1) // 2, 0, None)[:, None], 1)[:, 0]
+        mid2 = np.take_along_axis(d, np.clip(n // 2, 0, None)[:, None], 1)[:, 0]
+        return np.where(n > 0, 0.5 * (mid + np.where(n > 0, mid2, 0.0)), 0.0)
+
+    kp_same_shape = replace(kp_init, betas=init.betas,
+                            transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))
+    worse = err(init) > err(kp_same_shape) + margin_m
+    if not worse.any():
+        return init, worse
+    pick = lambda a, b: np.where(worse.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
+    return replace(init, global_orient=pick(init.global_orient, kp_same_shape.global_orient),
+                   body_pose=pick(init.body_pose, kp_same_shape.body_pose),
+                   transl=pick(init.transl, kp_same_shape.transl)), worse
+
+
+def with_fps(params, fps: float, gender: str | None):
+    from dataclasses import replace
+
+    return replace(params, fps=float(fps), gender=gender or params.gender)
+
+
+def _nanmedian(a: NDArray) -> float | None:
+    a = np.asarray(a, dtype=np.float64)
+    return round(float(np.nanmedian(a)), 3) if np.isfinite(a).any() else None
