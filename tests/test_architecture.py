@@ -6,7 +6,14 @@
 - no package imports another package's private (underscore) names, neither by ``from ... import _x``
   nor as ``module._x`` through an imported module;
 - ``embodmocap --help`` imports neither torch nor open3d;
-- no module is over 600 lines (one known exception, to be split).
+- no module is over 600 lines (one known exception, to be split);
+- a stage's pure solve module (``<stage>/solve.py``) does no file work itself: it opens, reads and
+  writes nothing (no ``open``, ``np.load``/``np.save``, ``read_*``/``write_*`` calls, no path
+  methods), and imports neither paths (``pathlib``, the session layout's paths) nor the modules
+  that write or fingerprint files (``io.atomic``, ``io.stage_manifest``, ``io.captures``,
+  ``io.frame_stack``, ``io.mesh_file``); from ``io.stage_files`` only the file dataclasses. That the
+  functions it calls touch no file either is shown by the stage tests, which run each solve on
+  inputs read into memory from a session copy that is deleted first.
 """
 
 from __future__ import annotations
@@ -130,3 +137,71 @@ def test_no_module_is_over_600_lines():
     long = {p.relative_to(SRC).as_posix(): n for p in sorted((SRC / "embodmocap").rglob("*.py"))
             if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert set(long) <= set(LONG_MODULES), {k: v for k, v in long.items() if k not in LONG_MODULES}
+
+
+#: What a solve module may not import: modules that touch files or own paths.
+SOLVE_FORBIDDEN_MODULES = ("pathlib", "os", "shutil", "embodmocap.io.atomic", "embodmocap.io.stage_manifest",
+                           "embodmocap.io.captures", "embodmocap.io.frame_stack", "embodmocap.io.mesh_file",
+                           "embodmocap.io.manifest", "embodmocap.io.smpl_file")
+#: Calls a solve module may not make (names and attribute names).
+SOLVE_FORBIDDEN_CALLS = {"open", "load", "save", "savez", "savez_compressed", "loadtxt", "savetxt", "Path",
+                         "read_text", "write_text", "read_bytes", "write_bytes", "mkdir", "unlink", "rmtree",
+                         "exists", "is_file", "is_dir", "glob", "rglob", "open_capture"}
+
+
+def solve_problems(root: Path) -> list[str]:
+    """File work in the ``embodmocap/*/solve.py`` modules under ``root`` (see the module docstring)."""
+    problems = []
+    for path in sorted((root / "embodmocap").glob("*/solve.py")):
+        rel = path.relative_to(root)
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            mods: list[tuple[str, list[str]]] = []
+            if isinstance(node, ast.Import):
+                mods = [(a.name, []) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                mods = [(_resolve(rel, node), [a.name for a in node.names])]
+            for mod, names in mods:
+                if any(mod == m or mod.startswith(m + ".") for m in SOLVE_FORBIDDEN_MODULES):
+                    problems.append(f"{rel}:{node.lineno}: imports {mod}")
+                if mod == "embodmocap.io.stage_files":
+                    problems += [f"{rel}:{node.lineno}: imports {mod}.{n}" for n in names if not n.endswith("File")]
+                if mod == "embodmocap.io.layout":
+                    problems += [f"{rel}:{node.lineno}: imports {mod}.{n}" for n in names if n != "VIEWS"]
+                problems += [f"{rel}:{node.lineno}: imports {mod}.{n}" for n in names
+                             if n.startswith(("read_", "write_", "load_", "save_"))]
+            if isinstance(node, ast.Call):
+                f = node.func
+                name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+                if name in SOLVE_FORBIDDEN_CALLS or name.startswith(("read_", "write_")):
+                    problems.append(f"{rel}:{node.lineno}: calls {name}")
+    return problems
+
+
+def test_solve_modules_do_no_file_work():
+    assert solve_problems(SRC) == []
+    assert {p.relative_to(SRC).as_posix() for p in (SRC / "embodmocap").glob("*/solve.py")} >= {
+        "embodmocap/scene/solve.py", "embodmocap/sequence/solve.py", "embodmocap/calibrate/solve.py",
+        "embodmocap/motion/solve.py"}
+
+
+def test_the_solve_scan_finds_each_kind_of_file_work(tmp_path):
+    (tmp_path / "embodmocap" / "motion").mkdir(parents=True)
+    (tmp_path / "embodmocap" / "motion" / "solve.py").write_text(
+        "from pathlib import Path\n"
+        "import numpy as np\n"
+        "from embodmocap.io.atomic import write_npz\n"
+        "from embodmocap.io.stage_files import CameraFile, read_cameras\n"
+        "from embodmocap.io.layout import VIEWS, SessionLayout\n"
+        "from embodmocap.io.layout import VIEWS as V\n"
+        "def f(p):\n"
+        "    a = np.load(p)\n"
+        "    with open(p) as fh:\n"
+        "        fh.read()\n"
+        "    p.write_text('x')\n"
+        "    return write_cameras(p, a)\n")
+    found = solve_problems(tmp_path)
+    for what in ("imports pathlib", "imports embodmocap.io.atomic", "write_npz", "read_cameras", "SessionLayout",
+                 "calls load", "calls open", "calls write_text", "calls write_cameras"):
+        assert any(what in p for p in found), (what, found)
+    assert not any("CameraFile" in p or p.endswith("VIEWS") for p in found), found
+

@@ -31,6 +31,8 @@ def session(tmp_path_factory) -> Path:
     synthesize(SynthConfig(seed=5, seconds=2.0, scene_seconds=10.0), out)
     scene_stage.run(SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=60, num_threads=1)), out)
     seq_stage.run(SequenceConfig(), out)
+    # Stage II's sync record as Stage III finds it (Stage III completes sync.json in place).
+    shutil.copy(SessionLayout(out).sequence("seq0").sync, out.parent / "sync_stage2.json")
     return out
 
 
@@ -193,3 +195,73 @@ def test_geometric_sync_after_registration(session, done):
     assert rec["chosen"]["source"] == ("geometric" if geo["trusted"] else "laser")
     cw = np.load(SessionLayout(session).sequence("seq0").view("v2").cameras_world)
     assert float(cw["time_offset_s"]) == pytest.approx(rec["chosen"]["residual_s"])
+
+
+def _plain_json(obj):
+    """``obj`` as JSON would store it, without timings (they differ between any two runs)."""
+    import json
+
+    from embodmocap.io.atomic import _json_default
+
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(x) for k, x in o.items() if k != "seconds"}
+        return [strip(x) for x in o] if isinstance(o, list) else o
+
+    return strip(json.loads(json.dumps(obj, default=_json_default)))
+
+
+def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
+    """Stage III's pure solve, on inputs read into memory from a copy of the session that is then
+    deleted (so it can open no file), gives exactly what the run wrote."""
+    import json
+
+    from embodmocap.calibrate import solve
+    from embodmocap.calibrate.register import load_or_build_scene_index
+    from embodmocap.io.captures import open_capture
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.io.mesh_file import read_mesh_ply
+    from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps
+
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    lay = SessionLayout(work)
+    entry = load_manifest(lay.manifest).sequence(None)
+    sl = lay.sequence(entry.name)
+    views = {}
+    for v in VIEWS:
+        cams = read_cameras(sl.view(v).cameras)
+        depth, masks = np.load(sl.view(v).depth), np.load(sl.view(v).masks)
+        cap = open_capture(entry.views[v].capture)
+        rgb = [np.asarray(cap.frames.rgb(int(r))) for r in cams.raw_frames]
+        w = int(cams.width)
+        views[v] = solve.ViewInputs(
+            cameras=cams, keypoints=read_keypoints2d(sl.view(v).keypoints).keypoints,
+            depth_m=lambda t, d=depth: d[t].astype(np.float32) / 1000.0,
+            mask=lambda t, m=masks, w=w: np.unpackbits(m[t], axis=-1, count=w).astype(bool), rgb=lambda t, r=rgb: r[t])
+    scene = lay.scene(entry.scene)
+    mv, mf, _ = read_mesh_ply(scene.mesh_raw)
+    rec = json.loads((session.parent / "sync_stage2.json").read_text())
+    inputs = solve.CalibrateInputs(
+        sequence=entry.name, scene=entry.scene, views=views,
+        index=load_or_build_scene_index(scene.sfm_dir, CFG.register, scene.root / "register_index.npz"),
+        mesh_vertices=mv, mesh_faces=mf, sync_record=rec, fps=sequence_fps(sl),
+        sources={v: entry.views[v].capture for v in VIEWS},
+        contact_sheets={v: str(SessionLayout(session).sequence(entry.name).root / d["contact_sheet"])
+                        for v, d in rec["sources"]["laser"]["views"].items() if d.get("contact_sheet")})
+    shutil.rmtree(work)  # nothing of the session is left to read
+    res = solve.solve(CFG, inputs)
+
+    files = SessionLayout(session).sequence(entry.name)
+    for v in VIEWS:
+        want = read_registration(files.view(v).registration)
+        assert res.registrations[v].files == want.files
+        for k in want.files:
+            assert np.array_equal(res.registrations[v][k], want[k]), (v, k)
+        cw = read_cameras(files.view(v).cameras_world)
+        assert res.cameras_world[v].files == cw.files
+        for k in cw.files:
+            assert np.array_equal(res.cameras_world[v][k], cw[k]), (v, k)
+        assert np.array_equal(res.T_world_vio[v], done.T_world_vio[v])
+    assert _plain_json(res.report) == _plain_json(json.loads(files.calibration.read_text()))
+    assert _plain_json(res.sync_record) == _plain_json(json.loads(files.sync.read_text()))

@@ -119,3 +119,58 @@ def test_unplaceable_body_is_a_clear_error(session, tmp_path):
     write_npz(vl.keypoints, **kp)
     with pytest.raises(InputError, match="keypoints3d.npz: cannot place a starting body"):
         stage4.run(stage4.MotionConfig(), copy)
+
+
+def test_solve_in_memory_gives_the_run_s_files(session, tmp_path):
+    """Stage IV's pure solve, on inputs read into memory from a copy of the session that is then
+    deleted (so it can open no file), gives exactly what the run wrote."""
+    import shutil
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.body_prior import body_priors_by_frame
+    from embodmocap.io.stage_files import (read_cameras, read_keypoints2d, read_keypoints3d, read_smpl_valid,
+                                           read_world_joints, sequence_fps)
+    from embodmocap.motion import solve
+    from embodmocap.sequence.subframe import synced_views
+
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    cfg = stage4.MotionConfig()
+    stage4.run(cfg, work, force=True)
+    lay = SessionLayout(work)
+    manifest = load_manifest(lay.manifest)
+    entry = manifest.sequence(None)
+    sl = lay.sequence(entry.name)
+    cams = {v: read_cameras(sl.view(v).cameras_world) for v in VIEWS}
+    kps = {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS}
+    synced_cams, synced_kps = synced_views(sl, cams, kps)
+    T = min(len(synced_kps[v]) for v in VIEWS)
+    inputs = solve.MotionInputs(
+        sequence=entry.name, model=load_body_model(manifest.body_model), cameras=cams, keypoints=kps,
+        fps=sequence_fps(sl), synced_cameras=synced_cams, synced_keypoints=synced_kps,
+        priors=body_priors_by_frame({v: sl.view(v).body_prior for v in VIEWS}, T, cfg.min_prior_fraction),
+        layout=stage4.keypoint_layout(sl, entry.name), gender=manifest.gender,
+        contacts=[(c.frame, np.asarray(c.xyz)) for c in entry.contacts])
+    # What the run wrote, read before the session goes.
+    k3, joints = read_keypoints3d(sl.keypoints3d), read_world_joints(sl.joints_world)
+    fit, _ = read_smpl_npz(sl.smpl_fit)
+    final, frames = read_smpl_npz(sl.smpl_world)
+    valid = read_smpl_valid(sl.smpl_world)
+    cams_final = {v: read_cameras(sl.view(v).cameras_final) for v in VIEWS}
+    shutil.rmtree(work)  # nothing of the session is left to read
+    res = solve.solve(cfg, inputs)
+
+    assert res.keypoints3d.files == k3.files
+    for k in k3.files:
+        assert np.array_equal(res.keypoints3d[k], k3[k], equal_nan=k3[k].dtype.kind == "f"), k
+    for got, want in ((res.fit.params, fit), (res.final.params, final)):
+        for k in ("betas", "global_orient", "body_pose", "transl"):
+            assert np.array_equal(np.asarray(getattr(got, k)), np.asarray(getattr(want, k))), k
+        assert got.fps == want.fps and got.gender == want.gender
+    assert np.array_equal(res.final.frames, frames) and np.array_equal(res.final.valid, valid)
+    for k in joints.files:
+        assert np.array_equal(res.final.joints[k], joints[k]), k
+    for v in VIEWS:
+        assert res.final.cameras_final[v].files == cams_final[v].files
+        for k in cams_final[v].files:
+            assert np.array_equal(res.final.cameras_final[v][k], cams_final[v][k]), (v, k)

@@ -155,12 +155,14 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
 
 
 class _Context:
-    """Reads one processed session once and re-runs parts of Stages III and IV with other settings."""
+    """Reads one processed session once and re-runs Stages III and IV's solve functions
+    (:mod:`embodmocap.calibrate.solve`, :mod:`embodmocap.motion.solve`) with other settings."""
 
     def __init__(self, lay: SessionLayout, seq: str, scene: str, model) -> None:
         self.lay, self.seq, self.scene, self.model = lay, seq, scene, model
         self.sl = lay.sequence(seq)
         self._scene_points = None
+        self._views = None
 
     def final_params(self):
         from embodmocap.io.smpl_file import read_smpl_npz
@@ -179,12 +181,16 @@ class _Context:
     def _T(self) -> int:
         return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
 
-    def prior_in_world(self, v: str, T_world_cam: np.ndarray):
-        from embodmocap.motion.init import init_from_prior
+    def _priors(self, min_fraction: float) -> dict:
         from embodmocap.io.body_prior import body_priors_by_frame
 
+        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T(), min_fraction, self.seq)
+
+    def prior_in_world(self, v: str, T_world_cam: np.ndarray):
+        from embodmocap.motion.init import init_from_prior
+
         T = self._T()
-        priors = body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, T, 0.0, self.seq)
+        priors = self._priors(0.0)
         if v not in priors:
             raise RuntimeError(f"view {v} has no body prior")
         return init_from_prior(self.model, priors[v][0], T_world_cam[:T], sequence_fps(self.sl))
@@ -193,36 +199,31 @@ class _Context:
 
     def _calibrate(self, views: tuple[str, ...], refine_cfg) -> dict[str, np.ndarray]:
         """view -> (T, 4, 4) cameras after refining ``views`` (alone or jointly) with ``refine_cfg``."""
-        from embodmocap.calibrate import losses as L
-        from embodmocap.calibrate import stage as stage3
-        from embodmocap.calibrate.offset import chain_yaw_offset
-        from embodmocap.calibrate.refine import refine_offsets
+        from embodmocap.calibrate import solve as s3
+        from embodmocap.calibrate.config import CalibrateConfig
+        from embodmocap.calibrate.stage import view_inputs
         from embodmocap.io.mesh_file import read_mesh_ply
 
-        cfg = stage3.CalibrateConfig()
+        cfg = CalibrateConfig()
         if self._scene_points is None:
             mv, mf, _ = read_mesh_ply(self.lay.scene(self.scene).mesh_raw)
-            self._scene_points = L.ScenePoints.from_mesh(mv, mf, cfg.scene_points)
-        data = {}
-        for v in views:
-            reg = read_registration(self.sl.view(v).registration)
-            vio = read_cameras(self.sl.view(v).cameras).T_world_cam
-            # As Stage III does: the offset from the VIO-consistent chain only (rejected runs left out).
-            acc = np.asarray(reg["accepted"], dtype=bool) if "accepted" in reg else np.ones(len(reg["t"]), dtype=bool)
-            init = chain_yaw_offset(vio[reg["t"][acc]], reg["T_world_cam"][acc], cfg.offset).offset
-            data[v] = stage3.build_view_data(cfg, self.lay, self.seq, v, init, reg)
-        tracks = stage3.track_pairs(self.lay, self.seq) if len(views) == 2 and refine_cfg.w_track > 0 else None
-        res = refine_offsets(data, refine_cfg, scene=self._scene_points, tracks=tracks)
-        return {v: (res.views[v].T_world_vio if not res.diverged else data[v].T_world_vio_init)
-                @ read_cameras(self.sl.view(v).cameras).T_world_cam for v in views}
+            self._scene_points = s3.scene_points(cfg, mv, mf)
+        if self._views is None:
+            self._views = {v: view_inputs(self.sl, v) for v in VIEWS}
+        regs = {v: read_registration(self.sl.view(v).registration) for v in VIEWS}
+        # As Stage III does: the offset from the VIO-consistent chain only (rejected runs left out).
+        init, _ = s3.initial_offsets(cfg, self._views, regs)
+        tracks = s3.track_pairs(self._views) if len(views) == 2 and refine_cfg.w_track > 0 else None
+        return s3.refine_cameras(self._views, {v: init[v] for v in views}, regs, refine_cfg, cfg,
+                                 self._scene_points, tracks)
 
     def single_view_cameras(self, v: str) -> np.ndarray:
-        from embodmocap.calibrate.refine import RefineConfig
+        from embodmocap.calibrate.config import RefineConfig
 
         return self._calibrate((v,), RefineConfig())[v]
 
     def calibrated_cameras(self, variant: str) -> dict[str, np.ndarray]:
-        from embodmocap.calibrate.refine import RefineConfig
+        from embodmocap.calibrate.config import RefineConfig
 
         if variant not in ("no_track", "no_chamfer", "no_reproj"):
             return {v: self.cameras(v) for v in VIEWS}
@@ -233,51 +234,41 @@ class _Context:
 
     def fit(self, cameras: dict[str, np.ndarray], single_view: str | None = None, variant: str = "all",
             prior: bool = True):
-        """The motion fitted with ``cameras``: dual view (triangulation + both views), or one view
-        (reprojection + smoothness + prior only); ``variant`` switches Stage IV terms off;
-        ``prior=False`` (dual view only) starts from the keypoints alone, as Stage IV does without
-        a body prior."""
-        from embodmocap.geometry.triangulation import projection_matrices, triangulate
-        from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
-        from embodmocap.motion.stage import MotionConfig
-        from embodmocap.motion.swaps import fix_swaps
+        """The motion fitted with ``cameras``: dual view through Stage IV's own steps
+        (:func:`embodmocap.motion.solve.triangulate_views`, :func:`~embodmocap.motion.solve.fit_motion`)
+        with ``variant``'s terms switched off and, with ``prior=False``, no body prior; or one view
+        (reprojection + smoothness + prior only: no triangulation is possible, so not Stage IV)."""
+        from embodmocap.motion import solve as s4
+        from embodmocap.motion.config import MotionConfig
+        from embodmocap.motion.stage import keypoint_layout
 
         mcfg = MotionConfig()
-        T = self._T()
-        views = [single_view] if single_view else list(VIEWS)
-        kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
-        K = {v: read_cameras(self.sl.view(v).cameras).K for v in views}
         scfg = mcfg.smplify
-        if single_view:
-            points, conf = np.full((T, 17, 3), np.nan), np.zeros((T, 17))
-            scfg = replace(scfg, w_kp3d=0.0)
-        else:
-            P = projection_matrices(np.stack([K[v] for v in views]), np.stack([cameras[v][:T] for v in views], axis=1))
-            kp, _ = fix_swaps(P, np.stack([kps[v] for v in views], axis=1), mcfg.triangulation)
-            kps = {v: kp[:, i] for i, v in enumerate(views)}
-            tri = triangulate(P, kp[..., :2], kp[..., 2], mcfg.triangulation)
-            points, conf = tri.points, tri.conf
         if variant == "no_smooth":
             scfg = replace(scfg, w_joint_vel=0.0, w_joint_acc=0.0, w_transl_vel=0.0, w_transl_acc=0.0)
         elif variant == "no_kp3d":
             scfg = replace(scfg, w_kp3d=0.0)
-        from embodmocap.motion.stage import keypoint_layout
-
+        mcfg = replace(mcfg, smplify=scfg, use_body_prior=prior)
+        T = self._T()
         layout = keypoint_layout(self.sl, self.seq)
-        obs = [ViewObservations(K=K[v], T_world_cam=cameras[v][:T], keypoints=kps[v], name=v) for v in views]
+        fps = sequence_fps(self.sl)
+        views = [single_view] if single_view else list(VIEWS)
+        kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
+        cams = {v: {"K": read_cameras(self.sl.view(v).cameras).K, "T_world_cam": cameras[v]} for v in views}
+        if not single_view:
+            tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
+            priors = self._priors(mcfg.min_prior_fraction) if prior else {}
+            return s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq).params
         if not prior:
-            if single_view:
-                raise ValueError("a single view cannot be fitted without a body prior")
-            from embodmocap.motion.init import init_from_keypoints
-            init = init_from_keypoints(self.model, points, conf, sequence_fps(self.sl), min_conf=scfg.min_conf, layout=layout)
-            return fit_world_smpl(self.model, points, conf, obs, init, None, scfg, layout=layout).params
-        prior_view = single_view or "v1"
-        init = self.prior_in_world(prior_view, cameras[prior_view])
-        if not single_view:  # as Stage IV does: start where the triangulation puts the body
-            from embodmocap.motion.init import snap_to_keypoints
+            raise ValueError("a single view cannot be fitted without a body prior")
+        from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
 
-            init = snap_to_keypoints(self.model, init, points, conf)
-        return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, scfg, layout=layout).params
+        points, conf = np.full((T, 17, 3), np.nan), np.zeros((T, 17))
+        obs = [ViewObservations(K=cams[single_view]["K"], T_world_cam=cameras[single_view][:T],
+                                keypoints=kps[single_view], name=single_view)]
+        init = self.prior_in_world(single_view, cameras[single_view])
+        return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, replace(scfg, w_kp3d=0.0),
+                              layout=layout).params
 
 
 def tables_markdown(rows: list[dict]) -> str:
