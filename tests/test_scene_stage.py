@@ -137,3 +137,52 @@ def test_too_few_keyframes_is_one_clear_error(session, tmp_path):
 def test_unknown_scene_name(session):
     with pytest.raises(InputError, match="no scene named"):
         stage.run(CFG, session, "kitchen")
+
+
+class _MemoryFrames:
+    """A capture's frames held in memory (a :class:`embodmocap.types.FrameSource`)."""
+
+    def __init__(self, frames) -> None:
+        n = len(frames)
+        self.rgb_, self.depth_, self.conf_ = ([getattr(frames, k)(i) for i in range(n)]
+                                              for k in ("rgb", "depth_m", "confidence"))
+
+    def __len__(self) -> int:
+        return len(self.rgb_)
+
+    def rgb(self, index: int):
+        return self.rgb_[index]
+
+    def depth_m(self, index: int):
+        return self.depth_[index]
+
+    def confidence(self, index: int):
+        return self.conf_[index]
+
+
+def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
+    """Stage I's pure solve, on the scene capture read into memory from a copy of the session that
+    is then deleted (so it can open no file), gives the run's key frames and the same mesh files."""
+    from embodmocap.io.atomic import _json_default
+    from embodmocap.io.captures import open_capture
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.io.mesh_file import write_mesh_ply
+    from embodmocap.scene import solve
+
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    entry = load_manifest(SessionLayout(work).manifest).scene(None)
+    cap = open_capture(entry.capture)
+    capture = replace(cap, frames=_MemoryFrames(cap.frames))
+    shutil.rmtree(work)  # nothing of the session is left to read
+    res = solve.solve(capture, CFG, entry.indoor, "scene0")
+
+    lay = SessionLayout(session).scene("scene0")
+    want = json.loads(lay.keyframes.read_text())
+    got = json.loads(json.dumps(res.keyframes.record, default=_json_default))
+    assert got == {k: x for k, x in want.items() if k != "capture"}
+    write_mesh_ply(tmp_path / "raw.ply", res.mesh.vertices, res.mesh.faces, res.mesh.colors)
+    assert (tmp_path / "raw.ply").read_bytes() == lay.mesh_raw.read_bytes()
+    simple = solve.simplified(*read_mesh_ply(tmp_path / "raw.ply"), CFG)  # the stage simplifies the stored mesh
+    write_mesh_ply(tmp_path / "simple.ply", simple.vertices, simple.faces, simple.colors)
+    assert (tmp_path / "simple.ply").read_bytes() == lay.mesh_simplified.read_bytes()

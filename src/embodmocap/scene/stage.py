@@ -12,6 +12,9 @@
 4. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
    poses and intrinsics held fixed (``sfm/``: database + model for Stage III).
 
+The decisions are pure functions in :mod:`embodmocap.scene.solve` (the capture and the config in,
+arrays out); this module opens the capture, fingerprints each step, calls them and writes.
+
 The world is the scene capture's own VIO world: metric and gravity-aligned (Z up), so the mesh and
 the model share it without any alignment. Each step is skipped when its fingerprint (config,
 inputs, upstream steps) matches the stage manifest and its outputs exist, so a run that was
@@ -21,8 +24,6 @@ interrupted resumes at the first unfinished step.
 from __future__ import annotations
 
 import logging
-import sys
-import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -33,17 +34,15 @@ from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.scene import solve
 from embodmocap.scene.config import SceneConfig
-from embodmocap.scene.depth import DepthStats, check_depth, fusion_frames, prefetch
-from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
-from embodmocap.scene.mesh import clean_mesh, mesh_stats, read_mesh_ply, simplify_mesh, write_mesh_ply
+from embodmocap.scene.depth import check_depth
 from embodmocap.scene.sfm import build_sparse_model
-from embodmocap.scene.tsdf import fuse_open3d
+from embodmocap.scene.solve import KEYFRAMES_VERSION  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
-
-KEYFRAMES_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -80,97 +79,59 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     indoor = entry.indoor
     out = lay.scene(name)
     capture = open_capture(entry.capture)
-    skipped: list[str] = []
     log.info("scene %s: %s capture, %d frames, %s", name, capture.format, capture.num_frames,
              "indoor" if indoor else "outdoor")
     # Bad depth is found before anything is written (not after the key frames and half a mesh).
     check_depth(capture, cfg, indoor)
     out.root.mkdir(parents=True, exist_ok=True)
     sm = StageManifest(out.manifest, "scene", cfg, inputs=[entry.capture], root=lay.root)
+    label = f"scene {name}"
 
     # 1. Key frames.
     fp_kf = fingerprint("keyframes", KEYFRAMES_VERSION, path_fingerprint(entry.capture), indoor,
                         _cfg_part(cfg, _KEYFRAME_FIELDS))
-    if not force and sm.is_current("keyframes", fp_kf):
-        skipped.append("keyframes")
-    else:
-        t0 = time.perf_counter()
-        sel = choose_keyframes(capture, cfg, indoor)
-        T = capture.trajectory.T_world_cam[sel.rows]
-        write_json(out.keyframes, {
-            "version": KEYFRAMES_VERSION, "capture": str(entry.capture), "indoor": indoor,
-            "frame_ids": sel.frame_ids, "T_world_cam": T, "sharpness": np.nan_to_num(sel.sharpness, nan=-1.0),
-            "dropped_blurry": sel.dropped_blurry, "excluded_jumps": sel.excluded_jumps,
-        })
-        sm.record("keyframes", fp_kf, [out.keyframes], time.perf_counter() - t0, {
-            "keyframes": len(sel), "keyframes_dropped_blurry": len(sel.dropped_blurry),
-            "frames_excluded_jumps": len(sel.excluded_jumps),
-        })
+    with sm.step("keyframes", fp_kf, force=force, label=label) as step:
+        if step.run:
+            kf = solve.select_keyframes(capture, cfg, indoor)
+            rec = kf.record
+            write_json(out.keyframes, {"version": rec["version"], "capture": str(entry.capture),
+                                       **{k: x for k, x in rec.items() if k != "version"}})
+            step.record([out.keyframes], kf.figures)
     kf = read_keyframes(out)
     frame_ids, T_kf = kf["frame_ids"], kf["T_world_cam"]
 
     # 2. TSDF fusion + clean-up.
     fp_mesh = fingerprint("mesh", fp_kf, _cfg_part(cfg, _MESH_FIELDS))
-    if not force and sm.is_current("mesh", fp_mesh):
-        skipped.append("mesh")
-    else:
-        t0 = time.perf_counter()
-        # Every trusted frame (fine motion step), not only the SfM key frames: coverage of ceilings,
-        # far walls and furniture sides comes from the frames between key frames.
-        rows = fusion_rows(capture, cfg)[:: max(1, cfg.integrate_every)]
-        ids, poses = capture.trajectory.frame_ids[rows], capture.trajectory.T_world_cam[rows]
-        stats = DepthStats()
-        frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats))
-        v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {name}: fusing"), cfg.voxel_m(indoor),
-                              cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor))
-        t_fuse = time.perf_counter() - t0
-        v, f, c = clean_mesh(v, f, c, cfg)
-        if len(f) == 0:
-            raise InputError(entry.capture, "the fused mesh is empty after clean-up",
-                             "check that the depth maps and poses belong together")
-        write_mesh_ply(out.mesh_raw, v, f, c)
-        st = mesh_stats(v, f)
-        sm.record("mesh", fp_mesh, [out.mesh_raw], time.perf_counter() - t0, {
-            "mesh_vertices": st["vertices"], "mesh_faces": st["faces"], "mesh_area_m2": round(st["area_m2"], 3),
-            "fused_frames": stats.fused_frames, "fusion_candidates": len(ids),
-            "depth_pixels_used_fraction": round(stats.used_fraction, 4),
-            "fusion_fps": round(stats.fused_frames / max(t_fuse, 1e-9), 2),
-        })
+    with sm.step("mesh", fp_mesh, force=force, label=label) as step:
+        if step.run:
+            mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture)
+            write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
+            step.record([out.mesh_raw], mesh.figures)
 
     # 3. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
         fp_simple = fingerprint("simplify", fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
-        if not force and sm.is_current("simplify", fp_simple):
-            skipped.append("simplify")
-        else:
-            t0 = time.perf_counter()
-            v, f, c = read_mesh_ply(out.mesh_raw)
-            vs, fs, cs = simplify_mesh(v, f, c, cfg.simplify_voxel_m)
-            write_mesh_ply(out.mesh_simplified, vs, fs, cs)
-            st = mesh_stats(vs, fs)
-            sm.record("simplify", fp_simple, [out.mesh_simplified], time.perf_counter() - t0, {
-                "simplified_vertices": st["vertices"], "simplified_faces": st["faces"],
-            })
+        with sm.step("simplify", fp_simple, force=force, label=label) as step:
+            if step.run:
+                simple = solve.simplified(*read_mesh_ply(out.mesh_raw), cfg)
+                write_mesh_ply(out.mesh_simplified, simple.vertices, simple.faces, simple.colors)
+                step.record([out.mesh_simplified], simple.figures)
 
     # 4. Sparse model with the capture's poses fixed.
     fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
-    if not force and sm.is_current("sfm", fp_sfm):
-        skipped.append("sfm")
-    else:
-        t0 = time.perf_counter()
-        pick = _evenly(len(frame_ids), cfg.sfm.max_images)
-        names = [f"kf_{int(i):06d}" for i in frame_ids[pick]]
-        images = [(n, capture.frames.rgb(int(i))) for n, i in zip(names, frame_ids[pick])]
-        model = build_sparse_model(images, capture.rgb_intrinsics, T_kf[pick], out.sfm_dir, cfg.sfm)
-        sm.record("sfm", fp_sfm, [out.sfm_dir], time.perf_counter() - t0, {
-            "sfm_images": len(names), "sfm_points": model.num_points,
-            "sfm_mean_track_length": round(model.mean_track_length, 3),
-            "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
-        })
+    with sm.step("sfm", fp_sfm, force=force, label=label) as step:
+        if step.run:
+            images, poses = solve.sfm_images(capture, frame_ids, T_kf, cfg)
+            model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm)
+            step.record([out.sfm_dir], {
+                "sfm_images": len(images), "sfm_points": model.num_points,
+                "sfm_mean_track_length": round(model.mean_track_length, 3),
+                "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
+            })
 
-    if skipped:
-        log.info("scene %s: up to date, skipped: %s", name, ", ".join(skipped))
-    return SceneOutputs(name, out, sm.figures(), tuple(skipped))
+    if sm.skipped:
+        log.info("scene %s: up to date, skipped: %s", name, ", ".join(sm.skipped))
+    return SceneOutputs(name, out, sm.figures(), tuple(sm.skipped))
 
 
 def read_keyframes(out: SceneLayout) -> dict:
@@ -185,32 +146,3 @@ def read_keyframes(out: SceneLayout) -> dict:
         "T_world_cam": np.asarray(data["T_world_cam"], dtype=np.float64).reshape(-1, 4, 4),
         "sharpness": np.asarray(data["sharpness"], dtype=np.float64),
     }
-
-
-def _evenly(n: int, k: int) -> np.ndarray:
-    """Up to ``k`` indices spread evenly over ``range(n)``."""
-    if n <= k:
-        return np.arange(n)
-    return np.unique(np.round(np.linspace(0, n - 1, k)).astype(np.int64))
-
-
-def _depth_refiner(cfg: SceneConfig):
-    """The refinement hook for :func:`fusion_frames`, or None for plain LiDAR depth."""
-    if cfg.depth_refine == "none":
-        return None
-    from embodmocap.perception.depth_refine import make_depth_refiner
-
-    # Output at the sensor's resolution: the TSDF runs at depth resolution.
-    refiner = make_depth_refiner(cfg.depth_refine, model=cfg.depth_refine_model, output="depth")
-    return lambda rgb, depth, conf: refiner.refine([rgb], [depth])[0]
-
-
-def _progress(it, total: int, desc: str):
-    """A progress bar on a terminal; a start and an end log line otherwise."""
-    if sys.stderr.isatty():
-        from tqdm import tqdm
-
-        yield from tqdm(it, total=total, desc=desc, unit="frame")
-        return
-    log.info("%s %d frames", desc, total)
-    yield from it
