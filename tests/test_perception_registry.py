@@ -120,3 +120,10 @@ def test_step_context_manager_times_records_skips_and_logs(tmp_path, caplog):
             raise KeyError("x")
     data = json.loads(Path(tmp_path / "manifest.json").read_text())
     assert set(data["steps"]) == {"make"} and data["figures"]["items"] == 3
+    # A step finished after a later one: postponed inside its `with`, recorded after it.
+    with again.step("late", "fp2") as step:
+        late = step.postpone()
+    assert "late" not in json.loads(Path(tmp_path / "manifest.json").read_text())["steps"]
+    late.record([out], {"placed": True})
+    data = json.loads(Path(tmp_path / "manifest.json").read_text())
+    assert data["steps"]["late"]["fingerprint"] == "fp2" and data["figures"]["placed"] is True
