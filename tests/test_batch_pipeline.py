@@ -191,3 +191,37 @@ def test_sequence_dataset_windows_match_smpl_world(processed):
     loader = torch.utils.data.DataLoader(ds, batch_size=2, num_workers=2, shuffle=False)
     first = next(iter(loader))
     np.testing.assert_array_equal(first["poses"][1].numpy(), ds[1]["poses"].numpy())
+
+
+def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during Stage II: status
+    130, the stage records `interrupted`, the catalog the interrupted attempt; the next batch
+    finishes the stage."""
+    import subprocess
+    import sys
+
+    from embodmocap.synth.studio import synthesize
+
+    synthesize(SynthConfig(seed=2, seconds=3.0, scene_seconds=0.5, width=320, height=240, depth_width=64,
+                           depth_height=48), tmp_path / "ds" / "a")
+    ds = tmp_path / "ds"
+    m = SessionLayout(ds / "a").sequence(SYNTH.sequence_name).manifest
+    cmd = [sys.executable, "-m", "embodmocap.cli", "batch", str(ds), "--executor", "local", "--workers", "1",
+           "--only", "sequence"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    deadline = time.time() + 600
+    while not (m.is_file() and json.loads(m.read_text())["steps"]) and time.time() < deadline and p.poll() is None:
+        time.sleep(0.05)  # interrupt once the stage has finished its first step
+    os.killpg(p.pid, signal.SIGINT)
+    out, _ = p.communicate(timeout=300)
+    assert p.returncode == 130, out
+    assert "run the same command again to resume" in out
+    assert json.loads(m.read_text())["status"] == "interrupted"
+    db = sqlite3.connect(ds / "catalog.sqlite")
+    assert db.execute("SELECT status FROM attempts WHERE stage='sequence'").fetchall()[-1] == ("interrupted",)
+    done_steps = json.loads(m.read_text())["steps"]
+    res = run_batch(ds, BatchConfig(only=("sequence",), executor="local", workers=1), PipelineConfig(), say=lambda m: None)
+    assert res.states["a/sequence/seq0"].status == "ok" and json.loads(m.read_text())["status"] == "ok"
+    after = json.loads(m.read_text())["steps"]
+    for step, rec in done_steps.items():
+        assert after[step]["finished"] == rec["finished"], step  # finished steps were not redone
