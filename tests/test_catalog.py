@@ -75,3 +75,14 @@ def test_query_is_read_only_and_parquet_round_trips(dataset, capsys):
     table = pq.read_table(dataset / "catalog.parquet").to_pylist()
     assert [(r["session"], r["sequence"], r["scene"]) for r in table] == [
         ("a", "x", "r1"), ("a", "y", "r1"), ("a", "z", "r2"), ("b", "w", "room")]
+
+
+def test_skill_clips_are_catalogued_when_present(dataset):
+    seq_dir = dataset / "a" / "sequences" / "x"
+    seq_dir.mkdir(parents=True)
+    (seq_dir / "skill_clips.json").write_text(json.dumps({"clips": [
+        {"skill": "sit", "start_frame": 10, "end_frame": 40}, {"skill": "climb", "start_frame": 50, "end_frame": 90},
+        {"skill": "no frames"}]}))
+    db = sqlite3.connect(rebuild(dataset))
+    rows = db.execute("SELECT session, sequence, skill, start_frame, end_frame FROM skill_clips ORDER BY start_frame").fetchall()
+    assert rows == [("a", "x", "sit", 10, 40), ("a", "x", "climb", 50, 90)]  # the incomplete clip is skipped
