@@ -189,7 +189,10 @@ def run_batch(dataset: str | Path, cfg: BatchConfig = BatchConfig(), pipeline: P
             for res in ex.wait(0.5):
                 st = states[res.key]
                 st.seconds = res.seconds
-                if res.status == "interrupted":
+                if res.status == "interrupted":  # Ctrl-C reached the worker first: stop everything
+                    st.status = "interrupted"
+                    if catalog is not None:
+                        catalog.record_attempt(st.task, res, st.attempts, final=True)
                     raise KeyboardInterrupt
                 if res.status in ("ok", "current"):
                     st.status, st.error = res.status, ""
