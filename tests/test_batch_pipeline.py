@@ -196,12 +196,17 @@ def test_sequence_dataset_windows_match_smpl_world(processed):
     np.testing.assert_array_equal(first["poses"][1].numpy(), ds[1]["poses"].numpy())
 
 
-def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path):
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path, executor, monkeypatch):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) during Stage II: status
     130, the stage records `interrupted`, the catalog the interrupted attempt; the next batch
     finishes the stage."""
     import subprocess
     import sys
+
+    if executor == "ray":
+        pytest.importorskip("ray")
+        monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
 
     from embodmocap.synth.studio import synthesize
 
@@ -209,8 +214,8 @@ def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path):
                            depth_height=48), tmp_path / "ds" / "a")
     ds = tmp_path / "ds"
     m = SessionLayout(ds / "a").sequence(SYNTH.sequence_name).manifest
-    cmd = [sys.executable, "-m", "embodmocap.cli", "batch", str(ds), "--executor", "local", "--workers", "1",
-           "--only", "sequence"]
+    cmd = [sys.executable, "-m", "embodmocap.cli", "batch", str(ds), "--executor", executor, "--workers", "1",
+           "--only", "sequence", "--ray-object-store-gb", "0.2"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     deadline = time.time() + 600
     while not (m.is_file() and json.loads(m.read_text())["steps"]) and time.time() < deadline and p.poll() is None:
