@@ -7,6 +7,7 @@ pipeline on a real synthetic dataset is in test_batch_pipeline.py (slow).
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
@@ -169,3 +170,20 @@ def test_help_imports_no_heavy_module():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          env={**os.environ, "COLUMNS": "100"})
     assert "HEAVY []" in out.stdout, out.stdout[-2000:] + out.stderr[-2000:]
+
+
+def test_evaluate_runs_after_every_sequence_of_its_session(tmp_path):
+    _session(tmp_path / "ds" / "s1", {"r1": ["a", "b"]})
+    plan = make_plan(tmp_path / "ds", evaluate=True)
+    assert plan.tasks[-1].key == "s1/evaluate/s1" and plan.tasks[-1].deps == ("s1/motion/a", "s1/motion/b")
+    # A session whose only sequence is marked failed: evaluate has nothing to wait for and runs
+    # the real `evaluate` (evaluation.json lists the sequence as missing, naming why).
+    ds = tmp_path / "ds2"
+    s = _session(ds / "s", {"r": ["q"]}, failed=("q",))
+    res = run_batch(ds, BatchConfig(only=("motion",), evaluate=True, executor="local", workers=1), PipelineConfig(),
+                    say=lambda m: None)
+    assert res.states["s/evaluate/s"].status == "ok" and res.exit_status == 0
+    ev = json.loads((s / "evaluation.json").read_text())
+    assert "marks it failed" in ev["sequences"]["q"]["missing"]
+    db = sqlite3.connect(ds / "catalog.sqlite")
+    assert db.execute("SELECT stage, status FROM attempts").fetchall() == [("evaluate", "ok")]

@@ -93,7 +93,7 @@ def processed(tmp_path_factory):
 
     th = threading.Thread(target=killer, daemon=True)
     th.start()
-    first = run_batch(ds, BatchConfig(retries=1), PipelineConfig(), executor=pool, say=lambda m: None)
+    first = run_batch(ds, BatchConfig(retries=1, evaluate=True), PipelineConfig(), executor=pool, say=lambda m: None)
     killed.append("done")
     th.join()
     return {"ref": ref, "ds": ds, "first": first, "killed": killed}
@@ -104,7 +104,7 @@ def test_outputs_equal_run_alone_even_after_a_killed_worker(processed):
     assert processed["killed"][0] == "good/calibrate/seq0"
     cal = st["good/calibrate/seq0"]
     assert cal.status == "ok" and cal.attempts == 2 and cal.causes[0].startswith("worker process died (killed by signal 9)")
-    assert all(st[f"good/{s}"].status == "ok" for s in ("scene/scene0", "sequence/seq0", "motion/seq0"))
+    assert all(st[f"good/{s}"].status == "ok" for s in ("scene/scene0", "sequence/seq0", "motion/seq0", "evaluate/good"))
     ref, got = _arrays(processed["ref"]), _arrays(processed["ds"] / "good")
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
@@ -121,7 +121,7 @@ def test_broken_session_fails_alone_and_a_second_batch_redoes_nothing(processed)
     ds = processed["ds"]
     st = processed["first"].states
     assert st["broken/scene/scene0"].status == "failed" and "odometry.csv" in st["broken/scene/scene0"].error
-    assert st["broken/motion/seq0"].status == "blocked"
+    assert st["broken/motion/seq0"].status == "blocked" and st["broken/evaluate/broken"].status == "blocked"
     before = _steps(ds / "good")
     again = run_batch(ds, BatchConfig(retries=0, executor="local", workers=2), PipelineConfig(), say=lambda m: None)
     assert {k: s.status for k, s in again.states.items() if k.startswith("good/")} == {
@@ -138,12 +138,14 @@ def test_broken_session_fails_alone_and_a_second_batch_redoes_nothing(processed)
 
 def test_catalog_rows_match_the_sessions_files(processed):
     from embodmocap.catalog.db import rebuild
-    from embodmocap.evaluate.session import evaluate_session
     from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid
     from embodmocap.io.stage_files import read_cameras, sequence_fps
 
     ds = processed["ds"]
-    ev = evaluate_session(ds / "good")
+    ev = json.loads(SessionLayout(ds / "good").evaluation.read_text())  # written by the batch's evaluate task
+    db = sqlite3.connect(ds / "catalog.sqlite")
+    assert db.execute("SELECT COUNT(*) FROM metrics WHERE session='good'").fetchone()[0] > 0  # updated by the batch
+    db.close()
     rebuild(ds)
     db = sqlite3.connect(ds / "catalog.sqlite")
     sl = SessionLayout(ds / "good").sequence(SYNTH.sequence_name)

@@ -35,7 +35,7 @@ class Batch:
         from embodmocap.batch.plan import dataset_root
 
         if self.config.dry_run:
-            plan = make_plan(self.dataset, self.config.only or STAGES, self.stages.include_failed)
+            plan = make_plan(self.dataset, self.config.only or STAGES, self.stages.include_failed, self.config.evaluate)
             for t in plan.tasks:
                 print(f"{t.key:<48} after {', '.join(t.deps) or '-'}")
             for session, seq, why in plan.skipped:

@@ -36,6 +36,8 @@ class StageResources:
     """Stage III (registration, refinement)."""
     motion: TaskResources = TaskResources(cpus=1.0, memory_gb=2.0)
     """Stage IV (triangulation, SMPLify)."""
+    evaluate: TaskResources = TaskResources(cpus=1.0, memory_gb=2.0)
+    """``--evaluate``: one session's metrics."""
 
     def of(self, stage: str) -> TaskResources:
         return getattr(self, stage)
@@ -62,6 +64,10 @@ class BatchConfig:
     Empty: every stage."""
     force: bool = False
     """Redo every step even when its outputs are up to date."""
+    evaluate: bool = False
+    """Once every sequence of a session is fitted, evaluate the session (``embodmocap evaluate``:
+    ``evaluation.json``), so its metrics reach the catalog. A session with a failed sequence is
+    not evaluated (``blocked``): run ``embodmocap evaluate SESSION`` by hand."""
     catalog: bool = True
     """Update ``DATASET/catalog.sqlite`` as tasks end."""
     dry_run: bool = False

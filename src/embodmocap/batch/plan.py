@@ -21,7 +21,7 @@ from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import MANIFEST_NAME, SessionManifest, load_manifest
 
-StageName = Literal["scene", "sequence", "calibrate", "motion"]
+StageName = Literal["scene", "sequence", "calibrate", "motion", "evaluate"]
 #: The stages in the order a sequence goes through them (``scene`` runs per scene).
 STAGES: tuple[StageName, ...] = ("scene", "sequence", "calibrate", "motion")
 #: Name of the file a dataset folder may hold instead of session folders (one session a line).
@@ -54,8 +54,8 @@ class Task:
 
     @property
     def kind(self) -> str:
-        """``scene`` or ``sequence``: what ``target`` names."""
-        return "scene" if self.stage == "scene" else "sequence"
+        """``scene``, ``sequence`` or ``session`` (``evaluate``): what ``target`` names."""
+        return {"scene": "scene", "evaluate": "session"}.get(self.stage, "sequence")
 
 
 @dataclass(frozen=True)
@@ -128,12 +128,14 @@ def dataset_root(dataset: str | Path) -> Path:
 
 
 def session_plan(manifest: SessionManifest, only: Iterable[StageName] = STAGES,
-                 include_failed: bool = False) -> tuple[list[Task], list[tuple[Path, str, str]]]:
+                 include_failed: bool = False, evaluate: bool = False) -> tuple[list[Task], list[tuple[Path, str, str]]]:
     """The tasks of one session (see the module docstring) and the sequences left out.
 
     With ``only`` a subset of :data:`STAGES`, tasks of other stages are left out and so are the
     dependencies on them: those stages are expected to be done already (each stage checks its
-    upstream stages itself and fails with the command to run when they are not).
+    upstream stages itself and fails with the command to run when they are not). With
+    ``evaluate``, a last task (stage ``evaluate``, target the session's name) evaluates the session
+    once every sequence's Stage IV task is done.
     """
     keep = set(only)
     root = manifest.root
@@ -153,10 +155,14 @@ def session_plan(manifest: SessionManifest, only: Iterable[StageName] = STAGES,
             t = Task(root, stage, name, seq.scene, (prev,) if prev else ())
             tasks.append(t)
             prev = t.key
+    if evaluate:
+        motion = tuple(t.key for t in tasks if t.stage == "motion")
+        tasks.append(Task(root, "evaluate", root.name, "", motion))
     return tasks, skipped
 
 
-def make_plan(dataset: str | Path, only: Iterable[StageName] = STAGES, include_failed: bool = False) -> Plan:
+def make_plan(dataset: str | Path, only: Iterable[StageName] = STAGES, include_failed: bool = False,
+              evaluate: bool = False) -> Plan:
     """The plan of a whole dataset: every session's tasks, scenes first so they start early.
 
     Raises:
@@ -165,7 +171,7 @@ def make_plan(dataset: str | Path, only: Iterable[StageName] = STAGES, include_f
     per: list[list[Task]] = []
     skipped: list[tuple[Path, str, str]] = []
     for folder in session_folders(dataset):
-        tasks, sk = session_plan(load_manifest(SessionLayout(folder).manifest), only, include_failed)
+        tasks, sk = session_plan(load_manifest(SessionLayout(folder).manifest), only, include_failed, evaluate)
         per.append(tasks)
         skipped += sk
     # Stage I of every session first (they unlock the most work), then the sequences' stages in

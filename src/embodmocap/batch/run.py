@@ -88,7 +88,7 @@ def progress_line(states: dict[str, TaskState]) -> str:
     """``scene 1/2 done, 1 running | sequence 0/4 done | ... | failed 1, retried 2``."""
     parts = []
     retried = sum(max(0, s.attempts - 1) for s in states.values())
-    for stage in STAGES:
+    for stage in STAGES + ("evaluate",):
         ss = [s for s in states.values() if s.task.stage == stage]
         if not ss:
             continue
@@ -138,7 +138,7 @@ def run_batch(dataset: str | Path, cfg: BatchConfig = BatchConfig(), pipeline: P
     t_start = time.perf_counter()
     say = say or (lambda m: print(m, file=sys.stderr, flush=True))
     only = cfg.only or STAGES
-    plan = make_plan(dataset, only, include_failed=pipeline.include_failed)
+    plan = make_plan(dataset, only, include_failed=pipeline.include_failed, evaluate=cfg.evaluate)
     root = dataset_root(dataset)
     states = {t.key: TaskState(t) for t in plan.tasks}
     dependents = plan.dependents()

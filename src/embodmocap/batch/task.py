@@ -45,6 +45,8 @@ class TaskResult:
 def stage_manifest_path(task: Task) -> Path:
     """The stage manifest the task's stage writes (its steps' fingerprints and finish times)."""
     lay = SessionLayout(task.session)
+    if task.stage == "evaluate":
+        return lay.evaluation
     if task.stage == "scene":
         return lay.scene(task.target).manifest
     seq = lay.sequence(task.target)
@@ -77,6 +79,10 @@ def _call_stage(task: Task, cfg: PipelineConfig, force: bool) -> None:
         from embodmocap.motion.stage import run
 
         run(cfg.motion, task.session, task.target, force=force)
+    elif task.stage == "evaluate":
+        from embodmocap.evaluate.session import evaluate_session
+
+        evaluate_session(task.session)
     else:  # pragma: no cover - the plan only makes the four
         raise ValueError(f"unknown stage {task.stage}")
 
@@ -125,7 +131,8 @@ def run_task(task: Task, cfg: PipelineConfig, force: bool = False, log_file: str
             handler.close()
     seconds = round(time.perf_counter() - t0, 3)
     after = _step_stamps(stage_manifest_path(task))
-    status = "current" if (before is not None and after == before and not force) else "ok"
+    # ``evaluate`` has no steps: it always runs.
+    status = "current" if (task.stage != "evaluate" and before is not None and after == before and not force) else "ok"
     if handler is not None:
         with open(log_file, "a") as f:  # type: ignore[arg-type]
             f.write(f"{task.key}: {status} in {seconds:.1f} s\n")
