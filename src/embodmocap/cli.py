@@ -18,6 +18,7 @@ import tyro
 
 from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_watching_interrupts, watch_interrupts
 from embodmocap.scene.config import SceneConfig
+from embodmocap.batch.commands import Batch, Catalog
 from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.check.config import CheckConfig
 from embodmocap.evaluate.benchmark import BenchmarkConfig
@@ -442,6 +443,8 @@ Commands = Union[
     Annotated[Calibrate, tyro.conf.subcommand("calibrate")],
     Annotated[Motion, tyro.conf.subcommand("motion")],
     Annotated[Run, tyro.conf.subcommand("run")],
+    Annotated[Batch, tyro.conf.subcommand("batch")],
+    Annotated[Catalog, tyro.conf.subcommand("catalog")],
     Annotated[Evaluate, tyro.conf.subcommand("evaluate")],
     Annotated[Report, tyro.conf.subcommand("report")],
     Annotated[Benchmark, tyro.conf.subcommand("benchmark")],
