@@ -6,10 +6,15 @@ of one synthesised session (``embodmocap run``), then
     python benchmarks/compare_sessions.py OLD_SESSION NEW_SESSION
 
 Every ``.npz`` key under ``scenes/`` and ``sequences/`` must hold the same array (exact equality,
-NaN equal to NaN), every ``.ply`` and other file the same bytes, every ``.json`` the same content
+NaN equal to NaN), every ``.ply`` and other file the same bytes (an SQLite database without its header's change
+counters), every ``.json`` the same content
 except the bookkeeping keys in :data:`IGNORED` (timings, dates, output fingerprints, the package
 version, the capture's absolute path), which differ between any two runs. Prints one line per
 difference and a summary; exits 1 when anything differs or is missing.
+
+Step fingerprints are compared too, unless ``--ignore-fingerprints``: Stage III's ``geosync``
+fingerprint hashes ``calibration.json``, whose solver timings differ between any two runs, so it
+differs even between two runs of the same code (every other fingerprint hashes content or config).
 """
 
 from __future__ import annotations
@@ -45,6 +50,15 @@ def _same_array(x: np.ndarray, y: np.ndarray) -> bool:
     return bool(np.array_equal(x, y))
 
 
+def _content(path: Path) -> bytes:
+    """A file's bytes; for an SQLite database (COLMAP's) without the header's change counters
+    (bytes 24-27 and 92-95), which SQLite bumps on every write transaction."""
+    data = path.read_bytes()
+    if data.startswith(b"SQLite format 3\x00") and len(data) >= 100:
+        data = data[:24] + bytes(4) + data[28:92] + bytes(4) + data[96:]
+    return data
+
+
 def compare(a: Path, b: Path, ignore_fingerprints: bool = False) -> tuple[int, list[str]]:
     """(number of equal files/keys, differences) between the stage outputs of sessions ``a`` and ``b``."""
     same, diffs = 0, []
@@ -73,7 +87,7 @@ def compare(a: Path, b: Path, ignore_fingerprints: bool = False) -> tuple[int, l
                 diffs.append(f"{rel}: JSON content differs")
             else:
                 same += 1
-        elif p.read_bytes() != q.read_bytes():
+        elif _content(p) != _content(q):
             diffs.append(f"{rel}: bytes differ")
         else:
             same += 1
