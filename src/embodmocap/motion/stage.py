@@ -43,8 +43,10 @@ from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, p
 from embodmocap.motion.config import MotionConfig  # noqa: F401 (re-exported: defined in config.py)
 from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
+from embodmocap.motion.label_track import TRACKED_GROUPS, track_labels
 from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
 from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
+from embodmocap.motion.temporal import drop_guessed_runs
 from embodmocap.sequence.subframe import synced_views
 
 log = logging.getLogger(__name__)
@@ -98,17 +100,19 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         return True
 
     # 1. Triangulation.
-    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps,
+    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps, cfg.label_track, cfg.temporal,
                          *[path_fingerprint(p) for v in VIEWS for p in (out.view(v).keypoints, out.view(v).cameras_world)])
     if step("triangulate", fp_tri):
         t0 = time.perf_counter()
         K = np.stack([cams[v]["K"] for v in VIEWS])
         P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
         kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
+        kp, tracked = track_labels(kp, cfg.label_track, P=P)
         if cfg.fix_swaps:
             kp, swapped = fix_swaps(P, kp, cfg.triangulation)
         else:
             swapped = np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)
+        kp, guessed = drop_guessed_runs(kp, cfg.temporal)
         tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
         write_npz(out.keypoints3d, version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
                   reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS), keypoints2d=kp,
@@ -118,6 +122,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             "triangulated_fraction": round(float(seen.mean()), 4),
             "filled_fraction": round(float(tri.filled.mean()), 4),
             "long_gaps": len(tri.long_gaps),
+            "keypoints_dropped_temporal": int(guessed.sum()),
+            "limb_labels_tracked": {f"{v}_{g}": int(tracked[:, i, k].sum()) for i, v in enumerate(VIEWS) for k, g in enumerate(TRACKED_GROUPS)},
             "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
             **{f"{v}_swaps_undone": {g: int(swapped[:, i, k].sum()) for k, g in enumerate(COCO17_SWAP_GROUPS)}
                for i, v in enumerate(VIEWS)},
