@@ -59,6 +59,13 @@ class TemporalConfig:
     """Torso points below this confidence do not place the torso centre (a hidden hip's guess
     jitters several times more than a seen one)."""
     max_run: int = 30
+    flag_min_conf: float = 0.0
+    """Only detections at least this confident are dropped (the weaker ones still shape the
+    trajectories; below the triangulation's threshold they only enter the fit's 2D term, weighted
+    by their confidence)."""
+    min_reference: int = 0
+    """At the start (end) of a run of detections, the segment after (before) a jump judges the one
+    before (after) it only when it is longer than this many frames (and than that one)."""
     middle: bool = True
     """Also judge segments with neighbours on both sides (not only those at the start or the end
     of a run of detections)."""
@@ -84,7 +91,7 @@ def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> ND
             continue
         for j in LIMB_JOINTS:
             seen = (kp[:, v, j, 2] >= cfg.min_conf) & np.isfinite(rel[:, j]).all(-1)
-            out[:, v, j] = _guessed_runs(rel[:, j], seen, cfg)
+            out[:, v, j] = _guessed_runs(rel[:, j], seen, cfg) & (kp[:, v, j, 2] >= cfg.flag_min_conf)
     return out
 
 
@@ -178,9 +185,9 @@ def _short_segments(r: NDArray, seen: NDArray, cfg: TemporalConfig) -> list[list
             if across < into and span[k] <= max(span[k - 1], span[k + 1]):
                 found.append(s)
         elif lc == "jump":  # at the end of the detections: judged against the segment before
-            if span[k - 1] > max(span[k], cfg.max_run):
+            if span[k - 1] > max(span[k], cfg.min_reference):
                 found.append(s)
-        elif k + 1 < n and span[k + 1] > max(span[k], cfg.max_run):
+        elif k + 1 < n and span[k + 1] > max(span[k], cfg.min_reference):
             # At the start of the detections (the sequence's, or after a gap): no past to compare
             # with, so the longer segment after it judges it (propagation backwards).
             found.append(s)
