@@ -7,7 +7,7 @@ import numpy as np
 
 from embodmocap.motion.temporal import TemporalConfig, drop_guessed_runs, temporal_outliers
 
-ON = TemporalConfig(enabled=True, middle=False)
+ON = TemporalConfig(enabled=True, middle=False, flag_min_conf=0.0)
 
 
 def _person(T: int = 80, seed: int = 0) -> np.ndarray:

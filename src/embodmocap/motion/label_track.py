@@ -52,6 +52,11 @@ class LabelTrackConfig:
     -> 228 (0.05), 215 (0.03), 58 (0.015), 44 (0.008)."""
     cap: float = 0.6
     """Each point's movement between two frames counts at most this much, torso lengths."""
+    switch_cost: float = 0.15
+    """Cost of a view's labels changing state between two frames its trajectories compare, torso
+    lengths: where the two points of a pair overlap in the image (arms crossing in front of the
+    body, legs passing), the detector's jitter alone can make exchanging them look a little
+    better; a real confusion gains about twice the pair's separation at each end."""
     max_gap: int = 10
     """Frames more than this apart (no pair seen in between) are not compared."""
     geometry_px: float = 100.0
@@ -131,12 +136,12 @@ def _transitions(rel: NDArray, seen: NDArray, pairs, cfg: LabelTrackConfig) -> N
 
 
 def _switch_cost(trans: NDArray, geo_seen: NDArray | None, cfg: LabelTrackConfig) -> NDArray:
-    """(T,) cost of a view changing state at frame t: free where its own trajectories compare
-    frame t with an earlier one (the change is paid for by that evidence), ``geometry_switch``
+    """(T,) cost of a view changing state at frame t: ``switch_cost`` where its own trajectories
+    compare frame t with an earlier one (the change is paid for by that evidence), ``geometry_switch``
     where only the two views' agreement speaks, otherwise prohibitive: across frames without
     evidence the state is carried, so the next comparison is made against the right labels."""
     own = np.abs(trans).sum((1, 2)) > 0
-    cost = np.where(own, 0.0, 1e9)
+    cost = np.where(own, cfg.switch_cost, 1e9)
     if geo_seen is not None:
         cost = np.where(~own & geo_seen, cfg.geometry_switch, cost)
     return cost

@@ -40,10 +40,8 @@ TORSO: tuple[int, ...] = (5, 6, 11, 12)
 class TemporalConfig:
     """How runs of a view's 2D keypoints that leave their own trajectory are found."""
 
-    enabled: bool = False
-    """Find and drop such runs (False: keep every detection). Off by default: measured on the
-    ten hard studio sessions it dropped about one good detection for each wrong one, and the fit
-    lost more than it gained (BENCHMARKS.md, issue 11, third pass)."""
+    enabled: bool = True
+    """Find and drop such runs (False: keep every detection)."""
     min_conf: float = 0.1
     """Detections below this confidence are treated as missing."""
     jump: float = 0.35
@@ -59,16 +57,19 @@ class TemporalConfig:
     """Torso points below this confidence do not place the torso centre (a hidden hip's guess
     jitters several times more than a seen one)."""
     max_run: int = 30
-    flag_min_conf: float = 0.0
+    flag_min_conf: float = 0.3
     """Only detections at least this confident are dropped (the weaker ones still shape the
     trajectories; below the triangulation's threshold they only enter the fit's 2D term, weighted
     by their confidence)."""
     min_reference: int = 0
     """At the start (end) of a run of detections, the segment after (before) a jump judges the one
     before (after) it only when it is longer than this many frames (and than that one)."""
-    middle: bool = True
+    middle: bool = False
     """Also judge segments with neighbours on both sides (not only those at the start or the end
-    of a run of detections)."""
+    of a run of detections). Off by default: in the middle of a run the fit's robust terms and
+    the neighbouring frames already write a guess off, and on the hard studio sessions this rule
+    dropped several good detections for each wrong one: W-MPJPE worse on 3 of the first 4 of the
+    ten sessions (seed 2: W 77 -> 97 mm, PA 29 -> 57 mm; issue 11, third pass)."""
     """Longest segment that can be judged a guess, frames (a detector's left/right confusions and
     confident guesses of hidden joints last up to about a second)."""
 
