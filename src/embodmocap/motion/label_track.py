@@ -47,9 +47,10 @@ class LabelTrackConfig:
     the jumps at its two ends (and the views' disagreement inside it) shrink by more than this
     times its length: a pair 0.3 torso lengths apart gains ~1.2 at the two ends, so a confusion
     of up to ~100 frames is undone, while the detector's labels stand wherever the trajectories do
-    not insist. Measured on ten hard studio sessions (issue 11, third pass): frames with a limb
-    pair still the wrong way round after this and the geometric check 465 (geometric check alone)
-    -> 228 (0.05), 215 (0.03), 58 (0.015), 44 (0.008)."""
+    not insist. Measured on ten hard studio sessions (issue 11, third pass; the tracking alone,
+    before ``switch_cost`` existed): (frame, view, group) limb pairs still the wrong way round 465
+    with the geometric check alone -> 228 (0.05), 215 (0.03), 58 (0.015), 44 (0.008); with the
+    defaults 37 (47 after the geometric check that follows in Stage IV)."""
     cap: float = 0.6
     """Each point's movement between two frames counts at most this much, torso lengths."""
     switch_cost: float = 0.15
