@@ -59,6 +59,11 @@ def test_fit_lands_on_the_truth_and_resumes(session):
     assert k3["points"].shape == (len(joints), 17, 3)
     assert out.figures["init"] == "keypoints"  # no body prior in this session
     assert out.figures["contact_alignment"].startswith("none")
+    # The label tracking and the temporal check report what they changed (clean studio keypoints:
+    # a few frames at most).
+    assert set(out.figures["limb_labels_tracked"]) == {f"{v}_{g}" for v in VIEWS for g in ("arms", "legs")}
+    assert sum(out.figures["limb_labels_tracked"].values()) <= 0.1 * len(joints)
+    assert 0 <= out.figures["keypoints_dropped_temporal"] <= 0.02 * len(joints) * 17
     # Without contacts the final cameras are Stage III's.
     for v in VIEWS:
         np.testing.assert_array_equal(np.load(sl.view(v).cameras_final)["T_world_cam"],

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from embodmocap.geometry.triangulation import TriangulationConfig
+from embodmocap.motion.label_track import LabelTrackConfig
+from embodmocap.motion.temporal import TemporalConfig
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,12 @@ class MotionConfig:
     sequence has one; False = start from the triangulated keypoints, no pose prior."""
     align_contacts: bool = True
     """Apply the contact-marker alignment when the manifest lists contacts."""
+    label_track: LabelTrackConfig = field(default_factory=LabelTrackConfig)
+    """Each view's left/right arm and leg labels tracked through time (with both views' agreement)
+    before the geometric swap check (:mod:`embodmocap.motion.label_track`)."""
+    temporal: TemporalConfig = field(default_factory=TemporalConfig)
+    """Runs of a view's 2D limb keypoints that jump off their own trajectory (relative to the
+    torso) and back are dropped before triangulating and fitting (:mod:`embodmocap.motion.temporal`)."""
     fix_swaps: bool = True
     """Find and undo left/right swaps of the 2D keypoints (a detector labelling an arm, a leg or
     the whole body the wrong way round in one view) before triangulating and fitting."""

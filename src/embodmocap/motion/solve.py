@@ -30,8 +30,10 @@ from embodmocap.io.stage_files import CameraFile, Keypoints3DFile, WorldJointsFi
 from embodmocap.motion.config import MotionConfig
 from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
+from embodmocap.motion.label_track import TRACKED_GROUPS, track_labels
 from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
 from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
+from embodmocap.motion.temporal import drop_guessed_runs
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +62,12 @@ def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mappi
     K = np.stack([cams[v]["K"] for v in VIEWS])
     P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
     kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
+    kp, tracked = track_labels(kp, cfg.label_track, P=P)
     if cfg.fix_swaps:
         kp, swapped = fix_swaps(P, kp, cfg.triangulation)
     else:
         swapped = np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)
+    kp, guessed = drop_guessed_runs(kp, cfg.temporal)
     tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
     file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
                            reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS), keypoints2d=kp,
@@ -73,6 +77,9 @@ def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mappi
         "triangulated_fraction": round(float(seen.mean()), 4),
         "filled_fraction": round(float(tri.filled.mean()), 4),
         "long_gaps": len(tri.long_gaps),
+        "keypoints_dropped_temporal": int(guessed.sum()),
+        "limb_labels_tracked": {f"{v}_{g}": int(tracked[:, i, k].sum()) for i, v in enumerate(VIEWS)
+                                for k, g in enumerate(TRACKED_GROUPS)},
         "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
         **{f"{v}_swaps_undone": {g: int(swapped[:, i, k].sum()) for k, g in enumerate(COCO17_SWAP_GROUPS)}
            for i, v in enumerate(VIEWS)},

@@ -89,7 +89,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     fps = sequence_fps(out)
 
     # 1. Triangulation.
-    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps,
+    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps, cfg.label_track, cfg.temporal,
                          *[path_fingerprint(p) for v in VIEWS for p in (out.view(v).keypoints, out.view(v).cameras_world)])
     with sm.step("triangulate", fp_tri, force=force, label=label) as step:
         if step.run:

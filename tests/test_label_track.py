@@ -1,0 +1,98 @@
+"""Left/right limb labels tracked through time in each view (embodmocap.motion.label_track): runs of
+a view's swapped arm or leg labels are undone where the geometric check alone cannot tell."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from embodmocap.body.model import load_body_model
+from embodmocap.geometry.transforms import R_ZUP_YUP, look_at_T
+from embodmocap.geometry.triangulation import TriangulationConfig, projection_matrices
+from embodmocap.motion.label_track import TRACKED_GROUPS, LabelTrackConfig, track_labels
+from embodmocap.motion.swaps import fix_swaps
+
+K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """120 frames of a body walking along +x, legs and arms swinging in opposition, seen by two
+    cameras at one height (a left/right confusion slides along the level epipolar lines: the
+    views still meet); (P (T, 2, 3, 4), keypoints (T, 2, 17, 3))."""
+    from scipy.spatial.transform import Rotation
+
+    body = load_body_model(None)
+    T = 120
+    go = (Rotation.from_euler("z", np.full((T, 1), 0.2)) * Rotation.from_matrix(R_ZUP_YUP)).as_rotvec()
+    phase = np.linspace(0, 4 * np.pi, T)
+    pose = np.zeros((T, 69))
+    pose[:, 0] = 0.5 * np.sin(phase)  # left hip
+    pose[:, 3] = -0.5 * np.sin(phase)  # right hip
+    pose[:, 9] = 0.4 * (1 + np.cos(phase))  # left knee
+    pose[:, 12] = 0.4 * (1 - np.cos(phase))  # right knee
+    pose[:, 15 * 3 + 2] = -1.1  # left shoulder: arm down to the side
+    pose[:, 16 * 3 + 2] = 1.1  # right shoulder
+    pose[:, 15 * 3 + 1] = -0.5 * np.sin(phase)  # arms swing against the legs
+    pose[:, 16 * 3 + 1] = -0.5 * np.sin(phase)
+    transl = np.column_stack([np.linspace(0, 2.0, T), np.zeros(T), np.full(T, 0.9)])
+    with torch.no_grad():
+        coco = body.forward(np.zeros(10), go, pose, transl, dtype=torch.float64).coco17.numpy()
+    centre = np.array([1.0, 0.0, 1.0])
+    cams = [look_at_T(centre + np.array([3.5 * np.cos(a), 3.5 * np.sin(a), 0.3]), centre) for a in (0.6, -0.6)]
+    P = projection_matrices(K, np.broadcast_to(np.stack(cams), (T, 2, 4, 4)))
+    uvw = np.einsum("tvab,tjb->tvja", P, np.concatenate([coco, np.ones((T, 17, 1))], axis=-1))
+    kp = np.concatenate([uvw[..., :2] / uvw[..., 2:], np.full(uvw.shape[:-1] + (1,), 0.9)], axis=-1)
+    kp[..., :2] += np.random.default_rng(0).normal(0, 1.0, kp[..., :2].shape)
+    return P, kp
+
+
+def _swap(kp, view, frames, group):
+    out = kp.copy()
+    for a, b in TRACKED_GROUPS[group]:
+        out[frames, view, a], out[frames, view, b] = kp[frames, view, b], kp[frames, view, a]
+    return out
+
+
+def _wrong_frames(fixed, truth):
+    """(T,) frames where some view's limb point is more than 5 px from where it belongs."""
+    return (np.linalg.norm(fixed[..., :2] - truth[..., :2], axis=-1) > 5).any(axis=(1, 2))
+
+
+def test_clean_labels_are_left_alone(walk):
+    P, kp = walk
+    fixed, flipped = track_labels(kp, P=P)
+    assert not flipped.any()
+    np.testing.assert_array_equal(fixed, kp)
+
+
+def test_swaps_at_the_start_and_along_epipolar_lines_are_undone(walk):
+    P, kp = walk
+    # View 2's legs the wrong way round from the first frame (nothing before them to compare
+    # with), view 1's arms for 30 frames in the middle.
+    bad = _swap(_swap(kp, 1, slice(0, 22), "legs"), 0, slice(50, 80), "arms")
+    fixed, flipped = track_labels(bad, P=P)
+    assert not _wrong_frames(fixed, kp).any()
+    assert flipped[:22, 1, 1].all() and flipped[50:80, 0, 0].all()
+    assert flipped.sum() == 22 + 30
+    # The geometric check alone: with level epipolar lines both labellings meet, so it cannot
+    # undo them (the old behaviour leaves these frames wrong).
+    geo, _ = fix_swaps(P, bad, TriangulationConfig())
+    assert _wrong_frames(geo, kp).sum() >= 20
+
+
+def test_each_view_alone_follows_its_trajectories(walk):
+    P, kp = walk
+    bad = _swap(kp, 1, slice(60, 75), "legs")
+    fixed, flipped = track_labels(bad)  # no cameras: each view on its own
+    assert not _wrong_frames(fixed, kp).any()
+    assert flipped.sum() == 15
+
+
+def test_off_keeps_the_detector_labels(walk):
+    P, kp = walk
+    bad = _swap(kp, 1, slice(0, 22), "legs")
+    fixed, flipped = track_labels(bad, LabelTrackConfig(enabled=False), P=P)
+    assert not flipped.any()
+    np.testing.assert_array_equal(fixed, bad)
