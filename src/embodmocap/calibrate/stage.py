@@ -190,7 +190,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # where both views' keypoint rays meet (sequence.geosync); sync.json gets the final choice
     # among laser, manual and geometric (sequence.sync_record); the per-frame world cameras carry
     # the sub-frame offset Stage IV applies.
-    _geosync_step(cfg, out, entry.name, T_world_vio, path_fingerprint(calib_path), sm, force, skipped)
+    _geosync_step(cfg, out, entry.name, T_world_vio, path_fingerprint(calib_path), sm, force, skipped,
+                  {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS})
     report = json.loads(calib_path.read_text())
     for w in report.get("warnings", []):
         log.warning("%s: %s", entry.name, w)
@@ -410,10 +411,11 @@ def _sync_record(out, seq: str) -> dict:
 
 
 def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_fp, sm: StageManifest, force: bool,
-                  skipped: list[str]) -> dict:
+                  skipped: list[str], captures: dict) -> dict:
     """Geometric sync on the refined cameras; writes the final sync record and ``cameras_world``."""
     from embodmocap.sequence.geosync import GEOSYNC_VERSION, geometric_sync
     from embodmocap.sequence.subframe import frame_times
+    from embodmocap.sequence.laser_check import laser_dot_check
     from embodmocap.sequence.sync_record import decide
 
     rec = _sync_record(out, seq)
@@ -437,7 +439,9 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
                  geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
     sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
               if d.get("contact_sheet")}
-    rec = decide(rec, geo, cfg.geosync, fps, sheets, seq)
+    # The laser events as places in the world: one dot is one place in both views.
+    dot_check = laser_dot_check(rec, captures, T_world_vio, cfg.geosync.laser_dot_agree_m)
+    rec = decide(rec, geo, cfg.geosync, fps, sheets, seq, dot_check)
     write_json(out.sync, rec)
     amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
     for w in rec["warnings"]:
@@ -455,6 +459,7 @@ def _geosync_step(cfg: CalibrateConfig, out, seq: str, T_world_vio: dict, calib_
         "geometric_offset_frames": None if geo is None or not geo.found else round(geo.offset_frames, 4),
         "geometric_confidence": None if geo is None else round(geo.confidence, 3),
         "laser_minus_geometric_frames": (rec["agreement"] or {}).get("laser_minus_geometric_frames"),
+        "laser_dot_gap_m": None if dot_check is None or dot_check.gap_m is None else round(dot_check.gap_m, 4),
     })
     return rec
 
