@@ -65,20 +65,35 @@ class DotCheck:
                 "limit_m": self.limit_m, "same_dot": self.same_dot}
 
 
-def dot_sighting(capture: Capture, frame: int, xy: tuple[float, float], T_world_vio: NDArray,
-                 depth_window: int = 2) -> DotSighting | None:
-    """The world ray (and point, from depth) of a view's dot seen at pixel ``xy`` in ``frame``.
+@dataclass(frozen=True)
+class DotObservation:
+    """What one view's capture says about its last sighting of the dot, before any calibration.
+
+    Attributes:
+        K: (3, 3) intrinsics at RGB resolution.
+        xy: (2,) the dot's pixel at RGB resolution (pixel centres at integers).
+        T_vio_cam: (4, 4) the capture's VIO pose of that frame (camera to the view's VIO world).
+        depth_m: z-depth at the dot (median of the valid depth around it), or None.
+    """
+
+    K: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    T_vio_cam: NDArray[np.float64]
+    depth_m: float | None
+
+
+def observe_dot(capture: Capture, frame: int, xy: tuple[float, float], depth_window: int = 2) -> DotObservation | None:
+    """Read a view's sighting of its dot at pixel ``xy`` in raw ``frame`` from its capture.
 
     Args:
         capture: the view's raw capture (its VIO trajectory, intrinsics and depth maps).
         frame: raw video frame of the sighting (the frame before the sync event).
         xy: (x, y) pixel at RGB resolution, pixel centres at integers.
-        T_world_vio: (4, 4) the view's VIO world to the scene world (Stage III's offset).
         depth_window: half-size of the depth-map window whose median valid depth is used (a laser
             dot is a few RGB pixels; one depth pixel can be an edge).
 
     Returns:
-        The sighting, or None when the capture has no pose for ``frame`` or a neighbour.
+        The observation, or None when the capture has no pose at ``frame`` or a neighbour.
     """
     traj = capture.trajectory
     if len(traj.frame_ids) == 0:
@@ -86,26 +101,37 @@ def dot_sighting(capture: Capture, frame: int, xy: tuple[float, float], T_world_
     k = int(np.argmin(np.abs(traj.frame_ids - frame)))
     if abs(int(traj.frame_ids[k]) - frame) > 1:
         return None  # no pose near the sighting: a ray from another moment would be misleading
-    T_world_cam = np.asarray(T_world_vio, np.float64) @ traj.T_world_cam[k]
-    rgb = capture.rgb_intrinsics
-    origin, direction = pixel_rays(rgb.K, T_world_cam, np.asarray(xy, np.float64))
-    point = None
-    dk = capture.depth_intrinsics
+    rgb, dk = capture.rgb_intrinsics, capture.depth_intrinsics
     depth = np.asarray(capture.frames.depth_m(frame), np.float32)
-    # The same ray at depth resolution (pixel-centre convention, as Intrinsics.scaled).
-    u = (xy[0] + 0.5) * dk.width / rgb.width - 0.5
-    v = (xy[1] + 0.5) * dk.height / rgb.height - 0.5
-    ui, vi = int(round(u)), int(round(v))
+    # The same pixel at depth resolution (pixel-centre convention, as Intrinsics.scaled).
+    ui = int(round((xy[0] + 0.5) * dk.width / rgb.width - 0.5))
+    vi = int(round((xy[1] + 0.5) * dk.height / rgb.height - 0.5))
     h, w = depth.shape
     win = depth[max(vi - depth_window, 0): min(vi + depth_window + 1, h), max(ui - depth_window, 0): min(ui + depth_window + 1, w)]
     valid = win[np.isfinite(win) & (win > 0)]
-    if valid.size:
-        z = float(np.median(valid))
-        # z is the depth along the camera's optical axis: scale the unit ray to reach that plane.
+    return DotObservation(K=np.asarray(rgb.K, np.float64), xy=np.asarray(xy, np.float64),
+                          T_vio_cam=np.asarray(traj.T_world_cam[k], np.float64),
+                          depth_m=float(np.median(valid)) if valid.size else None)
+
+
+def place_dot(obs: DotObservation | None, T_world_vio: NDArray) -> DotSighting | None:
+    """A view's dot observation in the scene's world, given the view's (4, 4) ``T_world_vio``."""
+    if obs is None:
+        return None
+    T_world_cam = np.asarray(T_world_vio, np.float64) @ obs.T_vio_cam
+    origin, direction = pixel_rays(obs.K, T_world_cam, obs.xy)
+    point = None
+    if obs.depth_m is not None:
+        # The depth is along the camera's optical axis: scale the unit ray to reach that plane.
         cos = float(direction @ T_world_cam[:3, 2])
         if cos > 1e-6:
-            point = origin + direction * (z / cos)
+            point = origin + direction * (obs.depth_m / cos)
     return DotSighting(origin=np.asarray(origin, np.float64), direction=np.asarray(direction, np.float64), point=point)
+
+
+def dot_sighting(capture: Capture, frame: int, xy: tuple[float, float], T_world_vio: NDArray) -> DotSighting | None:
+    """:func:`observe_dot` then :func:`place_dot`: the world ray (and point) of a view's dot."""
+    return place_dot(observe_dot(capture, frame, xy), T_world_vio)
 
 
 def ray_gap(o1: NDArray, d1: NDArray, o2: NDArray, d2: NDArray) -> float:
@@ -134,27 +160,38 @@ def check_same_dot(a: DotSighting | None, b: DotSighting | None, limit_m: float)
     return DotCheck(gap, "rays", limit_m, False if gap > limit_m else None)
 
 
-def laser_dot_check(record: dict, captures: Mapping[str, Callable[[], Capture]], T_world_vio: Mapping[str, NDArray],
-                    limit_m: float) -> DotCheck | None:
-    """The same-dot check of a sequence's two laser events, from its ``sync.json`` record.
+def observe_laser_dots(record: dict, captures: Mapping[str, Callable[[], Capture]]) -> dict[str, DotObservation | None] | None:
+    """Each view's last sighting of its laser dot from a sequence's ``sync.json`` record.
 
     Args:
         record: the sync record (``sources.laser.views.<v>``: ``found``, ``frame``, ``dot_xy_before``).
         captures: view name -> a function opening the view's raw capture (opened only when both
             views have a laser event).
-        T_world_vio: view name -> (4, 4) the view's VIO world to the scene world.
-        limit_m: the largest distance taken as one dot.
 
     Returns:
-        The check, or None when the record has no laser event (or no dot position) in a view.
+        View -> observation (None where the capture has no pose there), or None when a view has no
+        laser event or no dot position.
     """
     views = record["sources"]["laser"]["views"]
     names = list(record["views"])
     if not all(views.get(v, {}).get("found") and views[v].get("dot_xy_before") is not None for v in names):
         return None
-    sightings = []
-    for v in names:
-        d = views[v]
-        # The dot was last seen in the frame before the event (the event is the first frame without it).
-        sightings.append(dot_sighting(captures[v](), int(d["frame"]) - 1, tuple(d["dot_xy_before"]), T_world_vio[v]))
-    return check_same_dot(sightings[0], sightings[1], limit_m)
+    # The dot was last seen in the frame before the event (the event is the first frame without it).
+    return {v: observe_dot(captures[v](), int(views[v]["frame"]) - 1, tuple(views[v]["dot_xy_before"])) for v in names}
+
+
+def check_laser_dots(observations: Mapping[str, DotObservation | None] | None, T_world_vio: Mapping[str, NDArray],
+                     limit_m: float) -> DotCheck | None:
+    """The same-dot check of two views' observations (:func:`observe_laser_dots`) placed with
+    their ``T_world_vio``; None without observations."""
+    if observations is None:
+        return None
+    a, b = (place_dot(observations[v], T_world_vio[v]) for v in observations)
+    return check_same_dot(a, b, limit_m)
+
+
+def laser_dot_check(record: dict, captures: Mapping[str, Callable[[], Capture]], T_world_vio: Mapping[str, NDArray],
+                    limit_m: float) -> DotCheck | None:
+    """:func:`observe_laser_dots` then :func:`check_laser_dots`: the same-dot check of a sequence's
+    two laser events, or None when the record has no laser event (or dot position) in a view."""
+    return check_laser_dots(observe_laser_dots(record, captures), T_world_vio, limit_m)
