@@ -222,6 +222,7 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps
+    from embodmocap.sequence.laser_check import observe_laser_dots
 
     work = tmp_path / "s"
     shutil.copytree(session, work)
@@ -248,7 +249,8 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
         mesh_vertices=mv, mesh_faces=mf, sync_record=rec, fps=sequence_fps(sl),
         sources={v: entry.views[v].capture for v in VIEWS},
         contact_sheets={v: str(SessionLayout(session).sequence(entry.name).root / d["contact_sheet"])
-                        for v, d in rec["sources"]["laser"]["views"].items() if d.get("contact_sheet")})
+                        for v, d in rec["sources"]["laser"]["views"].items() if d.get("contact_sheet")},
+        laser_dots=observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS}))
     shutil.rmtree(work)  # nothing of the session is left to read
     res = solve.solve(CFG, inputs)
 

@@ -66,6 +66,9 @@ def test_verdicts_with_the_scene(tmp_path):
     assert got["normal"].figures["sync"]["geometric_confidence"] > 0.3
     assert abs(got["normal"].figures["sync"]["geometric_offset_frames"]) < 1.0
     assert 60 <= got["normal"].figures["angle_deg"]["median"] <= 120
+    # Both views' laser sightings land on one place of the scene (the same-dot check passes).
+    dot = got["normal"].figures["sync"]["laser_dot_check"]
+    assert dot["same_dot"] is not False and dot["gap_m"] < 0.15, dot
     assert got["sep20"].verdict == "reshoot" and got["sep20"].figures["angle_deg"]["median"] < 40
     assert got["scene"].verdict == "reshoot"
     assert any("registers" in r and "v2" in r for r in got["scene"].reasons)

@@ -476,7 +476,8 @@ class GeosyncResult:
 
 
 def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], T_world_vio: Mapping[str, NDArray],
-                   fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "") -> GeosyncResult:
+                   fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "",
+                   laser_dots: Mapping[str, object] | None = None) -> GeosyncResult:
     """With both views in the scene's world (whatever their time offset), the offset at which the
     two views' keypoint rays meet (:mod:`embodmocap.sequence.geosync`); the final choice among
     laser, manual and geometric (:mod:`embodmocap.sequence.sync_record`); the per-frame world
@@ -485,9 +486,12 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
     Args:
         record: Stage II's ``sync.json`` (version 2); T_world_vio: view -> (4, 4) refined offset;
         fps: the sequence frame rate; contact_sheets: view -> the laser contact sheet's path (text
-        for the messages); label: the sequence (log lines).
+        for the messages); label: the sequence (log lines); laser_dots: view -> the view's last
+        sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`;
+        None: no same-dot check).
     """
     from embodmocap.sequence.geosync import geometric_sync as find_offset
+    from embodmocap.sequence.laser_check import check_laser_dots
     from embodmocap.sequence.subframe import frame_times
     from embodmocap.sequence.sync_record import decide
 
@@ -500,7 +504,9 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         geo = find_offset(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
         log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,
                  geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
-    rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label)
+    # The laser events as places in the world: one dot is one place in both views.
+    dot_check = check_laser_dots(laser_dots, T_world_vio, cfg.geosync.laser_dot_agree_m)
+    rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check)
     cameras_world = {}
     for v in VIEWS:
         # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
@@ -513,6 +519,7 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         "geometric_offset_frames": None if geo is None or not geo.found else round(geo.offset_frames, 4),
         "geometric_confidence": None if geo is None else round(geo.confidence, 3),
         "laser_minus_geometric_frames": (rec["agreement"] or {}).get("laser_minus_geometric_frames"),
+        "laser_dot_gap_m": None if dot_check is None or dot_check.gap_m is None else round(dot_check.gap_m, 4),
     }
     return GeosyncResult(rec, cameras_world, figures, geo)
 
@@ -530,6 +537,8 @@ class CalibrateInputs:
         fps: the sequence frame rate.
         sources: view -> what an error about the view names (its capture).
         contact_sheets: view -> the laser contact sheet's path (text for the sync messages).
+        laser_dots: view -> its last sighting of the laser dot, read from its capture
+            (:func:`embodmocap.sequence.laser_check.observe_laser_dots`; None: no same-dot check).
     """
 
     sequence: str
@@ -542,6 +551,7 @@ class CalibrateInputs:
     fps: float
     sources: dict[str, object] = field(default_factory=dict)
     contact_sheets: dict[str, str] = field(default_factory=dict)
+    laser_dots: dict | None = None
 
 
 @dataclass(frozen=True)
@@ -595,5 +605,5 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
                            sequence=inputs.sequence, scene=inputs.scene)
     T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS}
     geo = geometric_sync(cfg, inputs.sync_record, inputs.views, T_world_vio, inputs.fps, inputs.contact_sheets,
-                         inputs.sequence)
+                         inputs.sequence, inputs.laser_dots)
     return CalibrateResult({v: files[v] for v in VIEWS}, report, geo.record, geo.cameras_world, T_world_vio)

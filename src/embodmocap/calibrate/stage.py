@@ -42,6 +42,7 @@ from embodmocap.calibrate.solve import CALIBRATION_VERSION, REGISTER_VERSION, Vi
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
+from embodmocap.sequence.laser_check import observe_laser_dots
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
@@ -148,15 +149,18 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     from embodmocap.sequence.geosync import GEOSYNC_VERSION
 
     rec = _sync_record(out, entry.name)
+    # The refined offsets, not calibration.json's bytes: the report also holds the solver's timings,
+    # which would make every rerun of the refinement redo this step (and differ between two runs).
     fp_geo = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
-                         rec["sources"].get("manual"), path_fingerprint(calib_path),
+                         rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in VIEWS},
                          *[path_fingerprint(out.view(v).keypoints) for v in VIEWS],
                          *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync)
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
         if step.run:
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
-            geo = solve.geometric_sync(cfg, rec, views, T_world_vio, sequence_fps(out), sheets, entry.name)
+            dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS})
+            geo = solve.geometric_sync(cfg, rec, views, T_world_vio, sequence_fps(out), sheets, entry.name, dots)
             write_json(out.sync, geo.record)
             amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
             for w in geo.record["warnings"]:

@@ -160,6 +160,8 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
     if world is not None and kps is not None:
         _angle(cfg, world, kps, caps, res)
         _geosync(cfg, world, kps, caps, maps, seq_idx, fps, record, res)
+    if world is not None:
+        _dot_check(cfg, world, caps, maps, seq_idx, record, res)
     _sync_verdict(cfg, record, res)
 
     # 5. Tracking jumps.
@@ -337,15 +339,37 @@ def _geosync(cfg: CheckConfig, world, kps, caps, maps, seq_idx, fps: float, reco
     s["geometric_message"] = geo.message
 
 
+def _dot_check(cfg: CheckConfig, world, caps, maps, seq_idx, record: dict, res: SequenceCheck) -> None:
+    """Stage III's same-dot check on the check's registration: one laser dot is one place in the
+    scene in both views (:mod:`embodmocap.sequence.laser_check`)."""
+    from embodmocap.sequence.laser_check import laser_dot_check
+
+    # The check's offsets are rigid (no scale), so each view's VIO-to-world transform is any
+    # sampled frame's world pose times the inverse of its VIO pose.
+    T_world_vio = {v: world[v][0] @ np.linalg.inv(_vio(caps[v], maps[v].raw_frames[seq_idx][:1])[0]) for v in VIEWS}
+    chk = laser_dot_check(record, {v: (lambda v=v: caps[v]) for v in VIEWS}, T_world_vio, cfg.geosync.laser_dot_agree_m)
+    if chk is not None:
+        res.figures["sync"]["laser_dot_check"] = chk.to_json()
+
+
 def _sync_verdict(cfg: CheckConfig, record: dict, res: SequenceCheck) -> None:
     s = res.figures["sync"]
     laser_ok = record["sources"]["laser"]["offset_s"] is not None or record["slicing"]["source"] == "manual"
+    dot = s.get("laser_dot_check") or {}
+    laser_apart = dot.get("same_dot") is False and record["slicing"]["source"] == "laser"
+    if laser_apart:
+        laser_ok = False  # two different spots went out: the laser frames are not one instant
     geo_conf = s.get("geometric_confidence")
     geo_ok = s.get("geometric_offset_frames") is not None and geo_conf is not None and geo_conf >= cfg.geosync.min_confidence
     s["found"] = [k for k, ok in (("laser" if record["slicing"]["source"] != "manual" else "manual", laser_ok),
                                   ("geometric", geo_ok)) if ok]
     if not laser_ok and not geo_ok:
-        res.fail("no sync: no laser event in every view and no confident geometric sync")
+        res.fail(f"no sync: the two views' laser events are {dot['gap_m']:.2f} m apart in the scene (not one dot) "
+                 "and no confident geometric sync" if laser_apart else
+                 "no sync: no laser event in every view and no confident geometric sync")
+    elif laser_apart:
+        res.warn(f"the two views' laser events are {dot['gap_m']:.2f} m apart in the scene (not one dot); "
+                 "the geometric sync will be used")
     elif not laser_ok:
         lost = [v for v, d in s["laser"].items() if not d["found"]]
         res.warn(f"no laser event in {', '.join(lost)}; the geometric sync will be used")

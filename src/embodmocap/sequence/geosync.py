@@ -82,6 +82,10 @@ class GeoSyncConfig:
     """Geometric results below this confidence are reported but never chosen."""
     agree_frames: float = 1.0
     """Laser and geometric offsets further apart than this (frames) are a warning."""
+    laser_dot_agree_m: float = 0.15
+    """The two views' last sightings of the laser dot, put in the scene's world, further apart than
+    this (metres) are two different spots (a speck of texture taken for the dot in a view): the
+    laser offset is then not used (see :mod:`embodmocap.sequence.laser_check`)."""
     prefer: str = "auto"
     """Which source wins when both exist: ``auto`` (geometric when it agrees with the laser within
     ``agree_frames`` or is more confident, else laser), ``laser`` or ``geometric``."""

@@ -30,6 +30,7 @@ import numpy as np
 
 from embodmocap.errors import InputError
 from embodmocap.sequence.geosync import GeoSyncConfig, GeoSyncResult
+from embodmocap.sequence.laser_check import DotCheck
 from embodmocap.sequence.sync import SyncConfig, SyncEvent, detect_laser_event
 from embodmocap.types import Capture
 
@@ -152,7 +153,7 @@ def residual_s(record: dict) -> float:
 
 
 def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: float,
-           sheets: Mapping[str, str] | None = None, seq: str = "<seq>") -> dict:
+           sheets: Mapping[str, str] | None = None, seq: str = "<seq>", dot_check: DotCheck | None = None) -> dict:
     """Stage III's final choice: add the geometric source, the agreement and ``chosen``.
 
     Args:
@@ -161,6 +162,9 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         cfg: choice settings (``prefer``, ``agree_frames``, ``min_confidence``).
         fps: sequence frame rate (frames in messages).
         sheets: view -> contact sheet path, named in the disagreement warning.
+        dot_check: whether the views' laser sightings are one place in the world
+            (:func:`embodmocap.sequence.laser_check.check_same_dot`); when they are not, the laser
+            offset is recorded but not chosen.
 
     Returns:
         A new record with ``sources.geometric``, ``agreement``, ``chosen`` (``final: true``) and
@@ -175,6 +179,18 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
     warnings = [w for w in record.get("warnings", [])]
     slicing = float(record["slicing"]["offset_s"])
     laser_offset = record["sources"]["laser"].get("offset_s")
+    names = ", ".join(str(p) for p in (sheets or {}).values())
+    laser_rejected = False
+    if dot_check is not None and laser_offset is not None:
+        rec["sources"]["laser"] = {**record["sources"]["laser"], "dot_check": dot_check.to_json()}
+        if dot_check.same_dot is False:
+            # Two different spots went out of sight: the frames are not one instant, so the laser
+            # offset is kept in the record but takes no part in the choice.
+            warnings.append(f"{seq}: the two views' laser events are {dot_check.gap_m:.2f} m apart on the wall "
+                            f"(measured by {dot_check.method}; one dot is within {dot_check.limit_m:g} m): at least one "
+                            f"view took something else for the dot, so the laser offset is not used; check the "
+                            f"contact sheets {names} and set sync_frame in session.toml if a view's laser frame is right")
+            laser_offset, laser_rejected = None, True
     geo_ok = geo is not None and geo.found
     geo_offset = slicing + geo.offset_s if geo_ok else None
     if geo is not None:
@@ -188,7 +204,6 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         agreement = {"laser_minus_geometric_frames": round(-diff, 4), "agree": abs(diff) <= cfg.agree_frames,
                      "limit_frames": cfg.agree_frames}
         if abs(diff) > cfg.agree_frames:
-            names = ", ".join(str(p) for p in (sheets or {}).values())
             warnings.append(f"{seq}: laser and geometric sync disagree by {abs(diff):.2f} frames: laser offset "
                             f"{laser_offset * fps:+.2f} frames ({laser_offset:+.4f} s), geometric {geo_offset * fps:+.2f} "
                             f"frames ({geo_offset:+.4f} s, confidence {geo.confidence:.2f}); check the contact sheets "
@@ -224,10 +239,13 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
                 reason = f"disagreement; laser more confident ({laser_conf:.2f} vs geometric {geo.confidence:.2f})"
     elif trusted:
         offset, source = geo_offset, "geometric"
-        reason = "no laser event; geometric sync"
+        reason = ("the views' laser events are different spots; geometric sync" if laser_rejected else
+                  "no laser event; geometric sync")
     else:
         why = "not run" if geo is None else (geo.message or f"confidence {geo.confidence:.2f} < {cfg.min_confidence}")
-        raise InputError(None, f"sequence {seq}: no laser event and the geometric sync found no reliable offset ({why})",
+        what = (f"the two views' laser events are {dot_check.gap_m:.2f} m apart (not one dot)" if laser_rejected
+                else "no laser event")
+        raise InputError(None, f"sequence {seq}: {what} and the geometric sync found no reliable offset ({why})",
                          "set sync_frame for both views in session.toml (the first frame without the laser dot)")
     residual = offset - slicing
     rec["chosen"] = {"source": source, "offset_s": float(offset), "residual_s": float(residual),
