@@ -140,7 +140,7 @@ def test_the_choice_drops_a_laser_offset_whose_dots_are_different_places():
     # The geometric sync is confident: it is chosen although the laser is more confident (0.8 > 0.5).
     out = decide(rec, _geo(3.0, confidence=0.5), GeoSyncConfig(), FPS, {"v1": "/x/sync_v1.png"}, "s", check)
     assert out["chosen"]["source"] == "geometric" and "different spots" in out["chosen"]["reason"]
-    assert out["sources"]["laser"]["dot_check"]["same_dot"] is False and out["sources"]["laser"]["offset_s"] == 1.0
+    assert out["laser_dot_check"]["same_dot"] is False and out["sources"]["laser"]["offset_s"] == 1.0
     assert any("0.60 m apart" in w and "/x/sync_v1.png" in w for w in out["warnings"])
     # Without it the same record chose the laser, and with no confident geometric sync it is an error.
     assert decide(rec, _geo(3.0, confidence=0.5), GeoSyncConfig(), FPS, {}, "s")["chosen"]["source"] == "laser"
@@ -151,4 +151,4 @@ def test_the_choice_drops_a_laser_offset_whose_dots_are_different_places():
     rec = _record({"v1": xy1, "v2": xy2s})
     ok = laser_dot_check(rec, {"v1": lambda: cap1, "v2": lambda: cap2s}, {"v1": V1, "v2": V2}, 0.15)
     out = decide(rec, _geo(0.3, confidence=0.1), GeoSyncConfig(), FPS, {}, "s", ok)
-    assert out["chosen"]["source"] == "laser" and out["sources"]["laser"]["dot_check"]["same_dot"] is True
+    assert out["chosen"]["source"] == "laser" and out["laser_dot_check"]["same_dot"] is True

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.calibrate.consistency import VioCheck, check_against_vio, off_chain_frames
+from embodmocap.calibrate.final_sync import GeosyncResult, geometric_sync  # noqa: F401 (step 4 of this stage)
 from embodmocap.calibrate.offset import YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import ViewData, refine_offsets
 from embodmocap.calibrate.register import Registration, register_frames, select_frames
@@ -456,72 +457,6 @@ def refine_cameras(views: Mapping[str, ViewInputs], init: Mapping[str, YawOffset
     res = refine_offsets(data, refine_cfg, scene=points, tracks=tracks)
     return {v: (res.views[v].T_world_vio if not res.diverged else data[v].T_world_vio_init)
             @ views[v].cameras.T_world_cam for v in init}
-
-
-@dataclass(frozen=True)
-class GeosyncResult:
-    """The geometric sync step's results.
-
-    Attributes:
-        record: the final ``sync.json`` (laser, manual and geometric sources, the choice).
-        cameras_world: view -> its ``cameras_world.npz`` (scene world, sub-frame offset).
-        figures: the stage manifest's figures.
-        geometric: the geometric sync (None when disabled).
-    """
-
-    record: dict
-    cameras_world: dict[str, CameraFile]
-    figures: dict
-    geometric: object = None
-
-
-def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], T_world_vio: Mapping[str, NDArray],
-                   fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "",
-                   laser_dots: Mapping[str, object] | None = None) -> GeosyncResult:
-    """With both views in the scene's world (whatever their time offset), the offset at which the
-    two views' keypoint rays meet (:mod:`embodmocap.sequence.geosync`); the final choice among
-    laser, manual and geometric (:mod:`embodmocap.sequence.sync_record`); the per-frame world
-    cameras with the sub-frame offset Stage IV applies.
-
-    Args:
-        record: Stage II's ``sync.json`` (version 2); T_world_vio: view -> (4, 4) refined offset;
-        fps: the sequence frame rate; contact_sheets: view -> the laser contact sheet's path (text
-        for the messages); label: the sequence (log lines); laser_dots: view -> the view's last
-        sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`;
-        None: no same-dot check).
-    """
-    from embodmocap.sequence.geosync import geometric_sync as find_offset
-    from embodmocap.sequence.laser_check import check_laser_dots
-    from embodmocap.sequence.subframe import frame_times
-    from embodmocap.sequence.sync_record import decide
-
-    cams = {v: views[v].cameras for v in VIEWS}
-    world = {v: T_world_vio[v] @ cams[v]["T_world_cam"] for v in VIEWS}
-    geo = None
-    if cfg.geosync.enabled:
-        data = [(cams[v]["K"], world[v], views[v].keypoints, frame_times(cams[v], fps)) for v in VIEWS]
-        search = cfg.geosync.search_s_without_laser if record["slicing"]["source"] == "start" else cfg.geosync.search_s
-        geo = find_offset(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
-        log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,
-                 geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
-    # The laser events as places in the world: one dot is one place in both views.
-    dot_check = check_laser_dots(laser_dots, T_world_vio, cfg.geosync.laser_dot_agree_m)
-    rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check)
-    cameras_world = {}
-    for v in VIEWS:
-        # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
-        cameras_world[v] = CameraFile(
-            version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"], T_world_cam=world[v],
-            raw_frames=cams[v]["raw_frames"], time_offset_s=np.float64(rec["chosen"]["residual_s"] if v == VIEWS[1] else 0.0))
-    ch = rec["chosen"]
-    figures = {
-        "sync_source": ch["source"], "sync_offset_s": round(ch["offset_s"], 6), "sync_residual_frames": ch["residual_frames"],
-        "geometric_offset_frames": None if geo is None or not geo.found else round(geo.offset_frames, 4),
-        "geometric_confidence": None if geo is None else round(geo.confidence, 3),
-        "laser_minus_geometric_frames": (rec["agreement"] or {}).get("laser_minus_geometric_frames"),
-        "laser_dot_gap_m": None if dot_check is None or dot_check.gap_m is None else round(dot_check.gap_m, 4),
-    }
-    return GeosyncResult(rec, cameras_world, figures, geo)
 
 
 @dataclass(frozen=True)

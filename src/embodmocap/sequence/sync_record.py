@@ -182,7 +182,8 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
     names = ", ".join(str(p) for p in (sheets or {}).values())
     laser_rejected = False
     if dot_check is not None and laser_offset is not None:
-        rec["sources"]["laser"] = {**record["sources"]["laser"], "dot_check": dot_check.to_json()}
+        # Beside the sources, not inside Stage II's laser source (which Stage III's fingerprint reads).
+        rec["laser_dot_check"] = dot_check.to_json()
         if dot_check.same_dot is False:
             # Two different spots went out of sight: the frames are not one instant, so the laser
             # offset is kept in the record but takes no part in the choice.
