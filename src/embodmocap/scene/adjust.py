@@ -1,10 +1,37 @@
-"""Stage I drift correction of the key frames: bundle adjustment of the sparse model's poses and
-points, mapped back onto the capture's poses (used by :mod:`embodmocap.scene.sfm` with
-``SfmConfig.refine_poses``)."""
+"""Stage I drift correction of the scan's key frames: bundle adjustment with the phone's VIO as a prior.
+
+A phone's VIO drifts slowly: over a 15 s scan the key frames' poses wander by 0.5-1.5 cm and a
+few hundredths of a degree. Points triangulated from key frames of different moments then disagree
+by that much, and a performer view registered later against one part of the room inherits that
+part's error as a bias common to all its frames (issue 13: 1-3 cm). A plain bundle adjustment
+removes the drift only where the images pin it down and slides along the directions they hardly
+constrain (plain walls, a nearly straight walk); here the VIO stays in the problem as what it is
+good at, the *relative* motion between consecutive key frames:
+
+- unknowns: per key frame a small world-side correction ``C_k`` (rotation vector ``w_k`` about the
+  first key frame's centre ``p0``, translation ``t_k``), and every 3D point;
+  corrected pose ``R'_k = exp(w_k) R_k``, ``c'_k = exp(w_k) (c_k - p0) + p0 + t_k``;
+- reprojection of every observation of the triangulated model (pixels / ``reproj_sigma_px``, Huber);
+- the drift as a random walk: ``(C_{k+1} - C_k)`` divided by the spread VIO drift reaches in the
+  time between the two key frames (``drift_m_per_10s`` / ``drift_deg_per_10s`` times
+  ``sqrt(dt / 10 s)``; tilt drifts ``tilt_ratio`` as much as yaw: gravity keeps it);
+- the world stays the capture's: ``C_0`` (the first key frame, where the VIO world is set) held at
+  zero (``anchor_m`` / ``anchor_deg``).
+
+It is solved as one sparse non-linear least squares (SciPy, finite differences over a known
+sparsity pattern). Whether the result is used is decided on evidence the capture itself has:
+the RMS reprojection error must fall by at least ``min_adjust_gain``, the corrections must be
+plausible for the VIO (RMS of the whitened random-walk steps <= ``max_prior_rms``) and no key frame
+may move more than ``max_pose_change_m``. The frames between key frames (the mesh fuses many more)
+get the key frames' correction interpolated on SE(3) (:func:`propagate_correction`), so the
+sparse model, the mesh and Stage III all live in the same corrected world.
+"""
 
 from __future__ import annotations
 
 import logging
+import time
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,59 +45,285 @@ if TYPE_CHECKING:
 log = logging.getLogger("embodmocap.scene.sfm")
 
 
-def _refine_poses(pycolmap, rec, ids: list[int], T_prior: NDArray, cfg: SfmConfig) -> NDArray[np.float64] | None:
-    """Drift-corrected key frame poses (K, 4, 4) camera-to-world, or None to keep ``T_prior``.
+@dataclass(frozen=True)
+class DriftCorrection:
+    """Outcome of :func:`adjust_with_vio_prior`.
 
-    Bundle adjustment of poses and points (intrinsics fixed) on the triangulated model, mapped back
-    onto ``T_prior`` (the capture's poses of ``ids``) by the similarity that fits them best. The
-    correction each key frame got (its adjusted pose against its capture pose) is then smoothed
-    over neighbouring key frames (running median of ``cfg.correction_window``): VIO drift is slow,
-    while a key frame with few observations can slide in the adjustment on its own. None when the
-    adjustment moved a key frame more than ``cfg.max_pose_change_m`` or changed the scale by > 2 %.
+    Attributes:
+        T_world_cam: (K, 4, 4) key frame camera-to-world poses to use: the corrected ones when
+            ``accepted``, else the capture's.
+        accepted: whether the correction passed the checks.
+        reason: why it was not accepted ("" when it was).
+        figures: ``rms_before_px``, ``rms_after_px``, ``gain``, ``prior_rms``, ``median_change_m``,
+            ``max_change_m``, ``max_change_deg``, ``observations``, ``iterations``, ``seconds``.
     """
-    from scipy.ndimage import median_filter
-    from scipy.spatial.transform import Rotation
 
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = False
-    opts.refine_principal_point = False
-    opts.refine_extra_params = False
-    rms0 = _rms_reprojection(rec)
-    pycolmap.bundle_adjustment(rec, opts)
-    rms1 = _rms_reprojection(rec)
-    gain = 1.0 - rms1 / max(rms0, 1e-12)
-    if not gain >= cfg.min_adjust_gain:
-        log.info("sparse model: the adjustment lowers the reprojection error only %.1f %% (%.3f -> %.3f px); keeping "
-                 "the capture's poses", 100 * gain, rms0, rms1)
-        return None
-    T_ba = []
-    for image_id in ids:
-        P = np.eye(4)
-        P[:3, :4] = rec.image(image_id).cam_from_world().matrix()
-        T_ba.append(invert_T(P))
-    T_ba = np.stack(T_ba)
+    T_world_cam: NDArray[np.float64]
+    accepted: bool
+    reason: str = ""
+    figures: dict = field(default_factory=dict)
+
+
+def _rotvecs_to_matrices(w: NDArray) -> NDArray[np.float64]:
+    """(..., 3) rotation vectors -> (..., 3, 3) matrices (Rodrigues)."""
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    small = th < 1e-8
+    th_safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(th_safe) / th_safe)
+    b = np.where(small, 0.5, (1.0 - np.cos(th_safe)) / th_safe**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def apply_correction(params: NDArray, T: NDArray, p0: NDArray) -> NDArray[np.float64]:
+    """Poses ``T`` (K, 4, 4) corrected by world-side ``params`` (K, 6) = (rotation vector about
+    ``p0`` (3,), translation) -> (K, 4, 4)."""
+    R = _rotvecs_to_matrices(params[:, :3])
+    out = np.array(T, dtype=np.float64, copy=True)
+    out[:, :3, :3] = R @ T[:, :3, :3]
+    out[:, :3, 3] = np.einsum("kij,kj->ki", R, T[:, :3, 3] - p0) + p0 + params[:, 3:]
+    return out
+
+
+def _observations(rec, ids: list[int]):
+    """(image index (N,), point index (N,), xy (N, 2) COLMAP pixels, points (P, 3), PINHOLE params)."""
+    pid_index: dict[int, int] = {}
+    img, pt, xy = [], [], []
+    for k, image_id in enumerate(ids):
+        for p in rec.image(image_id).points2D:
+            if p.has_point3D():
+                img.append(k)
+                pt.append(pid_index.setdefault(int(p.point3D_id), len(pid_index)))
+                xy.append(p.xy)
+    X = np.zeros((len(pid_index), 3))
+    for pid, j in pid_index.items():
+        X[j] = rec.point3D(pid).xyz
+    cam = rec.cameras[rec.image(ids[0]).camera_id]
+    return (np.asarray(img, np.int64), np.asarray(pt, np.int64), np.asarray(xy, np.float64).reshape(-1, 2), X,
+            np.asarray(cam.params, dtype=np.float64)[:4])
+
+
+def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArray, cfg: SfmConfig) -> DriftCorrection:
+    """Drift-corrected key frame poses from the triangulated model ``rec`` (pycolmap Reconstruction,
+    poses = ``T_prior``), the capture's poses as a random-walk prior (module docstring).
+
+    Args:
+        rec: the model triangulated with ``T_prior`` held fixed (not modified).
+        ids: (K,) COLMAP image ids of the key frames, in time order.
+        T_prior: (K, 4, 4) the capture's camera-to-world poses of ``ids``.
+        times_s: (K,) their capture times, seconds, non-decreasing.
+        cfg: the ``SfmConfig`` (fields ``drift_*``, ``tilt_ratio``, ``anchor_*``, ``reproj_sigma_px``,
+            ``min_adjust_gain``, ``max_prior_rms``, ``max_pose_change_m``, ``adjust_max_iterations``).
+    """
+    t0 = time.perf_counter()
     T_prior = np.asarray(T_prior, dtype=np.float64)
-    S = _fit_similarity(T_ba, T_prior)
-    scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-    T_adj = S @ T_ba
-    T_adj[:, :3, :3] /= scale
-    shift = T_adj[:, :3, 3] - T_prior[:, :3, 3]
-    moved = np.linalg.norm(shift, axis=1)
-    if (not np.all(np.isfinite(moved)) or moved.max() > cfg.max_pose_change_m
-            or np.median(moved) > cfg.max_median_change_m or abs(scale - 1.0) > 0.02):
-        log.warning("sparse model: the bundle adjustment moved a key frame %.1f cm from its capture pose (scale "
-                    "%.4f); keeping the capture's poses", 100 * float(np.nanmax(moved)), scale)
-        return None
-    turn = Rotation.from_matrix(T_adj[:, :3, :3] @ np.swapaxes(T_prior[:, :3, :3], -1, -2)).as_rotvec()
-    w = max(1, int(cfg.correction_window))
-    shift = median_filter(shift, size=(w, 1), mode="nearest")
-    turn = median_filter(turn, size=(w, 1), mode="nearest")
-    T_out = T_prior.copy()
-    T_out[:, :3, :3] = Rotation.from_rotvec(turn).as_matrix() @ T_prior[:, :3, :3]
-    T_out[:, :3, 3] = T_prior[:, :3, 3] + shift
-    log.info("sparse model: drift correction of the key frames %.2f cm median, %.2f cm max (adjustment scale %.5f)",
-             100 * float(np.median(np.linalg.norm(shift, axis=1))), 100 * float(np.linalg.norm(shift, axis=1).max()), scale)
-    return T_out
+    n = len(ids)
+    img, pt, xy, X0, (fx, fy, cx, cy) = _observations(rec, ids)
+    p0 = T_prior[0, :3, 3].copy()
+    R0, c0 = T_prior[:, :3, :3], T_prior[:, :3, 3]
+    dt = np.maximum(np.diff(np.asarray(times_s, dtype=np.float64)), 1e-3)
+    walk = np.sqrt(dt / 10.0)[:, None]
+    rot = np.deg2rad(cfg.drift_deg_per_10s) * np.array([cfg.tilt_ratio, cfg.tilt_ratio, 1.0])
+    sig_walk = np.hstack([walk * rot, walk * np.full(3, cfg.drift_m_per_10s)])  # (K-1, 6)
+    sig_walk = np.maximum(sig_walk, np.array([1e-5] * 3 + [1e-4] * 3))  # key frames a moment apart
+    sig_anchor = np.array([np.deg2rad(cfg.anchor_deg)] * 3 + [cfg.anchor_m] * 3)
+    npts, nobs = len(X0), len(img)
+
+    def reproj(q, X):  # (N, 2) pixel residuals
+        Rw = _rotvecs_to_matrices(q[:, :3])
+        R = Rw @ R0
+        c = np.einsum("kij,kj->ki", Rw, c0 - p0) + p0 + q[:, 3:]
+        Xc = np.einsum("nji,nj->ni", R[img], X[pt] - c[img])  # R^T (X - c)
+        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
+        return np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy]) - xy
+
+    # The prior is linear in the corrections: residual A @ q.ravel() (anchor, then random-walk steps).
+    A = np.zeros((6 * n, 6 * n))
+    A[np.arange(6), np.arange(6)] = 1.0 / sig_anchor
+    r_idx = 6 + np.arange(6 * (n - 1))
+    A[r_idx, np.arange(6 * (n - 1)) + 6] = 1.0 / sig_walk.ravel()
+    A[r_idx, np.arange(6 * (n - 1))] = -1.0 / sig_walk.ravel()
+    q0 = np.zeros((n, 6))
+    rms0 = float(np.sqrt(np.mean(np.sum(reproj(q0, X0) ** 2, axis=1))))
+    q, X, iterations = _levenberg_marquardt(reproj, A, q0, X0, img, pt, cfg)
+    rms1 = float(np.sqrt(np.mean(np.sum(reproj(q, X) ** 2, axis=1))))
+    T_adj = apply_correction(q, T_prior, p0)
+    change = np.linalg.norm(T_adj[:, :3, 3] - c0, axis=1)
+    turn = np.degrees(np.linalg.norm(q[:, :3], axis=1))
+    prior_rms = float(np.sqrt(np.mean(((q[1:] - q[:-1]) / sig_walk) ** 2))) if n > 1 else 0.0
+    gain = 1.0 - rms1 / max(rms0, 1e-12)
+    figures = {
+        "rms_before_px": round(rms0, 4), "rms_after_px": round(rms1, 4), "gain": round(gain, 4),
+        "prior_rms": round(prior_rms, 3), "median_change_m": round(float(np.median(change)), 5),
+        "max_change_m": round(float(change.max()), 5), "max_change_deg": round(float(turn.max()), 4),
+        "observations": int(nobs), "iterations": int(iterations), "seconds": round(time.perf_counter() - t0, 3),
+    }
+    reason = ""
+    if not np.all(np.isfinite(T_adj)):
+        reason = "the adjustment diverged"
+    elif gain < cfg.min_adjust_gain:
+        reason = f"it lowers the reprojection error only {100 * gain:.1f} % (< {100 * cfg.min_adjust_gain:.1f} %)"
+    elif prior_rms > cfg.max_prior_rms:
+        reason = f"its corrections disagree with the VIO (whitened step RMS {prior_rms:.2f} > {cfg.max_prior_rms})"
+    elif change.max() > cfg.max_pose_change_m:
+        reason = f"it moves a key frame {100 * change.max():.1f} cm (> {100 * cfg.max_pose_change_m:.1f} cm)"
+    if reason:
+        log.info("sparse model: drift correction not used: %s; keeping the capture's poses", reason)
+        return DriftCorrection(T_prior.copy(), False, reason, figures)
+    log.info("sparse model: drift correction of the key frames %.2f cm median, %.2f cm max, reprojection %.3f -> "
+             "%.3f px (%.1f s)", 100 * figures["median_change_m"], 100 * figures["max_change_m"], rms0, rms1,
+             figures["seconds"])
+    return DriftCorrection(T_adj, True, "", figures)
+
+
+_HUBER = 2.0  # observations beyond this many reprojection sigmas count linearly
+
+
+def _levenberg_marquardt(reproj, A: NDArray, q: NDArray, X: NDArray, img: NDArray, pt: NDArray, cfg: SfmConfig):
+    """Minimise the Huber-robust reprojection cost of ``reproj(q, X)`` (N, 2) plus ``|A q|^2`` over
+    the key frames' corrections ``q`` (K, 6) and the points ``X`` (P, 3): Levenberg-Marquardt with
+    the points eliminated (Schur complement on the key frames' 6K unknowns), Jacobians by central
+    differences taken for all key frames (points) at once, since each observation sees one key
+    frame and one point. Returns (q, X, iterations)."""
+    from scipy.sparse import csr_matrix
+
+    n, npts, nobs = len(q), len(X), len(img)
+    sigma = cfg.reproj_sigma_px
+    H_prior = A.T @ A
+
+    def cost(q_, X_):
+        e = np.linalg.norm(reproj(q_, X_), axis=1) / sigma
+        rho = np.where(e <= _HUBER, e**2, 2 * _HUBER * e - _HUBER**2)
+        prior = A @ q_.ravel()
+        return float(rho.sum() + prior @ prior)
+
+    rows6 = (6 * img[:, None] + np.arange(6)).repeat(3, axis=1).ravel()  # (N*18,) for the coupling blocks
+    cols3 = np.tile(3 * pt[:, None] + np.arange(3), (1, 6)).ravel()
+    lam, it, current = 1e-3, 0, cost(q, X)
+    for it in range(1, cfg.adjust_max_iterations + 1):
+        r = reproj(q, X)
+        Jc, Jp = np.empty((nobs, 2, 6)), np.empty((nobs, 2, 3))
+        for j in range(6):
+            h = np.zeros(6)
+            h[j] = 1e-6
+            Jc[:, :, j] = (reproj(q + h, X) - reproj(q - h, X)) / 2e-6
+        for j in range(3):
+            h = np.zeros(3)
+            h[j] = 1e-6
+            Jp[:, :, j] = (reproj(q, X + h) - reproj(q, X - h)) / 2e-6
+        e = np.linalg.norm(r, axis=1) / sigma
+        w = (np.where(e <= _HUBER, 1.0, _HUBER / np.maximum(e, 1e-12)) / sigma**2)[:, None, None]
+        Hcc_obs = np.einsum("nai,naj->nij", w * Jc, Jc)
+        Hpp = np.zeros((npts, 3, 3))
+        np.add.at(Hpp, pt, np.einsum("nai,naj->nij", w * Jp, Jp))
+        Hcp = np.einsum("nai,naj->nij", w * Jc, Jp)  # (N, 6, 3)
+        gc = np.zeros((n, 6))
+        np.add.at(gc, img, np.einsum("nai,na->ni", w * Jc, r))
+        gp = np.zeros((npts, 3))
+        np.add.at(gp, pt, np.einsum("nai,na->ni", w * Jp, r))
+        Hcc = np.zeros((n, 6, 6))
+        np.add.at(Hcc, img, Hcc_obs)
+        H = H_prior.copy()
+        for k in range(n):
+            H[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k]
+        g = gc.ravel() + H_prior @ q.ravel()
+        E = csr_matrix((Hcp.ravel(), (rows6, cols3)), shape=(6 * n, 3 * npts))
+        for _ in range(10):
+            Hpp_d = Hpp + lam * (np.einsum("pii->pi", Hpp)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
+            Hpp_inv = np.linalg.inv(Hpp_d)
+            Hinv = _block_diag_csr(Hpp_inv)
+            S = H + lam * np.diag(np.diag(H)) - (E @ Hinv @ E.T).toarray()
+            rhs = -(g - E @ (Hinv @ gp.ravel()))
+            try:
+                dq = np.linalg.solve(S, rhs)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            dX = -(Hinv @ (gp.ravel() + E.T @ dq))
+            q_new, X_new = q + dq.reshape(n, 6), X + dX.reshape(npts, 3)
+            new = cost(q_new, X_new)
+            if np.isfinite(new) and new < current:
+                done = (current - new) < 1e-9 * current
+                q, X, current, lam = q_new, X_new, new, max(lam / 3, 1e-7)
+                break
+            lam *= 5
+        else:
+            break  # no step lowers the cost: converged (or stuck)
+        if done:
+            break
+    return q, X, it
+
+
+def _block_diag_csr(blocks: NDArray):
+    """(P, 3, 3) blocks -> (3P, 3P) block-diagonal CSR matrix."""
+    from scipy.sparse import csr_matrix
+
+    p = len(blocks)
+    base = 3 * np.arange(p)[:, None, None]
+    rows = np.broadcast_to(base + np.arange(3)[:, None], (p, 3, 3)).ravel()
+    cols = np.broadcast_to(base + np.arange(3)[None, :], (p, 3, 3)).ravel()
+    return csr_matrix((blocks.ravel(), (rows, cols)), shape=(3 * p, 3 * p))
+
+
+def correction_of(T_prior: NDArray, T_fixed: NDArray) -> NDArray[np.float64]:
+    """World-side corrections ``C_k = T_fixed[k] @ inverse(T_prior[k])`` (K, 4, 4) of corrected poses."""
+    return np.asarray(T_fixed, dtype=np.float64) @ invert_T(np.asarray(T_prior, dtype=np.float64))
+
+
+def propagate_correction(t_key: NDArray, C_key: NDArray, t: NDArray, T: NDArray) -> NDArray[np.float64]:
+    """The key frames' drift correction carried over to other frames of the same capture.
+
+    A frame between key frames k and k+1 (by time) gets the rotation slerped between the world-side
+    corrections ``C_k``'s and ``C_{k+1}``'s and the shift of its own camera centre interpolated
+    linearly between what ``C_k`` and ``C_{k+1}`` do to it (SE(3) as SO(3) x R^3, like
+    :mod:`embodmocap.geometry.interpolate`); before the first / after the last key frame the
+    nearest key frame's correction applies. A key frame itself comes out as ``C_k @ T_k``.
+
+    Args:
+        t_key: (K,) key frame times (or frame indices), strictly increasing.
+        C_key: (K, 4, 4) their world-side corrections (:func:`correction_of`).
+        t: (M,) times of the frames to correct (same unit as ``t_key``).
+        T: (M, 4, 4) their capture poses (camera-to-world).
+
+    Returns:
+        (M, 4, 4) corrected camera-to-world poses.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from embodmocap.geometry.interpolate import bracket
+
+    T = np.asarray(T, dtype=np.float64)
+    C = np.asarray(C_key, dtype=np.float64)
+    t_key = np.asarray(t_key, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if len(t_key) == 1:
+        return C[0] @ T
+    i0, w, _ = bracket(t_key, t)
+    R_C = Slerp(t_key, Rotation.from_matrix(C[:, :3, :3]))(np.clip(t, t_key[0], t_key[-1])).as_matrix()
+    c = T[:, :3, 3]
+    shift0 = np.einsum("mij,mj->mi", C[i0, :3, :3], c) + C[i0, :3, 3] - c
+    shift1 = np.einsum("mij,mj->mi", C[i0 + 1, :3, :3], c) + C[i0 + 1, :3, 3] - c
+    out = T.copy()
+    out[:, :3, :3] = R_C @ T[:, :3, :3]
+    out[:, :3, 3] = c + (1.0 - w)[:, None] * shift0 + w[:, None] * shift1
+    return out
+
+
+def corrected_poses(sfm_dir, t: NDArray, T: NDArray) -> NDArray[np.float64]:
+    """Capture poses ``T`` (M, 4, 4) at times ``t`` (M,) seconds with the drift correction the sparse
+    model in ``sfm_dir`` applied to its key frames (``summary.json`` ``drift_correction``), carried
+    over by :func:`propagate_correction`; ``T`` unchanged when the model has no accepted correction."""
+    import json
+    from pathlib import Path
+
+    path = Path(sfm_dir) / "summary.json"
+    drift = json.loads(path.read_text()).get("drift_correction") if path.is_file() else None
+    if not drift or not drift.get("accepted"):
+        return np.asarray(T, dtype=np.float64).copy()
+    C = np.asarray(drift["T_correction"], dtype=np.float64).reshape(-1, 4, 4)
+    return propagate_correction(np.asarray(drift["times_s"], dtype=np.float64), C, t, T)
 
 
 def _rms_reprojection(rec) -> float:

@@ -5,6 +5,7 @@ small helpers around them. :mod:`embodmocap.scene.sfm` strings them together."""
 from __future__ import annotations
 
 import logging
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -126,3 +127,34 @@ def _quiet_colmap(pycolmap) -> Iterator[None]:
         yield
     finally:
         pycolmap.logging.minloglevel = old
+
+
+#: Bytes per SIFT feature in COLMAP's database (128-byte descriptor, 6 float keypoint, row overhead).
+_DB_BYTES_PER_FEATURE = 160
+#: Bytes per feature and matched pair (raw and verified matches, 2 x uint32 each).
+_DB_BYTES_PER_MATCH = 16
+
+
+def sfm_disk_estimate(num_images: int, image_bytes: int, cfg: SfmConfig) -> int:
+    """An upper estimate of the bytes a sparse model folder takes (key frames, database, model)."""
+    pairs = num_images * (num_images - 1) // 2 if cfg.pairing == "exhaustive" else num_images * cfg.num_neighbours
+    features = num_images * cfg.max_features
+    return image_bytes + features * _DB_BYTES_PER_FEATURE + pairs * cfg.max_features * _DB_BYTES_PER_MATCH + (4 << 20)
+
+
+def _check_free_space(out_dir: Path, names: list[str], rgbs, src_dir: Path | None, intrinsics: Intrinsics,
+                      cfg: SfmConfig) -> None:
+    """Refuse to start when the disk cannot hold the model: COLMAP aborts the whole process (no
+    error to catch, a C++ stack trace) when its database meets a full disk."""
+    if rgbs is not None:
+        per_image = intrinsics.width * intrinsics.height * 3 // (4 if cfg.image_format == "jpg" else 1)
+        image_bytes = per_image * len(names)
+    else:
+        image_bytes = sum((src_dir / n).stat().st_size for n in names)
+    need = sfm_disk_estimate(len(names), image_bytes, cfg)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    free = shutil.disk_usage(out_dir.parent).free
+    if free < need:
+        raise InputError(out_dir.parent, f"only {free / 2**20:.0f} MiB free on its disk; the sparse model of "
+                         f"{len(names)} key frames needs up to {need / 2**20:.0f} MiB",
+                         "free some disk space, then run the same command again to resume")

@@ -45,8 +45,10 @@ from embodmocap.io.atomic import atomic_dir, write_json, write_text
 from embodmocap.io.colmap import (  # noqa: F401 (the conversions moved to io; old import path kept)
     COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap,
 )
-from embodmocap.scene.adjust import _fit_similarity, _refine_poses, _rms_reprojection  # noqa: F401
-from embodmocap.scene.colmap_steps import _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate
+from embodmocap.scene.adjust import _fit_similarity, _rms_reprojection, adjust_with_vio_prior, correction_of  # noqa: F401
+from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
+    _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
+)
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -112,36 +114,39 @@ class SfmConfig:
     repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
-    refine_poses: bool = False
-    """After triangulating with the capture's poses, bundle-adjust poses and points together, then
-    put the model back on the capture's poses by the similarity that fits them best (all key
-    frames at once). The capture's VIO drifts slowly (~1 cm over 15 s); points triangulated from
-    key frames of different moments then disagree by that much, and frames registered to them later
-    (Stage III) inherit a bias of 1-3 cm (issue 13: with the true scan poses the bias drops to
-    0.3-1 cm). Off by default: on studio scans the adjustment brought the key frames 40-60 % closer
-    to the truth on some and left them as far or farther on others (it slides along directions
-    the images hardly constrain), and on the Stage I test scan it moved the sparse points further
-    from the true surface (median 3.6 cm against < 3). Only used with at least ``2 *
-    correction_window`` key frames."""
-    correction_window: int = 7
-    """``refine_poses``: running-median window (key frames) over which each key frame's drift
-    correction is smoothed."""
+    refine_poses: bool = True
+    """Correct the capture's VIO drift in the key frames before the final triangulation: a bundle
+    adjustment with the VIO's relative motion between consecutive key frames as a prior and the
+    first key frame fixed (:mod:`embodmocap.scene.adjust`), used only when the evidence below
+    holds; the points are then triangulated again with the corrected poses held fixed, and Stage I
+    fuses its mesh with the same correction (interpolated between key frames). Needs the key
+    frames' times (``times_s``) and at least 4 key frames."""
+    drift_m_per_10s: float = 0.01
+    """``refine_poses``: spread of the VIO's translation drift after 10 s, metres (a random walk:
+    it grows as the square root of time). Phones' VIO drifts about 1 cm over 10 s indoors."""
+    drift_deg_per_10s: float = 0.1
+    """``refine_poses``: spread of the VIO's yaw drift after 10 s, degrees."""
+    tilt_ratio: float = 0.25
+    """``refine_poses``: drift of roll and pitch relative to yaw (gravity keeps the tilt)."""
+    anchor_m: float = 0.0005
+    """``refine_poses``: how far the first key frame may move, metres: it sets the world (the VIO
+    world is defined at the capture's start, where it has not drifted yet)."""
+    anchor_deg: float = 0.005
+    """``refine_poses``: how far the first key frame may turn, degrees."""
+    reproj_sigma_px: float = 1.0
+    """``refine_poses``: spread of a SIFT keypoint's position, pixels (weight of the images against
+    the VIO prior); residuals beyond twice it count linearly (Huber)."""
+    adjust_max_iterations: int = 50
+    """``refine_poses``: at most this many evaluations of the least-squares solver."""
+    min_adjust_gain: float = 0.01
+    """``refine_poses``: the correction is used only when it lowers the RMS reprojection error of
+    the model by at least this fraction (else the images do not ask for one)."""
+    max_prior_rms: float = 2.0
+    """``refine_poses``: ... and when the RMS of its whitened steps between consecutive key frames
+    (step / the VIO's expected drift in that time) is at most this: larger means the images pull
+    the key frames further than the VIO can drift (wrong matches, a wrong scale)."""
     max_pose_change_m: float = 0.05
-    """``refine_poses``: if the adjustment moves any key frame further than this from its capture
-    pose (after the fit), the median key frame further than ``max_median_change_m``, or changes
-    the scale by more than 2 %, the adjusted model is not trusted and the capture's poses are kept
-    (with a warning). VIO drifts ~1 cm over a 15 s scan; an adjustment that moves key frames by
-    several centimetres has slid along a direction the images hardly constrain (plain walls: seen
-    on the low-texture studio, 4 cm median)."""
-    max_median_change_m: float = 0.02
-    """``refine_poses``: see ``max_pose_change_m``."""
-    min_adjust_gain: float = 0.085
-    """``refine_poses``: the adjustment is kept only when it lowers the model's RMS reprojection
-    error by at least this fraction. Where the capture's poses explain the images about as well
-    (a 7 % gain), the images do not pin the drift down: the adjustment then slides along directions
-    they hardly constrain and makes the key frames worse (seen on studio scans: gains of 9-22 %
-    went with corrections that brought the key frames 40-60 % closer to the truth, gains of
-    7.4-7.6 % with corrections that did not, or made them worse)."""
+    """``refine_poses``: ... and when no key frame moves further than this, metres."""
 
 
 @dataclass(frozen=True)
@@ -287,6 +292,7 @@ def build_sparse_model(
     T_world_cam: NDArray,
     out_dir: str | Path,
     cfg: SfmConfig = SfmConfig(),
+    times_s: NDArray | None = None,
 ) -> SparseModel:
     """Triangulate a sparse SIFT model of the key frames with their poses and intrinsics fixed.
 
@@ -305,6 +311,8 @@ def build_sparse_model(
         T_world_cam: (K, 4, 4) camera-to-world poses, OpenCV camera axes, Z-up metric world.
         out_dir: output folder (layout in the module docstring).
         cfg: settings.
+        times_s: (K,) capture times of the key frames, seconds (for ``cfg.refine_poses``; without
+            them the poses are used as given).
 
     Returns:
         The model and its quality figures.
@@ -341,12 +349,12 @@ def build_sparse_model(
             num_verified = _match(pycolmap, tmp, cfg)
         with _timer(seconds, "triangulate"):
             rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T, cfg)
-        # A handful of key frames is no chain to correct a drift along (and the smoothing needs some).
-        if cfg.refine_poses and rec.num_points3D() > 0 and len(ids) >= 2 * cfg.correction_window:
+        drift = None
+        if cfg.refine_poses and times_s is not None and rec.num_points3D() > 0 and len(ids) >= 4:
             with _timer(seconds, "adjust"):
-                T_fixed = _refine_poses(pycolmap, rec, ids, T, cfg)
-                if T_fixed is not None:  # triangulated again with the corrected poses held fixed
-                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T_fixed, cfg)
+                drift = adjust_with_vio_prior(rec, ids, T, np.asarray(times_s, dtype=np.float64)[sel], cfg)
+                if drift.accepted:  # triangulated again with the corrected poses held fixed
+                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, drift.T_world_cam, cfg)
         with _timer(seconds, "finish"):
             _drop_short_tracks(rec, cfg.min_track_length)
             if rec.num_points3D() == 0:
@@ -354,7 +362,13 @@ def build_sparse_model(
                                  "check that the key frames overlap, are textured and match their poses")
             rec.write(tmp / "sparse")
         model = _summarise(rec, out_dir, names, len(pairs), num_verified, seconds)
-        write_json(tmp / "summary.json", _summary_json(model, intrinsics, cfg))
+        summary = _summary_json(model, intrinsics, cfg)
+        if drift is not None:
+            summary["drift_correction"] = {"accepted": drift.accepted, "reason": drift.reason, **drift.figures}
+            if drift.accepted:  # what the mesh's fusion and any other frame of the capture need
+                summary["drift_correction"].update(times_s=np.asarray(times_s, dtype=np.float64)[sel],
+                                                   T_correction=correction_of(T, drift.T_world_cam))
+        write_json(tmp / "summary.json", summary)
     log.info("sparse model: %d images, %d points, track %.2f, reprojection %.3f px (%.1f s)",
              len(names), model.num_points, model.mean_track_length, model.mean_reproj_error_px,
              sum(seconds.values()))
@@ -368,37 +382,6 @@ def _check_config(cfg: SfmConfig) -> None:
         raise ValueError("max_images and min_track_length must be >= 2 and num_neighbours >= 1")
     if not 1 <= cfg.jpeg_quality <= 100:
         raise ValueError(f"jpeg_quality must be in 1..100, got {cfg.jpeg_quality}")
-
-
-#: Bytes per SIFT feature in COLMAP's database (128-byte descriptor, 6 float keypoint, row overhead).
-_DB_BYTES_PER_FEATURE = 160
-#: Bytes per feature and matched pair (raw and verified matches, 2 x uint32 each).
-_DB_BYTES_PER_MATCH = 16
-
-
-def sfm_disk_estimate(num_images: int, image_bytes: int, cfg: SfmConfig) -> int:
-    """An upper estimate of the bytes a sparse model folder takes (key frames, database, model)."""
-    pairs = num_images * (num_images - 1) // 2 if cfg.pairing == "exhaustive" else num_images * cfg.num_neighbours
-    features = num_images * cfg.max_features
-    return image_bytes + features * _DB_BYTES_PER_FEATURE + pairs * cfg.max_features * _DB_BYTES_PER_MATCH + (4 << 20)
-
-
-def _check_free_space(out_dir: Path, names: list[str], rgbs, src_dir: Path | None, intrinsics: Intrinsics,
-                      cfg: SfmConfig) -> None:
-    """Refuse to start when the disk cannot hold the model: COLMAP aborts the whole process (no
-    error to catch, a C++ stack trace) when its database meets a full disk."""
-    if rgbs is not None:
-        per_image = intrinsics.width * intrinsics.height * 3 // (4 if cfg.image_format == "jpg" else 1)
-        image_bytes = per_image * len(names)
-    else:
-        image_bytes = sum((src_dir / n).stat().st_size for n in names)
-    need = sfm_disk_estimate(len(names), image_bytes, cfg)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    free = shutil.disk_usage(out_dir.parent).free
-    if free < need:
-        raise InputError(out_dir.parent, f"only {free / 2**20:.0f} MiB free on its disk; the sparse model of "
-                         f"{len(names)} key frames needs up to {need / 2**20:.0f} MiB",
-                         "free some disk space, then run the same command again to resume")
 
 
 def _check_replaceable(out_dir: Path) -> None:

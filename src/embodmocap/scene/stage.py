@@ -4,13 +4,16 @@
 
 1. ``keyframes``: key frames by camera motion, the blurriest of each small group dropped, frames
    around tracking jumps excluded (written to ``keyframes.json`` with their poses);
-2. ``mesh``: every frame with a trusted pose and enough valid depth (a fine motion step, many more
-   than the key frames), LiDAR depth (optionally refined by a learned model) weighted by its
-   confidence and truncated at the sensor's range, fused in an Open3D TSDF; colour mesh extracted
-   and cleaned without dropping real structure (``mesh_raw.ply``);
-3. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``);
-4. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
-   poses and intrinsics held fixed (``sfm/``: database + model for Stage III).
+2. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
+   poses and intrinsics held fixed, optionally (``sfm.refine_poses``) the VIO drift of the key
+   frames corrected by a bundle adjustment with the VIO as a prior and the points triangulated
+   again (``sfm/``: database + model for Stage III);
+3. ``mesh``: every frame with a trusted pose and enough valid depth (a fine motion step, many more
+   than the key frames), with the sparse model's drift correction carried over to it, LiDAR depth
+   (optionally refined by a learned model) weighted by its confidence and truncated at the sensor's
+   range, fused in an Open3D TSDF; colour mesh extracted and cleaned without dropping real
+   structure (``mesh_raw.ply``);
+4. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``).
 
 The world is the scene capture's own VIO world: metric and gravity-aligned (Z up), so the mesh and
 the model share it without any alignment. Each step is skipped when its fingerprint (config,
@@ -34,6 +37,7 @@ from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.scene.adjust import corrected_poses
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import DepthStats, check_depth, fusion_frames, prefetch
 from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
@@ -109,8 +113,25 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     kf = read_keyframes(out)
     frame_ids, T_kf = kf["frame_ids"], kf["T_world_cam"]
 
-    # 2. TSDF fusion + clean-up.
-    fp_mesh = fingerprint("mesh", fp_kf, _cfg_part(cfg, _MESH_FIELDS))
+    # 2. Sparse model (before the mesh: the mesh is fused with its drift correction of the key frames).
+    fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
+    if not force and sm.is_current("sfm", fp_sfm):
+        skipped.append("sfm")
+    else:
+        t0 = time.perf_counter()
+        pick = _evenly(len(frame_ids), cfg.sfm.max_images)
+        names = [f"kf_{int(i):06d}" for i in frame_ids[pick]]
+        images = [(n, capture.frames.rgb(int(i))) for n, i in zip(names, frame_ids[pick])]
+        times = np.interp(frame_ids[pick], capture.trajectory.frame_ids, capture.trajectory.timestamps_s)
+        model = build_sparse_model(images, capture.rgb_intrinsics, T_kf[pick], out.sfm_dir, cfg.sfm, times_s=times)
+        sm.record("sfm", fp_sfm, [out.sfm_dir], time.perf_counter() - t0, {
+            "sfm_images": len(names), "sfm_points": model.num_points,
+            "sfm_mean_track_length": round(model.mean_track_length, 3),
+            "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
+        })
+
+    # 3. TSDF fusion + clean-up.
+    fp_mesh = fingerprint("mesh", fp_kf, fp_sfm if cfg.sfm.refine_poses else None, _cfg_part(cfg, _MESH_FIELDS))
     if not force and sm.is_current("mesh", fp_mesh):
         skipped.append("mesh")
     else:
@@ -118,7 +139,8 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         # Every trusted frame (fine motion step), not only the SfM key frames: coverage of ceilings,
         # far walls and furniture sides comes from the frames between key frames.
         rows = fusion_rows(capture, cfg)[:: max(1, cfg.integrate_every)]
-        ids, poses = capture.trajectory.frame_ids[rows], capture.trajectory.T_world_cam[rows]
+        ids, poses = capture.trajectory.frame_ids[rows], corrected_poses(
+            out.sfm_dir, capture.trajectory.timestamps_s[rows], capture.trajectory.T_world_cam[rows])
         stats = DepthStats()
         frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=_depth_refiner(cfg), stats=stats))
         v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {name}: fusing"), cfg.voxel_m(indoor),
@@ -137,7 +159,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
             "fusion_fps": round(stats.fused_frames / max(t_fuse, 1e-9), 2),
         })
 
-    # 3. Simplified mesh.
+    # 4. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
         fp_simple = fingerprint("simplify", fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
         if not force and sm.is_current("simplify", fp_simple):
@@ -151,22 +173,6 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
             sm.record("simplify", fp_simple, [out.mesh_simplified], time.perf_counter() - t0, {
                 "simplified_vertices": st["vertices"], "simplified_faces": st["faces"],
             })
-
-    # 4. Sparse model with the capture's poses fixed.
-    fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
-    if not force and sm.is_current("sfm", fp_sfm):
-        skipped.append("sfm")
-    else:
-        t0 = time.perf_counter()
-        pick = _evenly(len(frame_ids), cfg.sfm.max_images)
-        names = [f"kf_{int(i):06d}" for i in frame_ids[pick]]
-        images = [(n, capture.frames.rgb(int(i))) for n, i in zip(names, frame_ids[pick])]
-        model = build_sparse_model(images, capture.rgb_intrinsics, T_kf[pick], out.sfm_dir, cfg.sfm)
-        sm.record("sfm", fp_sfm, [out.sfm_dir], time.perf_counter() - t0, {
-            "sfm_images": len(names), "sfm_points": model.num_points,
-            "sfm_mean_track_length": round(model.mean_track_length, 3),
-            "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
-        })
 
     if skipped:
         log.info("scene %s: up to date, skipped: %s", name, ", ".join(skipped))
