@@ -21,7 +21,8 @@ good at, the *relative* motion between consecutive key frames:
 It is solved as one sparse non-linear least squares (SciPy, finite differences over a known
 sparsity pattern). Whether the result is used is decided on evidence the capture itself has:
 the RMS reprojection error must fall by at least ``min_adjust_gain``, the corrections must be
-plausible for the VIO (RMS of the whitened random-walk steps <= ``max_prior_rms``) and no key frame
+plausible for the VIO (no step between consecutive key frames beyond ``max_prior_step`` times
+the drift the VIO reaches in that time) and no key frame
 may move more than ``max_pose_change_m``. The frames between key frames (the mesh fuses many more)
 get the key frames' correction interpolated on SE(3) (:func:`propagate_correction`), so the
 sparse model, the mesh and Stage III all live in the same corrected world.
@@ -54,7 +55,7 @@ class DriftCorrection:
             ``accepted``, else the capture's.
         accepted: whether the correction passed the checks.
         reason: why it was not accepted ("" when it was).
-        figures: ``rms_before_px``, ``rms_after_px``, ``gain``, ``prior_rms``, ``median_change_m``,
+        figures: ``rms_before_px``, ``rms_after_px``, ``gain``, ``prior_rms``, ``prior_max``, ``median_change_m``,
             ``max_change_m``, ``max_change_deg``, ``observations``, ``iterations``, ``seconds``.
     """
 
@@ -115,7 +116,7 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
         T_prior: (K, 4, 4) the capture's camera-to-world poses of ``ids``.
         times_s: (K,) their capture times, seconds, non-decreasing.
         cfg: the ``SfmConfig`` (fields ``drift_*``, ``tilt_ratio``, ``anchor_*``, ``reproj_sigma_px``,
-            ``min_adjust_gain``, ``max_prior_rms``, ``max_pose_change_m``, ``adjust_max_iterations``).
+            ``min_adjust_gain``, ``max_prior_step``, ``max_pose_change_m``, ``adjust_max_iterations``).
     """
     t0 = time.perf_counter()
     T_prior = np.asarray(T_prior, dtype=np.float64)
@@ -152,11 +153,13 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
     T_adj = apply_correction(q, T_prior, p0)
     change = np.linalg.norm(T_adj[:, :3, 3] - c0, axis=1)
     turn = np.degrees(np.linalg.norm(q[:, :3], axis=1))
-    prior_rms = float(np.sqrt(np.mean(((q[1:] - q[:-1]) / sig_walk) ** 2))) if n > 1 else 0.0
+    steps = np.abs((q[1:] - q[:-1]) / sig_walk)  # whitened random-walk steps (K-1, 6)
+    prior_rms = float(np.sqrt(np.mean(steps**2))) if n > 1 else 0.0
+    prior_max = float(steps.max()) if n > 1 else 0.0
     gain = 1.0 - rms1 / max(rms0, 1e-12)
     figures = {
         "rms_before_px": round(rms0, 4), "rms_after_px": round(rms1, 4), "gain": round(gain, 4),
-        "prior_rms": round(prior_rms, 3), "median_change_m": round(float(np.median(change)), 5),
+        "prior_rms": round(prior_rms, 3), "prior_max": round(prior_max, 3), "median_change_m": round(float(np.median(change)), 5),
         "max_change_m": round(float(change.max()), 5), "max_change_deg": round(float(turn.max()), 4),
         "observations": int(nobs), "iterations": int(iterations), "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -165,8 +168,9 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
         reason = "the adjustment diverged"
     elif gain < cfg.min_adjust_gain:
         reason = f"it lowers the reprojection error only {100 * gain:.1f} % (< {100 * cfg.min_adjust_gain:.1f} %)"
-    elif prior_rms > cfg.max_prior_rms:
-        reason = f"its corrections disagree with the VIO (whitened step RMS {prior_rms:.2f} > {cfg.max_prior_rms})"
+    elif prior_max > cfg.max_prior_step:
+        reason = (f"its corrections disagree with the VIO (a step between key frames of {prior_max:.1f} times the "
+                  f"drift VIO reaches in that time, > {cfg.max_prior_step})")
     elif change.max() > cfg.max_pose_change_m:
         reason = f"it moves a key frame {100 * change.max():.1f} cm (> {100 * cfg.max_pose_change_m:.1f} cm)"
     if reason:

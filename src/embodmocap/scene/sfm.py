@@ -141,10 +141,11 @@ class SfmConfig:
     min_adjust_gain: float = 0.01
     """``refine_poses``: the correction is used only when it lowers the RMS reprojection error of
     the model by at least this fraction (else the images do not ask for one)."""
-    max_prior_rms: float = 2.0
-    """``refine_poses``: ... and when the RMS of its whitened steps between consecutive key frames
-    (step / the VIO's expected drift in that time) is at most this: larger means the images pull
-    the key frames further than the VIO can drift (wrong matches, a wrong scale)."""
+    max_prior_step: float = 4.0
+    """``refine_poses``: ... and when no step of the correction between consecutive key frames is
+    larger than this many times the drift the VIO reaches in their time apart (a Gaussian random
+    walk almost never steps 4 sigma): a larger one is a tracking glitch or wrong matches, not
+    drift, and the adjustment smears it over its neighbours."""
     max_pose_change_m: float = 0.05
     """``refine_poses``: ... and when no key frame moves further than this, metres."""
 
