@@ -132,13 +132,29 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
     sig_anchor = np.array([np.deg2rad(cfg.anchor_deg)] * 3 + [cfg.anchor_m] * 3)
     npts, nobs = len(X0), len(img)
 
-    def reproj(q, X):  # (N, 2) pixel residuals
+    def reproj(q, X, jac=False):
+        """(N, 2) pixel residuals; with ``jac`` also (N, 2, 6) and (N, 2, 3) Jacobians against the
+        key frame's correction and the point (the rotation taken as a small world-side turn about
+        ``p0`` on top of the current one: exact at q = 0, and the corrections stay far below 1 deg)."""
         Rw = _rotvecs_to_matrices(q[:, :3])
         R = Rw @ R0
         c = np.einsum("kij,kj->ki", Rw, c0 - p0) + p0 + q[:, 3:]
-        Xc = np.einsum("nji,nj->ni", R[img], X[pt] - c[img])  # R^T (X - c)
+        RT = np.swapaxes(R, 1, 2)[img]  # (N, 3, 3)
+        Xn = X[pt]
+        Xc = (RT @ (Xn - c[img])[:, :, None])[:, :, 0]  # R^T (X - c)
         z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
-        return np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy]) - xy
+        r = np.column_stack([fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy]) - xy
+        if not jac:
+            return r
+        P = np.zeros((len(z), 2, 3))
+        P[:, 0, 0], P[:, 0, 2] = fx / z, -fx * Xc[:, 0] / z**2
+        P[:, 1, 1], P[:, 1, 2] = fy / z, -fy * Xc[:, 1] / z**2
+        Jp = P @ RT  # d pixel / d X
+        v = Xn - p0
+        skew = np.zeros((len(z), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+        skew -= np.swapaxes(skew, 1, 2)
+        return r, np.concatenate([Jp @ skew, -Jp], axis=2), Jp
 
     # The prior is linear in the corrections: residual A @ q.ravel() (anchor, then random-walk steps).
     A = np.zeros((6 * n, 6 * n))
@@ -187,13 +203,11 @@ _HUBER = 2.0  # observations beyond this many reprojection sigmas count linearly
 
 def _levenberg_marquardt(reproj, A: NDArray, q: NDArray, X: NDArray, img: NDArray, pt: NDArray, cfg: SfmConfig):
     """Minimise the Huber-robust reprojection cost of ``reproj(q, X)`` (N, 2) plus ``|A q|^2`` over
-    the key frames' corrections ``q`` (K, 6) and the points ``X`` (P, 3): Levenberg-Marquardt with
-    the points eliminated (Schur complement on the key frames' 6K unknowns), Jacobians by central
-    differences taken for all key frames (points) at once, since each observation sees one key
-    frame and one point. Returns (q, X, iterations)."""
-    from scipy.sparse import csr_matrix
-
-    n, npts, nobs = len(q), len(X), len(img)
+    the key frames' corrections ``q`` (K, 6) and the points ``X`` (P, 3): Gauss-Newton with the
+    points eliminated (Schur complement on the key frames' 6K unknowns) and Levenberg-Marquardt
+    damping on that reduced system; each observation sees one key frame and one point, so the
+    normal equations are sums of small per-observation blocks. Returns (q, X, iterations)."""
+    n, npts = len(q), len(X)
     sigma = cfg.reproj_sigma_px
     H_prior = A.T @ A
 
@@ -203,72 +217,86 @@ def _levenberg_marquardt(reproj, A: NDArray, q: NDArray, X: NDArray, img: NDArra
         prior = A @ q_.ravel()
         return float(rho.sum() + prior @ prior)
 
-    rows6 = (6 * img[:, None] + np.arange(6)).repeat(3, axis=1).ravel()  # (N*18,) for the coupling blocks
-    cols3 = np.tile(3 * pt[:, None] + np.arange(3), (1, 6)).ravel()
-    lam, it, current = 1e-3, 0, cost(q, X)
+    # Pairs of observations of the same point (each with itself too): where the points' elimination
+    # couples two key frames. Fixed structure, so found once.
+    nobs = len(img)
+    order = np.argsort(pt, kind="stable")
+    track = np.bincount(pt, minlength=npts)
+    start = np.concatenate([[0], np.cumsum(track)[:-1]])
+    reps = track[pt[order]]
+    a_pos = np.repeat(np.arange(nobs), reps)
+    offset = np.arange(int(reps.sum())) - np.repeat(np.cumsum(reps) - reps, reps)
+    pair_a, pair_b = order[a_pos], order[start[pt[order][a_pos]] + offset]
+    pair_key = img[pair_a] * n + img[pair_b]
+    by_key = np.argsort(pair_key, kind="stable")  # pairs in key order: each chunk sums runs of equal keys
+    pair_a, pair_b, pair_key = pair_a[by_key], pair_b[by_key], pair_key[by_key]
+    by_img, by_pt = _GroupSum(img, n), _GroupSum(pt, npts)
+    lam, it, current = 1e-4, 0, cost(q, X)
     for it in range(1, cfg.adjust_max_iterations + 1):
-        r = reproj(q, X)
-        Jc, Jp = np.empty((nobs, 2, 6)), np.empty((nobs, 2, 3))
-        for j in range(6):
-            h = np.zeros(6)
-            h[j] = 1e-6
-            Jc[:, :, j] = (reproj(q + h, X) - reproj(q - h, X)) / 2e-6
-        for j in range(3):
-            h = np.zeros(3)
-            h[j] = 1e-6
-            Jp[:, :, j] = (reproj(q, X + h) - reproj(q, X - h)) / 2e-6
+        r, Jc, Jp = reproj(q, X, jac=True)
         e = np.linalg.norm(r, axis=1) / sigma
         w = (np.where(e <= _HUBER, 1.0, _HUBER / np.maximum(e, 1e-12)) / sigma**2)[:, None, None]
-        Hcc_obs = np.einsum("nai,naj->nij", w * Jc, Jc)
-        Hpp = np.zeros((npts, 3, 3))
-        np.add.at(Hpp, pt, np.einsum("nai,naj->nij", w * Jp, Jp))
-        Hcp = np.einsum("nai,naj->nij", w * Jc, Jp)  # (N, 6, 3)
-        gc = np.zeros((n, 6))
-        np.add.at(gc, img, np.einsum("nai,na->ni", w * Jc, r))
-        gp = np.zeros((npts, 3))
-        np.add.at(gp, pt, np.einsum("nai,na->ni", w * Jp, r))
-        Hcc = np.zeros((n, 6, 6))
-        np.add.at(Hcc, img, Hcc_obs)
+        wJc, wJp = w * Jc, w * Jp
+        Hcc = by_img(np.swapaxes(wJc, 1, 2) @ Jc)
+        Hpp = by_pt(np.swapaxes(wJp, 1, 2) @ Jp)
+        Hcp = np.swapaxes(wJc, 1, 2) @ Jp  # (N, 6, 3)
+        gc = by_img((np.swapaxes(wJc, 1, 2) @ r[:, :, None])[:, :, 0])
+        gp = by_pt((np.swapaxes(wJp, 1, 2) @ r[:, :, None])[:, :, 0])
         H = H_prior.copy()
         for k in range(n):
             H[6 * k:6 * k + 6, 6 * k:6 * k + 6] += Hcc[k]
         g = gc.ravel() + H_prior @ q.ravel()
-        E = csr_matrix((Hcp.ravel(), (rows6, cols3)), shape=(6 * n, 3 * npts))
-        for _ in range(10):
-            Hpp_d = Hpp + lam * (np.einsum("pii->pi", Hpp)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
-            Hpp_inv = np.linalg.inv(Hpp_d)
-            Hinv = _block_diag_csr(Hpp_inv)
-            S = H + lam * np.diag(np.diag(H)) - (E @ Hinv @ E.T).toarray()
-            rhs = -(g - E @ (Hinv @ gp.ravel()))
+        # Points are well conditioned (triangulation angle >= min_tri_angle_deg); a tiny ridge guards
+        # the odd near-degenerate one.
+        Hinv = np.linalg.inv(Hpp + 1e-9 * np.trace(Hpp, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3))
+        HcpHinv = Hcp @ Hinv[pt]  # (N, 6, 3)
+        coupling = np.zeros((n * n, 36))
+        for lo in range(0, len(pair_a), 200_000):  # chunks keep the (pairs, 6, 6) products small
+            sl = slice(lo, lo + 200_000)
+            blocks = (HcpHinv[pair_a[sl]] @ np.swapaxes(Hcp[pair_b[sl]], 1, 2)).reshape(-1, 36)
+            keys = pair_key[sl]
+            first = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+            coupling[keys[first]] += np.add.reduceat(blocks, first, axis=0)
+        S = H - coupling.reshape(n, n, 6, 6).transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+        rhs = -(g - by_img((HcpHinv @ gp[pt][:, :, None])[:, :, 0]).ravel())
+        done = True
+        for _ in range(12):
             try:
-                dq = np.linalg.solve(S, rhs)
+                dq = np.linalg.solve(S + lam * np.diag(np.diag(S)), rhs)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            dX = -(Hinv @ (gp.ravel() + E.T @ dq))
-            q_new, X_new = q + dq.reshape(n, 6), X + dX.reshape(npts, 3)
+            dq = dq.reshape(n, 6)
+            dX = -(Hinv @ (gp + by_pt((np.swapaxes(Hcp, 1, 2) @ dq[img][:, :, None])[:, :, 0]))[:, :, None])[:, :, 0]
+            q_new, X_new = q + dq, X + dX
             new = cost(q_new, X_new)
             if np.isfinite(new) and new < current:
-                done = (current - new) < 1e-9 * current
-                q, X, current, lam = q_new, X_new, new, max(lam / 3, 1e-7)
+                # Converged when the cost stalls or the key frames move by less than 0.02 mm / 0.2 urad.
+                done = (current - new) < 1e-9 * current or (np.abs(dq[:, 3:]).max() < 2e-5
+                                                          and np.abs(dq[:, :3]).max() < 2e-7)
+                q, X, current, lam = q_new, X_new, new, max(lam / 3, 1e-8)
                 break
             lam *= 5
-        else:
-            break  # no step lowers the cost: converged (or stuck)
-        if done:
+        if done:  # converged, or no step lowers the cost any more
             break
     return q, X, it
 
 
-def _block_diag_csr(blocks: NDArray):
-    """(P, 3, 3) blocks -> (3P, 3P) block-diagonal CSR matrix."""
-    from scipy.sparse import csr_matrix
+class _GroupSum:
+    """Sums of per-item rows by group, ``out[g] = sum(values[index == g])``, for a fixed index
+    (sorted once, then one ``np.add.reduceat`` per call)."""
 
-    p = len(blocks)
-    base = 3 * np.arange(p)[:, None, None]
-    rows = np.broadcast_to(base + np.arange(3)[:, None], (p, 3, 3)).ravel()
-    cols = np.broadcast_to(base + np.arange(3)[None, :], (p, 3, 3)).ravel()
-    return csr_matrix((blocks.ravel(), (rows, cols)), shape=(3 * p, 3 * p))
+    def __init__(self, index: NDArray, size: int):
+        self.order = np.argsort(index, kind="stable")
+        sorted_index = index[self.order]
+        self.first = np.flatnonzero(np.r_[True, sorted_index[1:] != sorted_index[:-1]])
+        self.groups = sorted_index[self.first]
+        self.size = size
+
+    def __call__(self, values: NDArray) -> NDArray[np.float64]:
+        out = np.zeros((self.size,) + values.shape[1:])
+        out[self.groups] = np.add.reduceat(values[self.order], self.first, axis=0)
+        return out
 
 
 def correction_of(T_prior: NDArray, T_fixed: NDArray) -> NDArray[np.float64]:
