@@ -175,7 +175,8 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
     gain = 1.0 - rms1 / max(rms0, 1e-12)
     figures = {
         "rms_before_px": round(rms0, 4), "rms_after_px": round(rms1, 4), "gain": round(gain, 4),
-        "prior_rms": round(prior_rms, 3), "prior_max": round(prior_max, 3), "median_change_m": round(float(np.median(change)), 5),
+        "prior_rms": round(prior_rms, 3), "prior_max": round(prior_max, 3),
+        "median_change_m": round(float(np.median(change)), 5),
         "max_change_m": round(float(change.max()), 5), "max_change_deg": round(float(turn.max()), 4),
         "observations": int(nobs), "iterations": int(iterations), "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -248,7 +249,8 @@ def _levenberg_marquardt(reproj, A: NDArray, q: NDArray, X: NDArray, img: NDArra
         g = gc.ravel() + H_prior @ q.ravel()
         # Points are well conditioned (triangulation angle >= min_tri_angle_deg); a tiny ridge guards
         # the odd near-degenerate one.
-        Hinv = np.linalg.inv(Hpp + 1e-9 * np.trace(Hpp, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 1e-12 * np.eye(3))
+        ridge = 1e-9 * np.trace(Hpp, axis1=1, axis2=2)[:, None, None] + 1e-12
+        Hinv = np.linalg.inv(Hpp + ridge * np.eye(3))
         HcpHinv = Hcp @ Hinv[pt]  # (N, 6, 3)
         coupling = np.zeros((n * n, 36))
         for lo in range(0, len(pair_a), 200_000):  # chunks keep the (pairs, 6, 6) products small

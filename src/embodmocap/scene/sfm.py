@@ -45,7 +45,9 @@ from embodmocap.io.atomic import atomic_dir, write_json, write_text
 from embodmocap.io.colmap import (  # noqa: F401 (the conversions moved to io; old import path kept)
     COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap,
 )
-from embodmocap.scene.adjust import _fit_similarity, _rms_reprojection, adjust_with_vio_prior, correction_of  # noqa: F401
+from embodmocap.scene.adjust import (  # noqa: F401 (_fit_similarity, _rms_reprojection: old import path kept)
+    _fit_similarity, _rms_reprojection, adjust_with_vio_prior, correction_of,
+)
 from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
     _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
 )
