@@ -23,7 +23,9 @@ frames see within 5 m). With ``--plain``, ``--old-src DIR`` also runs the key-fr
 (e.g. the code before issue 13) on the same capture, in a child process, for a before/after row.
 ``--zip`` pairs ``--presets`` and ``--seeds`` one to one (preset names: benchmarks/_studio.py).
 ``--old-stage`` times the whole stage of ``--old-src`` too (a hard-linked copy of the session), in
-the same run, for the time ratio.
+the same run, for the time ratio. ``--eval-only`` measures the Stage I outputs already in each
+session (e.g. written by bench_calibrate.py's run of the stage) without running the stage, and
+reuses a ``plain_tsdf.ply`` / ``old_mesh.ply`` already there (same capture, same reference).
 
     .venv/bin/python benchmarks/bench_scene.py --zip --presets indoor large high_ceiling low_texture repetitive \
         --seeds 0 2 3 4 5 --scene-seconds 15 --out /work/bench/13/calib --plain --old-src /work/bench/13/old/src
@@ -150,15 +152,17 @@ def evaluate(session: Path) -> dict:
         seen_T = dev["T_scene_cam"][:: 3]
         meshes = {"ours": (v, f)}
         if PLAIN:
-            p = plain_tsdf(session, out.root / "plain_tsdf.ply")
+            if not (EVAL_ONLY and (out.root / "plain_tsdf.ply").is_file()):
+                p = plain_tsdf(session, out.root / "plain_tsdf.ply")
+                extra["plain_seconds"] = round(p["seconds"], 1)
             pv, pf, _ = read_mesh_ply(out.root / "plain_tsdf.ply")
             meshes["plain"] = (pv, pf)
-            extra["plain_seconds"] = round(p["seconds"], 1)
         if OLD_SRC:
-            o = old_mesh(session, OLD_SRC, out.root / "old_mesh.ply")
+            if not (EVAL_ONLY and (out.root / "old_mesh.ply").is_file()):
+                o = old_mesh(session, OLD_SRC, out.root / "old_mesh.ply")
+                extra["old_fused_frames"] = o["fused_frames"]
             ov, of, _ = read_mesh_ply(out.root / "old_mesh.ply")
             meshes["old"] = (ov, of)
-            extra["old_fused_frames"] = o["fused_frames"]
         for name, (mv, mf) in meshes.items():
             mm = scene_mesh_metrics(apply_T(dev["T_scene_vio"], mv), mf, np.asarray(gt.vertices), np.asarray(gt.faces),
                                     seen_T, cap.depth_intrinsics, 5.0, n_samples=200_000)
@@ -199,16 +203,21 @@ def main() -> None:
     ap.add_argument("--plain", action="store_true", help="compare with a plain Open3D TSDF of every frame")
     ap.add_argument("--old-src", default=None, help="src folder of another checkout: its key frames + mesh too")
     ap.add_argument("--old-stage", action="store_true", help="time the whole stage of --old-src too (same run)")
+    ap.add_argument("--eval-only", action="store_true",
+                    help="measure the Stage I outputs already in the sessions (no synthesis, no stage run)")
     args = ap.parse_args()
-    global PLAIN, OLD_SRC
-    PLAIN, OLD_SRC = args.plain, args.old_src
+    global PLAIN, OLD_SRC, EVAL_ONLY
+    PLAIN, OLD_SRC, EVAL_ONLY = args.plain, args.old_src, args.eval_only
     pairs = list(zip(args.presets, args.seeds)) if args.zip else [(p, s) for p in args.presets for s in args.seeds]
     rows = []
     for preset, seed in pairs:
         session = args.out / f"{preset}_{seed}"
-        synth(session, seed, preset, args.scene_seconds)
-        wall, rss = run_stage(session)
-        row = {"preset": preset, "seed": seed, "wall_s": round(wall, 1), "peak_rss_mb": rss}
+        if args.eval_only:
+            row = {"preset": preset, "seed": seed, "wall_s": None, "peak_rss_mb": None}
+        else:
+            synth(session, seed, preset, args.scene_seconds)
+            wall, rss = run_stage(session)
+            row = {"preset": preset, "seed": seed, "wall_s": round(wall, 1), "peak_rss_mb": rss}
         if args.old_stage and args.old_src:
             copy = args.out / f".old_{preset}_{seed}"
             if not copy.exists():
@@ -235,7 +244,7 @@ def main() -> None:
                         "--json", str(args.out / "bench_tsdf.json")], check=True)
 
 
-PLAIN, OLD_SRC = False, None
+PLAIN, OLD_SRC, EVAL_ONLY = False, None, False
 
 if __name__ == "__main__":
     main()

@@ -67,14 +67,35 @@ def test_mesh_and_sparse_model_match_ground_truth(session, done):
     assert np.median(d) < 0.03
 
 
-def test_sparse_model_keeps_the_capture_poses(done):
+def test_sparse_model_key_frames_are_the_capture_poses_or_their_drift_correction(session, done):
+    """The model's key frames are the capture's poses, or (drift correction accepted) those poses
+    moved by at most ``max_pose_change_m`` and no farther from the truth; the mesh's frames get the
+    same correction (what ``corrected_poses`` gives at a key frame's time is the model's pose)."""
+    from embodmocap.geometry.transforms import invert_T
+    from embodmocap.scene.adjust import corrected_poses
+
     kf = stage.read_keyframes(done.layout)
     poses = image_poses(done.layout.sfm_dir)
+    summary = json.loads((done.layout.sfm_dir / "summary.json").read_text())
+    drift = summary.get("drift_correction")
+    assert drift is not None  # on by default, and Stage I passes the key frames' times
     by_frame = {int(f): T for f, T in zip(kf["frame_ids"], kf["T_world_cam"])}
+    names = summary["image_names"]
+    frames = [int(Path(n).stem.split("_")[1]) for n in names]
+    T_model = np.stack([poses[n] for n in names])
+    T_capture = np.stack([by_frame[f] for f in frames])
     assert len(poses) >= 10
-    for name, T in poses.items():
-        frame = int(Path(name).stem.split("_")[1])
-        np.testing.assert_allclose(T, by_frame[frame], atol=1e-9)
+    if not drift["accepted"]:
+        np.testing.assert_allclose(T_model, T_capture, atol=1e-9)
+        return
+    moved = np.linalg.norm(T_model[:, :3, 3] - T_capture[:, :3, 3], axis=1)
+    assert moved.max() <= CFG.sfm.max_pose_change_m
+    dev = np.load(SessionLayout(session).ground_truth.scene_device("scene0"))
+    T_true = invert_T(dev["T_scene_vio"]) @ dev["T_scene_cam"][frames]
+    err = lambda T: np.median(np.linalg.norm(T[:, :3, 3] - T_true[:, :3, 3], axis=1))  # noqa: E731
+    assert err(T_model) <= err(T_capture) + 1e-3
+    np.testing.assert_allclose(corrected_poses(done.layout.sfm_dir, np.asarray(drift["times_s"]), T_capture),
+                               T_model, atol=1e-6)
 
 
 def test_second_run_skips_everything(session, done):
@@ -95,14 +116,15 @@ def test_interrupted_run_resumes_and_config_changes_redo_only_what_depends(sessi
         stage.run(CFG, work)
     lay = SessionLayout(work).scene("scene0")
     done_steps = json.loads(lay.manifest.read_text())["steps"]
-    assert set(done_steps) == {"keyframes", "mesh", "simplify"}
-    mesh_mtime = lay.mesh_raw.stat().st_mtime_ns
+    # The sparse model comes before the mesh (the mesh is fused with its drift correction).
+    assert set(done_steps) == {"keyframes"}
+    kf_mtime = lay.keyframes.stat().st_mtime_ns
     monkeypatch.undo()
 
     resumed = stage.run(CFG, work)
-    assert set(resumed.skipped) == {"keyframes", "mesh", "simplify"}
-    assert lay.mesh_raw.stat().st_mtime_ns == mesh_mtime
-    assert (lay.sfm_dir / "database.db").is_file()
+    assert set(resumed.skipped) == {"keyframes"}
+    assert lay.keyframes.stat().st_mtime_ns == kf_mtime
+    assert (lay.sfm_dir / "database.db").is_file() and lay.mesh_raw.is_file()
 
     # Changing a mesh-only option redoes the mesh and what depends on it, not the key frames or SfM.
     changed = stage.run(replace(CFG, floater_max_extent_m=0.2), work)
@@ -168,14 +190,17 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import write_mesh_ply
     from embodmocap.scene import solve
+    from embodmocap.scene.adjust import read_drift_correction
 
     work = tmp_path / "s"
     shutil.copytree(session, work)
     entry = load_manifest(SessionLayout(work).manifest).scene(None)
     cap = open_capture(entry.capture)
     capture = replace(cap, frames=_MemoryFrames(cap.frames))
+    # The sparse model's drift correction (COLMAP builds the model in files: the run's is read).
+    drift = read_drift_correction(SessionLayout(work).scene(entry.name).sfm_dir) if CFG.sfm.refine_poses else None
     shutil.rmtree(work)  # nothing of the session is left to read
-    res = solve.solve(capture, CFG, entry.indoor, "scene0")
+    res = solve.solve(capture, CFG, entry.indoor, "scene0", drift=drift)
 
     lay = SessionLayout(session).scene("scene0")
     want = json.loads(lay.keyframes.read_text())

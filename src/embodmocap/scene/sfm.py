@@ -45,6 +45,12 @@ from embodmocap.io.atomic import atomic_dir, write_json, write_text
 from embodmocap.io.colmap import (  # noqa: F401 (the conversions moved to io; old import path kept)
     COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap,
 )
+from embodmocap.scene.adjust import (  # noqa: F401 (_fit_similarity, _rms_reprojection: old import path kept)
+    _fit_similarity, _rms_reprojection, adjust_with_vio_prior, correction_of,
+)
+from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
+    _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
+)
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -110,36 +116,40 @@ class SfmConfig:
     repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
-    refine_poses: bool = False
-    """After triangulating with the capture's poses, bundle-adjust poses and points together, then
-    put the model back on the capture's poses by the similarity that fits them best (all key
-    frames at once). The capture's VIO drifts slowly (~1 cm over 15 s); points triangulated from
-    key frames of different moments then disagree by that much, and frames registered to them later
-    (Stage III) inherit a bias of 1-3 cm (issue 13: with the true scan poses the bias drops to
-    0.3-1 cm). Off by default: on studio scans the adjustment brought the key frames 40-60 % closer
-    to the truth on some and left them as far or farther on others (it slides along directions
-    the images hardly constrain), and on the Stage I test scan it moved the sparse points further
-    from the true surface (median 3.6 cm against < 3). Only used with at least ``2 *
-    correction_window`` key frames."""
-    correction_window: int = 7
-    """``refine_poses``: running-median window (key frames) over which each key frame's drift
-    correction is smoothed."""
+    refine_poses: bool = True
+    """Correct the capture's VIO drift in the key frames before the final triangulation: a bundle
+    adjustment with the VIO's relative motion between consecutive key frames as a prior and the
+    first key frame fixed (:mod:`embodmocap.scene.adjust`), used only when the evidence below
+    holds; the points are then triangulated again with the corrected poses held fixed, and Stage I
+    fuses its mesh with the same correction (interpolated between key frames). Needs the key
+    frames' times (``times_s``) and at least 4 key frames."""
+    drift_m_per_10s: float = 0.01
+    """``refine_poses``: spread of the VIO's translation drift after 10 s, metres (a random walk:
+    it grows as the square root of time). Phones' VIO drifts about 1 cm over 10 s indoors."""
+    drift_deg_per_10s: float = 0.1
+    """``refine_poses``: spread of the VIO's yaw drift after 10 s, degrees."""
+    tilt_ratio: float = 0.25
+    """``refine_poses``: drift of roll and pitch relative to yaw (gravity keeps the tilt)."""
+    anchor_m: float = 0.0005
+    """``refine_poses``: how far the first key frame may move, metres: it sets the world (the VIO
+    world is defined at the capture's start, where it has not drifted yet)."""
+    anchor_deg: float = 0.005
+    """``refine_poses``: how far the first key frame may turn, degrees."""
+    reproj_sigma_px: float = 1.0
+    """``refine_poses``: spread of a SIFT keypoint's position, pixels (weight of the images against
+    the VIO prior); residuals beyond twice it count linearly (Huber)."""
+    adjust_max_iterations: int = 50
+    """``refine_poses``: at most this many evaluations of the least-squares solver."""
+    min_adjust_gain: float = 0.01
+    """``refine_poses``: the correction is used only when it lowers the RMS reprojection error of
+    the model by at least this fraction (else the images do not ask for one)."""
+    max_prior_step: float = 4.0
+    """``refine_poses``: ... and when no step of the correction between consecutive key frames is
+    larger than this many times the drift the VIO reaches in their time apart (a Gaussian random
+    walk almost never steps 4 sigma): a larger one is a tracking glitch or wrong matches, not
+    drift, and the adjustment smears it over its neighbours."""
     max_pose_change_m: float = 0.05
-    """``refine_poses``: if the adjustment moves any key frame further than this from its capture
-    pose (after the fit), the median key frame further than ``max_median_change_m``, or changes
-    the scale by more than 2 %, the adjusted model is not trusted and the capture's poses are kept
-    (with a warning). VIO drifts ~1 cm over a 15 s scan; an adjustment that moves key frames by
-    several centimetres has slid along a direction the images hardly constrain (plain walls: seen
-    on the low-texture studio, 4 cm median)."""
-    max_median_change_m: float = 0.02
-    """``refine_poses``: see ``max_pose_change_m``."""
-    min_adjust_gain: float = 0.085
-    """``refine_poses``: the adjustment is kept only when it lowers the model's RMS reprojection
-    error by at least this fraction. Where the capture's poses explain the images about as well
-    (a 7 % gain), the images do not pin the drift down: the adjustment then slides along directions
-    they hardly constrain and makes the key frames worse (seen on studio scans: gains of 9-22 %
-    went with corrections that brought the key frames 40-60 % closer to the truth, gains of
-    7.4-7.6 % with corrections that did not, or made them worse)."""
+    """``refine_poses``: ... and when no key frame moves further than this, metres."""
 
 
 @dataclass(frozen=True)
@@ -285,6 +295,7 @@ def build_sparse_model(
     T_world_cam: NDArray,
     out_dir: str | Path,
     cfg: SfmConfig = SfmConfig(),
+    times_s: NDArray | None = None,
 ) -> SparseModel:
     """Triangulate a sparse SIFT model of the key frames with their poses and intrinsics fixed.
 
@@ -303,6 +314,8 @@ def build_sparse_model(
         T_world_cam: (K, 4, 4) camera-to-world poses, OpenCV camera axes, Z-up metric world.
         out_dir: output folder (layout in the module docstring).
         cfg: settings.
+        times_s: (K,) capture times of the key frames, seconds (for ``cfg.refine_poses``; without
+            them the poses are used as given).
 
     Returns:
         The model and its quality figures.
@@ -339,12 +352,12 @@ def build_sparse_model(
             num_verified = _match(pycolmap, tmp, cfg)
         with _timer(seconds, "triangulate"):
             rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T, cfg)
-        # A handful of key frames is no chain to correct a drift along (and the smoothing needs some).
-        if cfg.refine_poses and rec.num_points3D() > 0 and len(ids) >= 2 * cfg.correction_window:
+        drift = None
+        if cfg.refine_poses and times_s is not None and rec.num_points3D() > 0 and len(ids) >= 4:
             with _timer(seconds, "adjust"):
-                T_fixed = _refine_poses(pycolmap, rec, ids, T, cfg)
-                if T_fixed is not None:  # triangulated again with the corrected poses held fixed
-                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, T_fixed, cfg)
+                drift = adjust_with_vio_prior(rec, ids, T, np.asarray(times_s, dtype=np.float64)[sel], cfg)
+                if drift.accepted:  # triangulated again with the corrected poses held fixed
+                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, drift.T_world_cam, cfg)
         with _timer(seconds, "finish"):
             _drop_short_tracks(rec, cfg.min_track_length)
             if rec.num_points3D() == 0:
@@ -352,7 +365,13 @@ def build_sparse_model(
                                  "check that the key frames overlap, are textured and match their poses")
             rec.write(tmp / "sparse")
         model = _summarise(rec, out_dir, names, len(pairs), num_verified, seconds)
-        write_json(tmp / "summary.json", _summary_json(model, intrinsics, cfg))
+        summary = _summary_json(model, intrinsics, cfg)
+        if drift is not None:
+            summary["drift_correction"] = {"accepted": drift.accepted, "reason": drift.reason, **drift.figures}
+            if drift.accepted:  # what the mesh's fusion and any other frame of the capture need
+                summary["drift_correction"].update(times_s=np.asarray(times_s, dtype=np.float64)[sel],
+                                                   T_correction=correction_of(T, drift.T_world_cam))
+        write_json(tmp / "summary.json", summary)
     log.info("sparse model: %d images, %d points, track %.2f, reprojection %.3f px (%.1f s)",
              len(names), model.num_points, model.mean_track_length, model.mean_reproj_error_px,
              sum(seconds.values()))
@@ -366,37 +385,6 @@ def _check_config(cfg: SfmConfig) -> None:
         raise ValueError("max_images and min_track_length must be >= 2 and num_neighbours >= 1")
     if not 1 <= cfg.jpeg_quality <= 100:
         raise ValueError(f"jpeg_quality must be in 1..100, got {cfg.jpeg_quality}")
-
-
-#: Bytes per SIFT feature in COLMAP's database (128-byte descriptor, 6 float keypoint, row overhead).
-_DB_BYTES_PER_FEATURE = 160
-#: Bytes per feature and matched pair (raw and verified matches, 2 x uint32 each).
-_DB_BYTES_PER_MATCH = 16
-
-
-def sfm_disk_estimate(num_images: int, image_bytes: int, cfg: SfmConfig) -> int:
-    """An upper estimate of the bytes a sparse model folder takes (key frames, database, model)."""
-    pairs = num_images * (num_images - 1) // 2 if cfg.pairing == "exhaustive" else num_images * cfg.num_neighbours
-    features = num_images * cfg.max_features
-    return image_bytes + features * _DB_BYTES_PER_FEATURE + pairs * cfg.max_features * _DB_BYTES_PER_MATCH + (4 << 20)
-
-
-def _check_free_space(out_dir: Path, names: list[str], rgbs, src_dir: Path | None, intrinsics: Intrinsics,
-                      cfg: SfmConfig) -> None:
-    """Refuse to start when the disk cannot hold the model: COLMAP aborts the whole process (no
-    error to catch, a C++ stack trace) when its database meets a full disk."""
-    if rgbs is not None:
-        per_image = intrinsics.width * intrinsics.height * 3 // (4 if cfg.image_format == "jpg" else 1)
-        image_bytes = per_image * len(names)
-    else:
-        image_bytes = sum((src_dir / n).stat().st_size for n in names)
-    need = sfm_disk_estimate(len(names), image_bytes, cfg)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    free = shutil.disk_usage(out_dir.parent).free
-    if free < need:
-        raise InputError(out_dir.parent, f"only {free / 2**20:.0f} MiB free on its disk; the sparse model of "
-                         f"{len(names)} key frames needs up to {need / 2**20:.0f} MiB",
-                         "free some disk space, then run the same command again to resume")
 
 
 def _check_replaceable(out_dir: Path) -> None:
@@ -478,39 +466,6 @@ def _write_images(dst: Path, names: list[str], rgbs: list[NDArray] | None, src_d
             raise OSError(f"could not write {dst / name}")
 
 
-def _extract(pycolmap, root: Path, names: list[str], intrinsics: Intrinsics, cfg: SfmConfig,
-             src_dir: Path | None) -> tuple[list[int], int]:
-    """SIFT into ``root/database.db`` with one fixed PINHOLE camera; returns (image ids in ``names``
-    order, camera id)."""
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
-    reader.camera_params = ",".join(f"{p:.17g}" for p in colmap_camera_params(intrinsics))
-    opts = pycolmap.FeatureExtractionOptions()
-    opts.num_threads = cfg.num_threads
-    opts.sift.max_num_features = cfg.max_features
-    opts.sift.first_octave = cfg.first_octave
-    pycolmap.extract_features(root / "database.db", root / "images", image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=opts, device=pycolmap.Device.cpu)
-    with pycolmap.Database.open(root / "database.db") as db:
-        by_name = {im.name: im for im in db.read_all_images()}
-        missing = [n for n in names if n not in by_name]
-        if missing:
-            raise InputError(src_dir, f"COLMAP could not read key frame {missing[0]!r}", "check the image file")
-        cams = db.read_all_cameras()
-        counts = np.array([db.num_keypoints_for_image(by_name[n].image_id) for n in names])
-    cam = cams[0]
-    if (cam.width, cam.height) != (intrinsics.width, intrinsics.height):
-        raise InputError(src_dir, f"key frames are {cam.width}x{cam.height}, intrinsics say "
-                         f"{intrinsics.width}x{intrinsics.height}", "pass the intrinsics of the key frames")
-    if np.sum(counts > 0) < 2:
-        raise InputError(src_dir, f"only {int(np.sum(counts > 0))} of {len(names)} key frames have SIFT features",
-                         "key frames must show textured, in-focus scene content")
-    if np.any(counts == 0):
-        log.warning("%d key frames have no SIFT features (blank or blurred?)", int(np.sum(counts == 0)))
-    return [int(by_name[n].image_id) for n in names], int(cam.camera_id)
-
-
 def _pairs(T: NDArray, intrinsics: Intrinsics, cfg: SfmConfig) -> NDArray[np.int64]:
     if cfg.pairing == "exhaustive":
         i, j = np.triu_indices(len(T), 1)
@@ -520,152 +475,6 @@ def _pairs(T: NDArray, intrinsics: Intrinsics, cfg: SfmConfig) -> NDArray[np.int
     pairs = select_pairs(T, intrinsics, cfg)
     log.debug("%d pairs from poses for %d key frames", len(pairs), len(T))
     return pairs
-
-
-def _match(pycolmap, root: Path, cfg: SfmConfig) -> int:
-    """Match the pairs in ``root/pairs.txt`` and verify them; returns the number of verified pairs."""
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = cfg.num_threads
-    matching.sift.max_ratio = cfg.match_max_ratio
-    pairing = pycolmap.ImportedPairingOptions()
-    pairing.match_list_path = root / "pairs.txt"
-    verify = pycolmap.TwoViewGeometryOptions()
-    verify.min_num_inliers = cfg.min_num_inliers
-    verify.ransac.max_error = cfg.ransac_max_error_px
-    verify.ransac.random_seed = cfg.seed
-    pycolmap.match_image_pairs(root / "database.db", matching_options=matching, pairing_options=pairing,
-                               verification_options=verify, device=pycolmap.Device.cpu)
-    with pycolmap.Database.open(root / "database.db") as db:
-        return int(db.num_verified_image_pairs())
-
-
-def _triangulate(pycolmap, root: Path, names: list[str], ids: list[int], cam_id: int, T: NDArray,
-                 cfg: SfmConfig):
-    """Reconstruction with the database's camera and our fixed poses, then triangulated points."""
-    with pycolmap.Database.open(root / "database.db") as db:
-        camera = db.read_camera(cam_id)
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(camera)
-    cam_from_world = invert_T(T)
-    for name, image_id, P in zip(names, ids, cam_from_world):
-        image = pycolmap.Image(name=name, camera_id=cam_id, image_id=image_id)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(P[:3, :4]))
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = cfg.num_threads
-    opts.random_seed = cfg.seed
-    opts.mapper.filter_max_reproj_error = cfg.max_reproj_error_px
-    opts.mapper.filter_min_tri_angle = cfg.min_tri_angle_deg
-    opts.triangulation.min_angle = cfg.min_tri_angle_deg
-    opts.triangulation.merge_max_reproj_error = cfg.max_reproj_error_px
-    opts.triangulation.complete_max_reproj_error = cfg.max_reproj_error_px
-    opts.triangulation.ignore_two_view_tracks = not cfg.two_view_tracks
-    # Poses and intrinsics stay fixed: triangulate_points never refines poses, and intrinsics only
-    # with refine_intrinsics=True; the flags below make sure no BA step touches the camera either.
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    (root / "sparse").mkdir(exist_ok=True)
-    return pycolmap.triangulate_points(rec, root / "database.db", root / "images", root / "sparse",
-                                       clear_points=True, options=opts, refine_intrinsics=False)
-
-
-def _refine_poses(pycolmap, rec, ids: list[int], T_prior: NDArray, cfg: SfmConfig) -> NDArray[np.float64] | None:
-    """Drift-corrected key frame poses (K, 4, 4) camera-to-world, or None to keep ``T_prior``.
-
-    Bundle adjustment of poses and points (intrinsics fixed) on the triangulated model, mapped back
-    onto ``T_prior`` (the capture's poses of ``ids``) by the similarity that fits them best. The
-    correction each key frame got (its adjusted pose against its capture pose) is then smoothed
-    over neighbouring key frames (running median of ``cfg.correction_window``): VIO drift is slow,
-    while a key frame with few observations can slide in the adjustment on its own. None when the
-    adjustment moved a key frame more than ``cfg.max_pose_change_m`` or changed the scale by > 2 %.
-    """
-    from scipy.ndimage import median_filter
-    from scipy.spatial.transform import Rotation
-
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = False
-    opts.refine_principal_point = False
-    opts.refine_extra_params = False
-    rms0 = _rms_reprojection(rec)
-    pycolmap.bundle_adjustment(rec, opts)
-    rms1 = _rms_reprojection(rec)
-    gain = 1.0 - rms1 / max(rms0, 1e-12)
-    if not gain >= cfg.min_adjust_gain:
-        log.info("sparse model: the adjustment lowers the reprojection error only %.1f %% (%.3f -> %.3f px); keeping "
-                 "the capture's poses", 100 * gain, rms0, rms1)
-        return None
-    T_ba = []
-    for image_id in ids:
-        P = np.eye(4)
-        P[:3, :4] = rec.image(image_id).cam_from_world().matrix()
-        T_ba.append(invert_T(P))
-    T_ba = np.stack(T_ba)
-    T_prior = np.asarray(T_prior, dtype=np.float64)
-    S = _fit_similarity(T_ba, T_prior)
-    scale = float(np.cbrt(np.linalg.det(S[:3, :3])))
-    T_adj = S @ T_ba
-    T_adj[:, :3, :3] /= scale
-    shift = T_adj[:, :3, 3] - T_prior[:, :3, 3]
-    moved = np.linalg.norm(shift, axis=1)
-    if (not np.all(np.isfinite(moved)) or moved.max() > cfg.max_pose_change_m
-            or np.median(moved) > cfg.max_median_change_m or abs(scale - 1.0) > 0.02):
-        log.warning("sparse model: the bundle adjustment moved a key frame %.1f cm from its capture pose (scale "
-                    "%.4f); keeping the capture's poses", 100 * float(np.nanmax(moved)), scale)
-        return None
-    turn = Rotation.from_matrix(T_adj[:, :3, :3] @ np.swapaxes(T_prior[:, :3, :3], -1, -2)).as_rotvec()
-    w = max(1, int(cfg.correction_window))
-    shift = median_filter(shift, size=(w, 1), mode="nearest")
-    turn = median_filter(turn, size=(w, 1), mode="nearest")
-    T_out = T_prior.copy()
-    T_out[:, :3, :3] = Rotation.from_rotvec(turn).as_matrix() @ T_prior[:, :3, :3]
-    T_out[:, :3, 3] = T_prior[:, :3, 3] + shift
-    log.info("sparse model: drift correction of the key frames %.2f cm median, %.2f cm max (adjustment scale %.5f)",
-             100 * float(np.median(np.linalg.norm(shift, axis=1))), 100 * float(np.linalg.norm(shift, axis=1).max()), scale)
-    return T_out
-
-
-def _rms_reprojection(rec) -> float:
-    """RMS reprojection error (pixels) over every observation of a 3D point in the model."""
-    sq, n = 0.0, 0
-    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
-    for image in rec.images.values():
-        obs = [(p.xy, xyz[p.point3D_id]) for p in image.points2D if p.has_point3D()]
-        if not obs:
-            continue
-        xy = np.array([o[0] for o in obs])
-        X = np.array([o[1] for o in obs])
-        P = image.cam_from_world().matrix()
-        cam = rec.cameras[image.camera_id]
-        Xc = X @ P[:, :3].T + P[:, 3]
-        proj = np.asarray(cam.img_from_cam(Xc), dtype=np.float64)[:, :2]
-        sq += float(np.sum((proj - xy) ** 2))
-        n += len(xy)
-    return float(np.sqrt(sq / max(n, 1)))
-
-
-def _fit_similarity(T_from: NDArray, T_to: NDArray) -> NDArray[np.float64]:
-    """(4, 4) similarity ``S = [s R | t]`` putting cameras ``T_from`` (K, 4, 4) on ``T_to`` (K, 4, 4):
-    R the chordal mean of the per-camera rotations (orientations fix the tilt, which centres on a
-    nearly level path would not), then s and t by least squares on the centres."""
-    M = np.einsum("kij,klj->il", T_to[:, :3, :3], T_from[:, :3, :3])  # sum R_to R_from^T
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    a = T_from[:, :3, 3] - T_from[:, :3, 3].mean(0)
-    b = T_to[:, :3, 3] - T_to[:, :3, 3].mean(0)
-    s = float(np.sum((a @ R.T) * b) / max(np.sum(a * a), 1e-12))
-    S = np.eye(4)
-    S[:3, :3] = s * R
-    S[:3, 3] = T_to[:, :3, 3].mean(0) - s * R @ T_from[:, :3, 3].mean(0)
-    return S
-
-
-def _drop_short_tracks(rec, min_track_length: int) -> None:
-    # pycolmap exposes points one by one; a model holds at most ~1e5 points, so this loop is cheap.
-    short = [pid for pid, p in rec.points3D.items() if p.track.length() < min_track_length]
-    for pid in short:
-        rec.delete_point3D(pid)
-    if short:
-        log.debug("removed %d points with tracks shorter than %d", len(short), min_track_length)
 
 
 def _summarise(rec, out_dir: Path, names: list[str], num_pairs: int, num_verified: int,
@@ -712,19 +521,6 @@ def _timer(seconds: dict[str, float], key: str) -> Iterator[None]:
         yield
     finally:
         seconds[key] = round(time.perf_counter() - t0, 3)
-
-
-@contextmanager
-def _quiet_colmap(pycolmap) -> Iterator[None]:
-    """Keep COLMAP's own logging (glog, straight to stderr) to errors unless our logger is at DEBUG:
-    its INFO lines and its routine "many threads" warning would drown the package's log."""
-    old = pycolmap.logging.minloglevel
-    if not log.isEnabledFor(logging.DEBUG):
-        pycolmap.logging.minloglevel = max(old, 2)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
 
 
 # ------------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
+from embodmocap.scene.adjust import carry_drift
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import DepthStats, fusion_frames, prefetch
 from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
@@ -68,13 +69,16 @@ class Mesh:
     figures: dict
 
 
-def fuse_mesh(capture, cfg: SceneConfig, indoor: bool, *, label: str = "", source: object = None) -> Mesh:
+def fuse_mesh(capture, cfg: SceneConfig, indoor: bool, *, label: str = "", source: object = None,
+              drift: dict | None = None) -> Mesh:
     """Every frame with a trusted pose and enough valid depth (a fine motion step, many more than
     the key frames) fused in a TSDF; the colour mesh extracted and cleaned.
 
     Args:
         capture: the scene capture; indoor: the scene's preset (voxel size, truncation, range);
-        label: the scene (progress lines); source: what an error names (the capture).
+        label: the scene (progress lines); source: what an error names (the capture);
+        drift: the sparse model's drift correction of the key frames (``summary.json``
+        ``drift_correction``), carried over to every fused frame (None: the capture's poses).
 
     Raises:
         InputError: the mesh is empty after clean-up.
@@ -85,7 +89,8 @@ def fuse_mesh(capture, cfg: SceneConfig, indoor: bool, *, label: str = "", sourc
     # Every trusted frame (fine motion step), not only the SfM key frames: coverage of ceilings,
     # far walls and furniture sides comes from the frames between key frames.
     rows = fusion_rows(capture, cfg)[:: max(1, cfg.integrate_every)]
-    ids, poses = capture.trajectory.frame_ids[rows], capture.trajectory.T_world_cam[rows]
+    ids = capture.trajectory.frame_ids[rows]
+    poses = carry_drift(drift, capture.trajectory.timestamps_s[rows], capture.trajectory.T_world_cam[rows])
     stats = DepthStats()
     frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=depth_refiner(cfg), stats=stats))
     v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {label}: fusing"), cfg.voxel_m(indoor),
@@ -111,13 +116,16 @@ def simplified(vertices: NDArray, faces: NDArray, colors: NDArray, cfg: SceneCon
     return Mesh(vs, fs, cs, {"simplified_vertices": st["vertices"], "simplified_faces": st["faces"]})
 
 
-def sfm_images(capture, frame_ids: NDArray, T_world_cam: NDArray, cfg: SceneConfig) -> tuple[list, NDArray]:
+def sfm_images(capture, frame_ids: NDArray, T_world_cam: NDArray, cfg: SceneConfig) -> tuple[list, NDArray, NDArray]:
     """The sparse model's images: up to ``cfg.sfm.max_images`` key frames spread evenly, as
-    ``[(name, (H, W, 3) uint8 RGB)]``, and their (N, 4, 4) poses (held fixed by the model)."""
+    ``[(name, (H, W, 3) uint8 RGB)]``, their (N, 4, 4) capture poses (held fixed by the model
+    unless its drift correction is on) and their (N,) capture times in seconds (the correction's
+    VIO prior and how it is carried over to the frames between key frames)."""
     pick = evenly(len(frame_ids), cfg.sfm.max_images)
     names = [f"kf_{int(i):06d}" for i in frame_ids[pick]]
     images = [(n, capture.frames.rgb(int(i))) for n, i in zip(names, frame_ids[pick])]
-    return images, T_world_cam[pick]
+    times = np.interp(frame_ids[pick], capture.trajectory.frame_ids, capture.trajectory.timestamps_s)
+    return images, T_world_cam[pick], times
 
 
 @dataclass(frozen=True)
@@ -129,11 +137,12 @@ class SceneResult:
     mesh: Mesh
 
 
-def solve(capture, cfg: SceneConfig, indoor: bool, label: str = "") -> SceneResult:
-    """Stage I's key frames and mesh in memory, as :func:`embodmocap.scene.stage.run` makes them.
-    The simplified mesh is :func:`simplified` of the mesh as ``mesh_raw.ply`` stores it (colours
-    as 8-bit), which is what the stage simplifies."""
-    return SceneResult(select_keyframes(capture, cfg, indoor), fuse_mesh(capture, cfg, indoor, label=label))
+def solve(capture, cfg: SceneConfig, indoor: bool, label: str = "", drift: dict | None = None) -> SceneResult:
+    """Stage I's key frames and mesh in memory, as :func:`embodmocap.scene.stage.run` makes them
+    given the sparse model's drift correction ``drift`` (the stage builds the model with COLMAP
+    between the two: see the module docstring). The simplified mesh is :func:`simplified` of the
+    mesh as ``mesh_raw.ply`` stores it (colours as 8-bit), which is what the stage simplifies."""
+    return SceneResult(select_keyframes(capture, cfg, indoor), fuse_mesh(capture, cfg, indoor, label=label, drift=drift))
 
 
 def evenly(n: int, k: int) -> np.ndarray:

@@ -4,13 +4,16 @@
 
 1. ``keyframes``: key frames by camera motion, the blurriest of each small group dropped, frames
    around tracking jumps excluded (written to ``keyframes.json`` with their poses);
-2. ``mesh``: every frame with a trusted pose and enough valid depth (a fine motion step, many more
-   than the key frames), LiDAR depth (optionally refined by a learned model) weighted by its
-   confidence and truncated at the sensor's range, fused in an Open3D TSDF; colour mesh extracted
-   and cleaned without dropping real structure (``mesh_raw.ply``);
-3. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``);
-4. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
-   poses and intrinsics held fixed (``sfm/``: database + model for Stage III).
+2. ``sfm``: SIFT on the key frames, pairs from the known poses, triangulation with the capture's
+   poses and intrinsics held fixed, optionally (``sfm.refine_poses``) the VIO drift of the key
+   frames corrected by a bundle adjustment with the VIO as a prior and the points triangulated
+   again (``sfm/``: database + model for Stage III);
+3. ``mesh``: every frame with a trusted pose and enough valid depth (a fine motion step, many more
+   than the key frames), with the sparse model's drift correction carried over to it, LiDAR depth
+   (optionally refined by a learned model) weighted by its confidence and truncated at the sensor's
+   range, fused in an Open3D TSDF; colour mesh extracted and cleaned without dropping real
+   structure (``mesh_raw.ply``);
+4. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``).
 
 The decisions are pure functions in :mod:`embodmocap.scene.solve` (the capture and the config in,
 arrays out); this module opens the capture, fingerprints each step, calls them and writes.
@@ -37,6 +40,7 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 from embodmocap.scene import solve
+from embodmocap.scene.adjust import read_drift_correction
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import check_depth
 from embodmocap.scene.sfm import build_sparse_model
@@ -100,15 +104,28 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     kf = read_keyframes(out)
     frame_ids, T_kf = kf["frame_ids"], kf["T_world_cam"]
 
-    # 2. TSDF fusion + clean-up.
-    fp_mesh = fingerprint("mesh", fp_kf, _cfg_part(cfg, _MESH_FIELDS))
+    # 2. Sparse model (before the mesh: the mesh is fused with its drift correction of the key frames).
+    fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
+    with sm.step("sfm", fp_sfm, force=force, label=label) as step:
+        if step.run:
+            images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg)
+            model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm, times_s=times)
+            step.record([out.sfm_dir], {
+                "sfm_images": len(images), "sfm_points": model.num_points,
+                "sfm_mean_track_length": round(model.mean_track_length, 3),
+                "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
+            })
+
+    # 3. TSDF fusion + clean-up.
+    fp_mesh = fingerprint("mesh", fp_kf, fp_sfm if cfg.sfm.refine_poses else None, _cfg_part(cfg, _MESH_FIELDS))
     with sm.step("mesh", fp_mesh, force=force, label=label) as step:
         if step.run:
-            mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture)
+            drift = read_drift_correction(out.sfm_dir) if cfg.sfm.refine_poses else None
+            mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture, drift=drift)
             write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
             step.record([out.mesh_raw], mesh.figures)
 
-    # 3. Simplified mesh.
+    # 4. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
         fp_simple = fingerprint("simplify", fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
         with sm.step("simplify", fp_simple, force=force, label=label) as step:
@@ -116,18 +133,6 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
                 simple = solve.simplified(*read_mesh_ply(out.mesh_raw), cfg)
                 write_mesh_ply(out.mesh_simplified, simple.vertices, simple.faces, simple.colors)
                 step.record([out.mesh_simplified], simple.figures)
-
-    # 4. Sparse model with the capture's poses fixed.
-    fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
-    with sm.step("sfm", fp_sfm, force=force, label=label) as step:
-        if step.run:
-            images, poses = solve.sfm_images(capture, frame_ids, T_kf, cfg)
-            model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm)
-            step.record([out.sfm_dir], {
-                "sfm_images": len(images), "sfm_points": model.num_points,
-                "sfm_mean_track_length": round(model.mean_track_length, 3),
-                "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
-            })
 
     if sm.skipped:
         log.info("scene %s: up to date, skipped: %s", name, ", ".join(sm.skipped))
