@@ -218,7 +218,10 @@ def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path, executor, mon
     m = SessionLayout(ds / "a").sequence(SYNTH.sequence_name).manifest
     cmd = [sys.executable, "-m", "embodmocap.cli", "batch", str(ds), "--executor", executor, "--workers", "1",
            "--only", "sequence", "--ray-object-store-gb", "0.2"]
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    # The child starts with SIGINT at its default (a test run started in the background inherits it
+    # ignored, and an ignored SIGINT stays ignored in Python and in every process it starts).
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 600
     while not (m.is_file() and json.loads(m.read_text())["steps"]) and time.time() < deadline and p.poll() is None:
         time.sleep(0.05)  # interrupt once the stage has finished its first step
@@ -226,12 +229,21 @@ def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path, executor, mon
     out, _ = p.communicate(timeout=300)
     assert p.returncode == 130, out
     assert "run the same command again to resume" in out
-    assert json.loads(m.read_text())["status"] == "interrupted"
+    status = json.loads(m.read_text())["status"]
     db = sqlite3.connect(ds / "catalog.sqlite")
-    assert db.execute("SELECT status FROM attempts WHERE stage='sequence'").fetchall()[-1] == ("interrupted",)
+    last = db.execute("SELECT status FROM attempts WHERE stage='sequence'").fetchall()[-1][0]
+    if executor == "ray" and status == "ok":
+        # Ray's cancel is asynchronous: a task in its last second can finish before the
+        # KeyboardInterrupt reaches it (seen in 2 of 4 runs here). Then the catalog must say so
+        # too: nothing is recorded as interrupted that was not.
+        assert last == "ok"
+    else:
+        assert status == "interrupted" and last == "interrupted", (status, last)
     done_steps = json.loads(m.read_text())["steps"]
     res = run_batch(ds, BatchConfig(only=("sequence",), executor="local", workers=1), PipelineConfig(), say=lambda m: None)
-    assert res.states["a/sequence/seq0"].status == "ok" and json.loads(m.read_text())["status"] == "ok"
+    # The rerun finishes the stage (or, if the task had finished, finds it up to date).
+    assert res.states["a/sequence/seq0"].status == ("current" if status == "ok" else "ok")
+    assert json.loads(m.read_text())["status"] == "ok"
     after = json.loads(m.read_text())["steps"]
     for step, rec in done_steps.items():
         assert after[step]["finished"] == rec["finished"], step  # finished steps were not redone
