@@ -252,3 +252,31 @@ def test_a_tiny_change_in_the_sparse_model_keeps_the_registration(views, index, 
         common, ia, ib = np.intersect1d(before.t, after.t, return_indices=True)
         moved = np.linalg.norm(before.T_world_cam[ia, :3, 3] - after.T_world_cam[ib, :3, 3], axis=1)
         assert np.median(moved) < 0.02, (v, moved)
+
+
+def test_building_the_index_leaves_stage_one_files_untouched(session, tmp_path):
+    """Stage I's sfm/ is Stage III's input: building the scene index from it writes nothing there
+    (pycolmap's database open left -wal/-shm files, and a worker killed meanwhile made the retry
+    fail Stage III's upstream check), and the read-only keypoints equal pycolmap's."""
+    import hashlib
+    import shutil
+
+    import pycolmap
+
+    from embodmocap.calibrate.scene_index import _read_only_keypoints
+
+    sfm = SessionLayout(session).scene("scene0").sfm_dir
+
+    def snapshot() -> dict[str, str]:
+        return {p.relative_to(sfm).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(sfm.rglob("*")) if p.is_file()}
+
+    before = snapshot()
+    build_scene_index(sfm, CFG)
+    assert snapshot() == before
+    copy = tmp_path / "database.db"
+    shutil.copy2(sfm / "database.db", copy)  # pycolmap may write to what it opens: a copy
+    with _read_only_keypoints(sfm / "database.db") as read, pycolmap.Database.open(copy) as db:
+        for image_id in (1, 2, 3):
+            np.testing.assert_array_equal(read(image_id), np.asarray(db.read_keypoints(image_id)))
+    assert snapshot() == before

@@ -10,7 +10,9 @@ sequence of the scene.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -127,6 +129,27 @@ def build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig = RegisterConfig(
         return _build_scene_index(sfm_dir, cfg)
 
 
+@contextlib.contextmanager
+def _read_only_keypoints(path: Path):
+    """``image_id -> (rows, cols) float32`` keypoints of a COLMAP database, read without ever
+    writing to it. Stage I's database is Stage I's output: opening it through pycolmap (SQLite in
+    WAL mode) leaves ``-wal``/``-shm`` files beside it, or more if the process is killed meanwhile,
+    and Stage III's upstream check then finds Stage I's ``sfm/`` changed."""
+    if not path.is_file():
+        raise InputError(path, "the scene's COLMAP database is missing", "re-run the scene stage (embodmocap scene)")
+    con = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro&immutable=1", uri=True)
+    try:
+        def read(image_id: int) -> NDArray[np.float32]:
+            row = con.execute("SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (int(image_id),)).fetchone()
+            if row is None or row[2] is None:
+                return np.zeros((0, 6), dtype=np.float32)
+            return np.frombuffer(row[2], dtype=np.float32).reshape(int(row[0]), int(row[1]))
+
+        yield read
+    finally:
+        con.close()
+
+
 def _build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig) -> SceneIndex:
     pycolmap = require("pycolmap", "all")
     cv2 = require("cv2", "all")
@@ -142,7 +165,7 @@ def _build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig) -> SceneIndex:
     intrinsics = intrinsics_from_colmap(cam.params, cam.width, cam.height)
     sift = cv2.SIFT_create()
     names, poses, descs, pids = [], [], [], []
-    with pycolmap.Database.open(sfm_dir / "database.db") as db:
+    with _read_only_keypoints(sfm_dir / "database.db") as read_keypoints:
         for image_id in sorted(rec.reg_image_ids()):
             image = rec.image(image_id)
             obs = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
@@ -152,7 +175,7 @@ def _build_scene_index(sfm_dir: str | Path, cfg: RegisterConfig) -> SceneIndex:
             if gray is None:
                 raise InputError(sfm_dir / "images" / image.name, "key frame image missing or unreadable",
                                  "re-run the scene stage")
-            shapes = np.asarray(db.read_keypoints(image_id), dtype=np.float64)[obs]
+            shapes = np.asarray(read_keypoints(image_id), dtype=np.float64)[obs]
             desc = _describe_at(cv2, sift, gray, shapes)
             P = np.eye(4)
             P[:3, :4] = image.cam_from_world().matrix()
