@@ -57,6 +57,8 @@ class TemporalConfig:
     """Torso points below this confidence do not place the torso centre (a hidden hip's guess
     jitters several times more than a seen one)."""
     max_run: int = 30
+    """Longest segment (frames) between jumps that can be judged a wrong guess; a longer one is
+    taken as the limb's real motion."""
     flag_min_conf: float = 0.3
     """Only detections at least this confident are dropped (the weaker ones still shape the
     trajectories; below the triangulation's threshold they only enter the fit's 2D term, weighted
