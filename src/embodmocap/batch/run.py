@@ -13,13 +13,18 @@
 The scheduling is the same for the local pool and for Ray; only :class:`Executor` differs. Ctrl-C
 interrupts the running tasks (their stages record ``interrupted``), records them, closes the
 executor and returns status 130: running the same command again resumes (each stage's
-fingerprints make finished work a no-op).
+fingerprints make finished work a no-op). The first Ctrl-C only sets a flag that the loop reads
+between two waits, so it never lands inside Ray's, SQLite's or the pool's own calls; a second one
+(while the tasks are being stopped) stops waiting for them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import signal
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -123,6 +128,30 @@ def task_log_file(root: Path, task: Task) -> Path:
     return root / LOG_DIR / task.session_name / f"{task.stage}-{task.target}.log"
 
 
+@contextlib.contextmanager
+def _sigint_flag(flag: list[bool]):
+    """While the batch runs: the first SIGINT sets ``flag[0]`` instead of raising; later ones raise
+    KeyboardInterrupt as usual. Nothing changes outside the main thread or where SIGINT is ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGINT)
+    if not callable(before):  # ignored (a background job) or not set from Python: leave it
+        yield
+        return
+
+    def on_sigint(signum, frame):
+        if flag[0]:
+            before(signum, frame)  # the second Ctrl-C: as the caller would have it (KeyboardInterrupt)
+        flag[0] = True
+
+    signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def run_batch(dataset: str | Path, cfg: BatchConfig = BatchConfig(), pipeline: PipelineConfig = PipelineConfig(),
               *, executor: Executor | None = None, say: Callable[[str], None] | None = None,
               on_result: Callable[[TaskResult, dict[str, TaskState], Executor], None] | None = None) -> BatchResult:
@@ -150,7 +179,21 @@ def run_batch(dataset: str | Path, cfg: BatchConfig = BatchConfig(), pipeline: P
         catalog.refresh_sessions(sorted({t.session for t in plan.tasks}))
     for session, seq, why in plan.skipped:
         say(f"{session.name}/{seq}: {why}; skipped")
-    ex = executor or make_executor(cfg, pipeline)
+    stop = [False]
+    with _sigint_flag(stop):
+        return _schedule(plan, root, states, dependents, catalog, cfg, pipeline, executor, say, on_result, stop, t_start)
+
+
+def _schedule(plan: Plan, root: Path, states: dict[str, TaskState], dependents, catalog, cfg: BatchConfig,
+              pipeline: PipelineConfig, executor: Executor | None, say: Callable[[str], None], on_result,
+              stop: list[bool], t_start: float) -> BatchResult:
+    """The loop of :func:`run_batch` (``stop[0]``: Ctrl-C was pressed)."""
+    try:
+        ex = executor or make_executor(cfg, pipeline)
+    except BaseException:
+        if catalog is not None:
+            catalog.close()
+        raise
     say(f"batch: {len(plan)} tasks in {len({t.session for t in plan.tasks})} sessions on {ex.name} "
         f"({ex.capacity} at once, retries {cfg.retries})")
     last_line = ""
@@ -174,6 +217,8 @@ def run_batch(dataset: str | Path, cfg: BatchConfig = BatchConfig(), pipeline: P
     interrupted = False
     try:
         while True:
+            if stop[0]:
+                raise KeyboardInterrupt
             running = [s for s in states.values() if s.status == "running"]
             done = [k for k, s in states.items() if s.status in ("ok", "current")]
             started = [k for k, s in states.items() if s.status != "pending"]

@@ -9,16 +9,20 @@ manifest, so the next run resumes there).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
+import threading
 import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 from embodmocap.batch.plan import Task
-from embodmocap.errors import EmbodMocapError, interrupted, os_error_line
+from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_watching_interrupts, watch_interrupts
 from embodmocap.io.layout import SessionLayout
 from embodmocap.pipeline import PipelineConfig
 
@@ -62,6 +66,88 @@ def _step_stamps(path: Path) -> dict[str, str] | None:
         return None
 
 
+def _stage_end(path: Path) -> tuple | None:
+    """(status, ended, steps' finish times) of a stage manifest (None when there is none)."""
+    try:
+        data = json.loads(path.read_text())
+        return data.get("status"), data.get("ended"), _step_stamps(path)
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+class StopGate:
+    """A stop request (Ctrl-C of the batch) made by another thread of the worker, turned into Ctrl-C
+    in the worker's main thread, but only while a stage runs.
+
+    Inside the stage a KeyboardInterrupt is what a terminal's Ctrl-C gives: the stage records
+    ``interrupted`` in its manifest and stops. Outside it (before the stage starts, after it
+    returned) a request must not raise into the batch's own code: a request that arrives first
+    keeps the stage from starting (:meth:`__enter__` raises at once), and one that arrives after the
+    stage returned is ignored (the task ended anyway). The handler that :func:`stop_handler`
+    installs checks :attr:`is_open` again in the main thread, because the interrupt it receives is
+    asynchronous: it may run after the stage has returned.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._open = False
+        self.requested = False
+
+    @property
+    def is_open(self) -> bool:
+        return self._open
+
+    def request(self) -> None:
+        """Stop the task (thread-safe; the first request counts)."""
+        import _thread
+
+        with self._lock:
+            if self.requested:
+                return
+            self.requested = True
+            if self._open:
+                _thread.interrupt_main(signal.SIGINT)
+
+    def __enter__(self) -> "StopGate":
+        with self._lock:
+            if self.requested:
+                raise KeyboardInterrupt
+            self._open = True
+        return self
+
+    def __exit__(self, *exc) -> None:
+        with self._lock:
+            self._open = False
+
+
+@contextlib.contextmanager
+def stop_handler(gate: StopGate) -> Iterator[None]:
+    """While the task runs: SIGINT (what :meth:`StopGate.request` simulates) raises KeyboardInterrupt
+    in the main thread only while ``gate`` is open; the package's record of SIGINT
+    (:func:`embodmocap.errors.interrupted`) is kept as the CLI keeps it. Outside the main thread
+    nothing is installed (the stop request then cannot interrupt the stage; the task ends on its own)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    watched = watch_interrupts()
+    inner = signal.getsignal(signal.SIGINT)
+    if not callable(inner):  # pragma: no cover - set just above
+        inner = signal.default_int_handler
+
+    def on_sigint(signum, frame):
+        if gate.is_open:
+            inner(signum, frame)
+
+    signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        stop_watching_interrupts(watched)
+        signal.signal(signal.SIGINT, before)
+
+
 def _call_stage(task: Task, cfg: PipelineConfig, force: bool) -> None:
     if task.stage == "scene":
         from embodmocap.scene.stage import run
@@ -98,9 +184,11 @@ def error_line(err: BaseException) -> str:
     return (msg.splitlines() or [type(err).__name__])[0][:500]
 
 
-def run_task(task: Task, cfg: PipelineConfig, force: bool = False, log_file: str | Path | None = None) -> TaskResult:
+def run_task(task: Task, cfg: PipelineConfig, force: bool = False, log_file: str | Path | None = None,
+             gate: StopGate | None = None) -> TaskResult:
     """Run ``task`` and say how it ended (never raises for the task's own failure; see the module
-    docstring). ``log_file``: the package's log lines of this attempt are appended there."""
+    docstring). ``log_file``: the package's log lines of this attempt are appended there. ``gate``:
+    the stage runs inside it, so a stop request interrupts the stage only (see :class:`StopGate`)."""
     import socket
 
     worker = f"{socket.gethostname()}:{os.getpid()}"
@@ -113,16 +201,25 @@ def run_task(task: Task, cfg: PipelineConfig, force: bool = False, log_file: str
         pkg.addHandler(handler)
         if pkg.level == logging.NOTSET or pkg.level > logging.INFO:
             pkg.setLevel(logging.INFO)
-    before = _step_stamps(stage_manifest_path(task))
+    manifest = stage_manifest_path(task)
+    before = _step_stamps(manifest)
+    end_before = _stage_end(manifest)
     t0 = time.perf_counter()
     try:
         log.info("%s: start on %s", task.key, worker)
-        _call_stage(task, cfg, force)
+        with gate if gate is not None else contextlib.nullcontext():
+            _call_stage(task, cfg, force)
     except BaseException as err:  # noqa: BLE001 - every failure of a task is recorded, not raised
         seconds = round(time.perf_counter() - t0, 3)
-        if interrupted(err):
+        end = _stage_end(manifest) if task.stage != "evaluate" else None
+        if interrupted(err) and not (end is not None and end[0] == "ok" and end != end_before):
             log.info("%s: interrupted after %.1f s", task.key, seconds)
             return TaskResult(task.key, "interrupted", seconds, "interrupted", worker, str(log_file or ""))
+        if interrupted(err):
+            # Ctrl-C came as the stage was returning: it had recorded its run as finished (``ok``),
+            # so the task is done and is reported so (the catalog must agree with the manifest).
+            log.info("%s: finished as the interrupt came, after %.1f s", task.key, seconds)
+            return TaskResult(task.key, "ok", seconds, "", worker, str(log_file or ""))
         log.error("%s: failed after %.1f s:\n%s", task.key, seconds, traceback.format_exc())
         return TaskResult(task.key, "failed", seconds, error_line(err), worker, str(log_file or ""))
     finally:
