@@ -26,7 +26,7 @@ from embodmocap.batch.config import BatchConfig
 from embodmocap.batch.local_pool import LocalPool
 from embodmocap.batch.run import run_batch
 from embodmocap.io.layout import SessionLayout
-from embodmocap.pipeline import PipelineConfig, run_session
+from embodmocap.pipeline import PipelineConfig
 from embodmocap.synth.config import SynthConfig
 
 pytestmark = pytest.mark.slow
@@ -65,14 +65,35 @@ def _steps(session: Path) -> dict[str, dict]:
             (lay.scene(SYNTH.scene_name).manifest, sl.manifest, sl.calibrate_manifest, sl.motion_manifest)}
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """Every process of this module computes with OMP_NUM_THREADS=1: `run`'s subprocess, the local
+    pool's workers (they inherit it) and Ray's (the batch passes the driver's value on to its tasks,
+    1 when unset). Results are bit-identical only at equal thread counts: BLAS sums in another
+    order differ in the last bits (~1e-13 from Stage III's scene index on)."""
+    before = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"
+    yield
+    if before is None:
+        os.environ.pop("OMP_NUM_THREADS", None)
+    else:
+        os.environ["OMP_NUM_THREADS"] = before
+
+
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
-    """One synthetic session processed by `embodmocap run` alone (what every batch must reproduce)."""
+def reference(tmp_path_factory, _one_thread) -> Path:
+    """One synthetic session processed by `embodmocap run` alone (what every batch must reproduce),
+    in a process of its own so that it starts with this module's thread count."""
+    import subprocess
+    import sys
+
     from embodmocap.synth.studio import synthesize
 
     ref = tmp_path_factory.mktemp("ref") / "ref"
     synthesize(SYNTH, ref)
-    assert run_session(PipelineConfig(), ref).ok
+    p = subprocess.run([sys.executable, "-m", "embodmocap.cli", "run", str(ref)], stdout=subprocess.PIPE,
+                       stderr=subprocess.STDOUT, text=True, timeout=3600)
+    assert p.returncode == 0, p.stdout
     return ref
 
 
@@ -299,3 +320,148 @@ def test_ctrl_c_stops_cleanly_and_the_next_batch_resumes(tmp_path, reference, ex
         assert sorted(got.files) == sorted(want.files)
         for k in want.files:
             np.testing.assert_array_equal(got[k], want[k], err_msg=f"{v} {k}")
+
+
+def _started_pid(log_file: Path, key: str) -> int | None:
+    """The pid of the worker process running ``key``, from the task's log ("<key>: start on host:pid")."""
+    try:
+        lines = [ln for ln in log_file.read_text().splitlines() if f"{key}: start on " in ln]
+    except OSError:
+        return None
+    return int(lines[-1].rsplit(":", 1)[1]) if lines else None
+
+
+def test_ray_worker_killed_mid_task_is_retried_and_nothing_is_lost(tmp_path, reference, monkeypatch):
+    """The Ray worker process running a session's Stage III is killed (SIGKILL) once the stage has
+    registered its first view: Ray reports the worker's death, the batch records the attempt as
+    failed with that cause and retries it; the retry resumes (the first view's step is not redone)
+    and every output and step fingerprint equals `embodmocap run` alone."""
+    ray = pytest.importorskip("ray")
+    from embodmocap.batch.run import task_log_file
+    from embodmocap.batch.plan import make_plan
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    ds = tmp_path / "ds"
+    _raw_copy(reference, ds / "good")
+    key = "good/calibrate/seq0"
+    log_file = task_log_file(ds, make_plan(ds).by_key()[key])
+    m = SessionLayout(ds / "good").sequence(SYNTH.sequence_name).calibrate_manifest
+    killed: list = []
+
+    def killer():
+        deadline = time.time() + 1800
+        while time.time() < deadline and not killed:
+            try:
+                ready = "register_v1" in json.loads(m.read_text())["steps"]
+            except (OSError, ValueError):
+                ready = False
+            pid = _started_pid(log_file, key) if ready else None
+            if pid:
+                killed.append((pid, json.loads(m.read_text())["steps"]["register_v1"]["finished"]))
+                os.kill(pid, signal.SIGKILL)
+            time.sleep(0.05)
+
+    th = threading.Thread(target=killer, daemon=True)
+    th.start()
+    res = run_batch(ds, BatchConfig(executor="ray", workers=1, retries=1, ray_object_store_gb=0.2), PipelineConfig(),
+                    say=lambda m: None)
+    killed.append(None)
+    th.join()
+    assert not ray.is_initialized()
+    pid, v1_finished = killed[0]
+    assert pid != os.getpid()  # a Ray worker process, not this driver
+    st = res.states
+    cal = st[key]
+    assert cal.status == "ok" and cal.attempts == 2, (cal, res.executor)
+    assert cal.causes[0].startswith("worker process died while running the task (ray: "), cal.causes
+    assert all(st[f"good/{s}"].status == "ok" for s in ("scene/scene0", "sequence/seq0", "motion/seq0"))
+    assert json.loads(m.read_text())["steps"]["register_v1"]["finished"] == v1_finished  # resumed, not redone
+    ref_arrays, got = _arrays(reference), _arrays(ds / "good")
+    for k in ref_arrays:
+        np.testing.assert_array_equal(got[k], ref_arrays[k], err_msg=k)
+    ref_steps, got_steps = _steps(reference), _steps(ds / "good")
+    for name in ref_steps:
+        assert {k: s["fingerprint"] for k, s in got_steps[name].items()} == \
+            {k: s["fingerprint"] for k, s in ref_steps[name].items()}, name
+    db = sqlite3.connect(ds / "catalog.sqlite")
+    rows = db.execute("SELECT attempt, status, error FROM attempts WHERE stage='calibrate' ORDER BY id").fetchall()
+    assert [r[:2] for r in rows] == [(1, "failed"), (2, "ok")] and rows[0][2].startswith("worker process died")
+    assert db.execute("SELECT status FROM sequences WHERE session='good'").fetchone() == ("done",)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def ray_head():
+    """A Ray head started with `ray start --head` in its own temporary folder and Unix session, as a
+    user starts a cluster's head node. Teardown ends exactly the processes of that session (`ray
+    stop` cannot be told which instance: it stops every Ray process of the machine)."""
+    import re
+    import subprocess
+    import sys
+    import tempfile
+
+    pytest.importorskip("ray")
+    tmp = Path(tempfile.mkdtemp(prefix="emray-", dir="/tmp"))  # Ray's socket paths must stay short
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    port = _free_port()
+    cmd = [str(Path(sys.executable).parent / "ray"), "start", "--head", f"--port={port}", "--num-cpus=2",
+           "--disable-usage-stats", f"--temp-dir={tmp}"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                         start_new_session=True)
+    try:
+        out, _ = p.communicate(timeout=300)
+        assert p.returncode == 0, out
+        found = re.search(r"--address='([^']+)'", out)
+        yield {"address": found.group(1) if found else f"127.0.0.1:{port}", "temp_dir": tmp, "env": env,
+               "sid": p.pid, "out": out}
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for pid in _session_pids(p.pid):
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+            if not _gone(p.pid, 30.0):
+                break
+        left = _session_pids(p.pid)
+        shutil.rmtree(tmp, ignore_errors=True)
+        assert left == [], f"Ray head processes left: {left}"
+
+
+def test_batch_on_an_existing_cluster_with_address(tmp_path, reference, ray_head):
+    """`embodmocap batch DATASET --address HOST:PORT` joins a running Ray head (started by `ray start
+    --head`) instead of starting its own instance: every task runs in that cluster's worker
+    processes, the outputs equal `embodmocap run`'s, the catalog says done."""
+    import subprocess
+    import sys
+
+    ds = tmp_path / "ds"
+    _raw_copy(reference, ds / "good")
+    cmd = [sys.executable, "-m", "embodmocap.cli", "batch", str(ds), "--address", ray_head["address"]]
+    p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ray_head["env"],
+                       timeout=1800)
+    assert p.returncode == 0, p.stdout
+    assert "Connecting to existing Ray cluster" in p.stdout and "Started a local Ray instance" not in p.stdout
+    assert "on ray (2 at once" in p.stdout, p.stdout  # capacity = the cluster's 2 CPUs
+    ref_arrays, got = _arrays(reference), _arrays(ds / "good")
+    for k in ref_arrays:
+        np.testing.assert_array_equal(got[k], ref_arrays[k], err_msg=k)
+    db = sqlite3.connect(ds / "catalog.sqlite")
+    rows = db.execute("SELECT stage, status, worker FROM attempts ORDER BY id").fetchall()
+    assert sorted(r[0] for r in rows) == ["calibrate", "motion", "scene", "sequence"]
+    assert all(r[1] == "ok" for r in rows), rows
+    assert db.execute("SELECT status, motion_frames FROM sequences WHERE session='good'").fetchone() == \
+        ("done", len(got["poses"]))
+    db.close()
+    # Every task ran in a worker process of that head: Ray names each worker's log files after its pid.
+    logs = [f.name for f in ray_head["temp_dir"].glob("session_*/logs/*worker*")]
+    for stage, _, worker in rows:
+        pid = worker.rsplit(":", 1)[1]
+        assert any(n.endswith((f"-{pid}.out", f"-{pid}.err", f"_{pid}.log")) for n in logs), (stage, worker, logs)

@@ -52,14 +52,16 @@ def _watch(flag, gate: StopGate, done: threading.Event) -> None:
     """In a task's worker, beside the task: pass the batch's stop request on to ``gate``."""
     import ray
 
-    while not done.wait(STOP_POLL_S):
+    while True:  # a first look at once: a task submitted just before Ctrl-C does not start
         try:
             if ray.get(flag.stopped.remote(), timeout=5.0):
                 gate.request()
                 return
         except ray.exceptions.GetTimeoutError:
-            continue
+            pass
         except Exception:  # noqa: BLE001 - the flag is gone (its driver ended): nothing can ask to stop
+            return
+        if done.wait(STOP_POLL_S):
             return
 
 
