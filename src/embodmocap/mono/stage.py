@@ -12,7 +12,7 @@ scale from the body -> gravity; writes ``cameras_world.npz`` and ``points.ply``)
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -181,14 +181,14 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
         if res.metric:
             m = 1.0  # the model's units are metres already; the body's figure is a check
         else:
-            if summ["samples"] < cfg.scale.min_samples:
-                raise InputError(vl.masks, f"segment {g} (frames {fr[0]}..{fr[-1]}): only {summ['samples']} body samples "
-                                 "for the metric scale (person not in the masks, or no confident points on the body)",
-                                 "check the person masks and the human model's file for this view")
             m = summ["scale"]
+            if summ["samples"] < cfg.scale.min_samples:
+                m = float("nan")
+                warnings.append(f"segment {g} (frames {fr[0]}..{fr[-1]}): only {summ['samples']} body samples for the "
+                                "metric scale: left in the scene model's units, its frames flagged invalid")
         scales[str(g)] = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in summ.items()}
         metric_scale[fr] = m
-        Sm = similarity_matrix(np.float64(m), np.eye(3), np.zeros(3))
+        Sm = similarity_matrix(np.float64(m if np.isfinite(m) else 1.0), np.eye(3), np.zeros(3))
         Tm = transform_poses(Sm, res.T_stitch_cam[fr])
         seg_pts = [p for s, p, _ in pts_acc if s == g]
         P_m = m * np.concatenate(seg_pts) if seg_pts else np.zeros((0, 3))
@@ -211,6 +211,9 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
                 up_sources[str(g)] = "plane"
         M_seg[g] = A @ Sm
         T_world_cam[fr] = transform_poses(M_seg[g], res.T_stitch_cam[fr])
+    if not np.isfinite(metric_scale).any():
+        raise InputError(vl.masks, "no segment has enough body samples for the metric scale (person not in the masks, "
+                         "or no confident points on the body)", "check the person masks and the human model's file for this view")
     write_mono_cameras(ml.cameras_world, T_world_cam, K, W_rgb, H_rgb, res.segment, metric_scale,
                        float(cams.fps) if cams.fps is not None else float("nan"))
     if pts_acc:
@@ -241,6 +244,7 @@ def _body_step(cams, human: HumanModel, ml: MonoLayout, body_path, fps: float) -
     mc = read_mono_cameras(ml.cameras_world)
     T = len(mc["T_world_cam"])
     hum = human.estimate(T)
+    hum = replace(hum, valid=hum.valid & np.isfinite(mc["metric_scale"]))  # unscaled segments: not metric
     try:
         params, valid = world_motion(hum, mc["T_world_cam"], load_body_model(body_path), fps)
     except ValueError as err:
