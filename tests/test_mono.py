@@ -217,3 +217,14 @@ def test_cli_runs_mono(exact):
 
     root, _, _ = exact
     assert main(["mono", str(root), "--chunk", str(CHUNK), "--overlap", str(OVERLAP), "--human-model", "precomputed"]) == 0
+
+
+def test_evaluate_adds_the_mono_keys(exact):
+    from embodmocap.evaluate.session import evaluate_session
+
+    root, _, _ = exact
+    res = evaluate_session(root)["sequences"][SYNTH.sequence_name]
+    assert "missing" in res  # no Stage IV here: the dual-view keys are missing, the mono ones are not
+    for k in ("w_mpjpe_mm", "wa_mpjpe_mm", "rte_pct", "camera_err_cm", "scale_err_pct"):
+        assert np.isfinite(res[f"v1_mono_{k}"])
+    assert res["v1_mono_reference"] == "ground truth" and "v2_mono_w_mpjpe_mm" not in res
