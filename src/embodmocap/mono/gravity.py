@@ -83,3 +83,30 @@ def plane_alignment(normal: NDArray, d: float, first_centre: NDArray) -> NDArray
     c = R @ first_centre
     out[:3, 3] = [-c[0], -c[1], d]  # a point x on the plane: n.x = -d -> z = -d + d = 0
     return out
+
+
+def world_alignment(T_metric: NDArray, points: NDArray, T_vio: NDArray | None) -> tuple[NDArray[np.float64], str]:
+    """(4, 4) rigid transform taking one metric segment into the Z-up world, and where up came from.
+
+    Args:
+        T_metric: (n, 4, 4) the segment's metric stitched poses.
+        points: (N, 3) its metric stitched scene points (for the plane).
+        T_vio: (n, 4, 4) the VIO poses of the same frames, NaN rows for untracked frames; None =
+            use the floor plane.
+
+    Returns:
+        The transform and ``"vio"``, ``"plane"`` or ``"cameras"`` (no plane found: the cameras'
+        mean up direction; the caller warns).
+    """
+    if T_vio is not None and np.isfinite(T_vio[:, 0, 0]).any():
+        tr = np.flatnonzero(np.isfinite(T_vio[:, 0, 0]))
+        A = vio_alignment(T_metric[tr, :3, :3], T_vio[tr])
+        A[:3, 3] = T_vio[tr[0], :3, 3] - A[:3, :3] @ T_metric[tr[0], :3, 3]
+        return A, "vio"
+    pl = floor_plane(points, T_metric[:, :3, :3], T_metric[:, :3, 3])
+    if pl is not None:
+        return plane_alignment(pl[0], pl[1], T_metric[0, :3, 3]), "plane"
+    A = np.eye(4)
+    A[:3, :3] = rotation_between(-T_metric[:, :3, 1].sum(0), np.array([0.0, 0.0, 1.0]))
+    A[:3, 3] = -A[:3, :3] @ T_metric[0, :3, 3]
+    return A, "cameras"

@@ -191,24 +191,11 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
         Sm = similarity_matrix(np.float64(m if np.isfinite(m) else 1.0), np.eye(3), np.zeros(3))
         Tm = transform_poses(Sm, res.T_stitch_cam[fr])
         seg_pts = [p for s, p, _ in pts_acc if s == g]
-        P_m = m * np.concatenate(seg_pts) if seg_pts else np.zeros((0, 3))
-        tr = fr[tracked[fr]]
-        if use_vio and len(tr):
-            A = gravity.vio_alignment(Tm[np.searchsorted(fr, tr), :3, :3], cams.T_world_cam[tr])
-            c0 = A[:3, :3] @ Tm[np.searchsorted(fr, tr[0]), :3, 3]
-            A[:3, 3] = cams.T_world_cam[tr[0], :3, 3] - c0
-            up_sources[str(g)] = "vio"
-        else:
-            pl = gravity.floor_plane(P_m, Tm[:, :3, :3], Tm[:, :3, 3])
-            if pl is None:
-                A = np.eye(4)
-                A[:3, :3] = gravity.rotation_between(-Tm[:, :3, 1].sum(0), np.array([0.0, 0.0, 1.0]))
-                A[:3, 3] = -A[:3, :3] @ Tm[0, :3, 3]
-                warnings.append(f"segment {g}: no floor plane found; Z-up from the cameras' mean up direction")
-                up_sources[str(g)] = "cameras"
-            else:
-                A = gravity.plane_alignment(pl[0], pl[1], Tm[0, :3, 3])
-                up_sources[str(g)] = "plane"
+        P_m = Sm[0, 0] * np.concatenate(seg_pts) if seg_pts else np.zeros((0, 3))
+        T_vio = np.where(tracked[fr, None, None], cams.T_world_cam[fr], np.nan) if use_vio else None
+        A, up_sources[str(g)] = gravity.world_alignment(Tm, P_m, T_vio)
+        if up_sources[str(g)] == "cameras":
+            warnings.append(f"segment {g}: no floor plane found; Z-up from the cameras' mean up direction")
         M_seg[g] = A @ Sm
         T_world_cam[fr] = transform_poses(M_seg[g], res.T_stitch_cam[fr])
     if not np.isfinite(metric_scale).any():
