@@ -58,10 +58,12 @@ class ChunkPrediction:
     conf: NDArray[np.float32]
     metric: bool = False
 
-    def world_points(self, idx: NDArray | slice = slice(None)) -> NDArray[np.float64]:
-        """(n, H, W, 3) points of frames ``idx`` in the chunk's world."""
+    def world_points(self, idx: NDArray | slice = slice(None), rows: NDArray | slice = slice(None),
+                     cols: NDArray | slice = slice(None)) -> NDArray[np.float64]:
+        """(n, h, w, 3) points of frames ``idx`` at pixel ``rows`` x ``cols`` in the chunk's world
+        (only those pixels are transformed: full maps of a real model are large)."""
         T = self.T_world_cam[idx]
-        p = self.local_points[idx].astype(np.float64)
+        p = self.local_points[idx][:, rows][:, :, cols].astype(np.float64)
         return np.einsum("nij,nhwj->nhwi", T[:, :3, :3], p) + T[:, None, None, :3, 3]
 
 

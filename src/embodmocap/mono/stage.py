@@ -160,7 +160,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             c &= ~person[vr][:, ur]
             if not c.any():
                 continue
-            P = pred.world_points(np.array([i]))[0][rows][:, cols][c]
+            P = pred.world_points(np.array([i]), rows, cols)[0][c]
             P = P @ S[:3, :3].T + S[:3, 3]
             rgb = capture.frames.rgb(int(raw[f]))
             pts_acc.append((segment, P, rgb[vr][:, ur][c]))

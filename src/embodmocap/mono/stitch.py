@@ -181,7 +181,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
             ip = np.searchsorted(prev[0], shared)
             ic = shared - start
             if prev[4].shape == rows.shape and prev[5].shape == cols.shape:
-                X = pred.world_points(ic)[:, rows][:, :, cols]
+                X = pred.world_points(ic, rows, cols)
                 cx = pred.T_world_cam[ic, :3, 3]
                 S, info = align_overlap(prev[1][ip], prev[2][ip], prev[3][ip], X, pred.conf[ic][:, rows][:, :, cols], cx, cfg)
             else:
@@ -202,15 +202,15 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         res.T_stitch_cam[f_own] = transform_poses(S, pred.T_world_cam[own])
         res.segment[f_own] = segment
         res.chunk_scale[f_own] = s_k
-        res.chunks.append(ChunkRecord(start, end, segment, S, aligned, n_ov if aligned else n_ov,
-                                      int(info.get("points", 0)), float(info.get("residual_rel", float("nan"))),
+        res.chunks.append(ChunkRecord(start, end, segment, S, aligned, n_ov, int(info.get("points", 0)),
+                                      float(info.get("residual_rel", float("nan"))),
                                       "" if aligned or prev is None else reason))
         if visit is not None:
             visit(pred, S, own, segment)
         owned_until = end
-        # Keep what the next chunk overlaps (its frames from the next start on), stitched.
-        keep = np.arange(len(frames))[-min(len(frames), max(end - start, 1)):]
-        Yk = apply_similarity(S, pred.world_points(keep)[:, rows][:, :, cols].reshape(len(keep), -1, 3))
-        prev = (frames[keep], Yk.reshape(len(keep), len(rows), len(cols), 3), pred.conf[keep][:, rows][:, :, cols],
-                apply_similarity(S, pred.T_world_cam[keep, :3, 3][None])[0], rows, cols)
+        # Keep the chunk's grid-sampled points, stitched, for the next alignment (it uses the frames
+        # the two chunks share; the grid is small, so keeping every frame costs little).
+        Yk = apply_similarity(S, pred.world_points(slice(None), rows, cols).reshape(len(frames), -1, 3))
+        prev = (frames, Yk.reshape(len(frames), len(rows), len(cols), 3), pred.conf[:, rows][:, :, cols],
+                apply_similarity(S, pred.T_world_cam[:, :3, 3][None])[0], rows, cols)
     return res
