@@ -138,7 +138,7 @@ def test_noisy_inputs_stitch_within_the_path_and_report_residuals(noisy):
     res = [c["residual_rel"] for c in f["chunks"] if c["aligned"]]
     assert all(0.001 < r < 0.1 for r in res)
     sc = f["metric_scale"]["0"]
-    assert sc["samples"] >= 100 and sc["p10"] <= sc["scale"] <= sc["p90"] and sc["mad_rel"] > 0
+    assert sc["samples"] >= 100 and sc["frames"] >= 20 and sc["p10"] <= sc["scale"] <= sc["p90"] and sc["mad_rel"] > 0
 
 
 def test_second_run_skips_and_force_redoes(exact):

@@ -50,8 +50,11 @@ class ScaleConfig:
     max_edge_rel: float = 0.05
     """A pixel whose 3x3 point-map depths spread more than this fraction of its depth is on a depth
     edge (person against background, an object in front) and is left out."""
+    min_frame_samples: int = 10
+    """A frame with fewer usable body pixels than this does not vote."""
     min_samples: int = 50
-    """Fewer (pixel, frame) samples in a segment than this is an error: no metric scale."""
+    """Fewer (pixel, frame) samples in a segment than this: no metric scale (the segment stays in
+    the model's units, its frames flagged invalid)."""
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,12 @@ rendered silhouette by ``erode_px`` pixels (no silhouette edge), its map confide
 ``min_conf`` and the map's depth is smooth around it (3x3 spread within ``max_edge_rel``: no
 object in front of the person). For each such pixel ``u`` of frame ``i``:
 ``r = z_body(u) / (s_k z_map(u))`` with ``s_k`` the scale of the chunk's stitching similarity (so
-``s_k z_map`` is in stitched units). The segment's metric scale is ``m = median(r)`` (metres per
-stitched unit). The paper writes the inverse, ``s = median(z_Pi3 / z_SMPL) = 1 / m``.
+``s_k z_map`` is in stitched units). The segment's metric scale is the median over frames of each frame's median
+ratio, ``m = median_i median_u r_i(u)`` (metres per stitched unit), frames with at least
+``min_frame_samples`` pixels. The paper writes one flat median over all samples (and its inverse,
+``s = median(z_Pi3 / z_SMPL) = 1 / m``); a flat median weights each frame by its body pixels, and a
+regressor that puts the body too near draws it larger, so it is biased towards those frames (5 %
+on a 60 s studio view with the realistic prior); a median of frame medians is not.
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ def depth_ratios(verts_cam: NDArray, faces: NDArray, z_map: NDArray, conf: NDArr
         chunk_scale: scale of the chunk's stitching similarity.
 
     Returns:
-        (S,) ratios (metres per stitched unit), any order.
+        Per frame, the (S_i,) ratios (metres per stitched unit).
     """
     from embodmocap.geometry.raycast import depth_map
 
@@ -49,25 +53,36 @@ def depth_ratios(verts_cam: NDArray, faces: NDArray, z_map: NDArray, conf: NDArr
         zb = depth_map(verts_cam[i], faces, Km, np.eye(4)).astype(np.float64)
         body = np.isfinite(zb)
         if not body.any():
+            out.append(np.zeros(0))
             continue
         if cfg.erode_px > 0:
             body = binary_erosion(body, iterations=cfg.erode_px)
         zm = np.asarray(z_map[i], dtype=np.float64)
         ok = body & masks[i][vr][:, ur] & (conf[i] >= cfg.min_conf) & (zm > 0)
         if not ok.any():
+            out.append(np.zeros(0))
             continue
         spread = maximum_filter(zm, size=3) - minimum_filter(zm, size=3)
         ok &= spread <= cfg.max_edge_rel * zm
         out.append(zb[ok] / (chunk_scale * zm[ok]))
-    return np.concatenate(out) if out else np.zeros(0)
+    return out
 
 
-def summarise(ratios: NDArray) -> dict:
-    """Median scale and its spread: ``scale``, ``mad_rel`` (1.4826 MAD / median), ``p10``, ``p90``, ``samples``."""
-    r = np.asarray(ratios, dtype=np.float64)
-    r = r[np.isfinite(r)]
-    if r.size == 0:
-        return {"scale": float("nan"), "mad_rel": float("nan"), "p10": float("nan"), "p90": float("nan"), "samples": 0}
-    m = float(np.median(r))
-    return {"scale": m, "mad_rel": float(1.4826 * np.median(np.abs(r - m)) / m),
-            "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)), "samples": int(r.size)}
+def summarise(per_frame: list[NDArray], min_frame_samples: int = 10) -> dict:
+    """The scale (median of the frames' median ratios) and its spread over frames: ``scale``,
+    ``mad_rel`` (1.4826 MAD / median of the frame medians), ``p10``, ``p90`` (of the frame medians),
+    ``samples`` (pixels used), ``frames`` (frames with at least ``min_frame_samples`` pixels)."""
+    meds, n = [], 0
+    for r in per_frame:
+        r = np.asarray(r, dtype=np.float64)
+        r = r[np.isfinite(r)]
+        if r.size >= min_frame_samples:
+            meds.append(np.median(r))
+            n += r.size
+    if not meds:
+        return {"scale": float("nan"), "mad_rel": float("nan"), "p10": float("nan"), "p90": float("nan"),
+                "samples": 0, "frames": 0}
+    f = np.asarray(meds)
+    m = float(np.median(f))
+    return {"scale": m, "mad_rel": float(1.4826 * np.median(np.abs(f - m)) / m), "p10": float(np.percentile(f, 10)),
+            "p90": float(np.percentile(f, 90)), "samples": int(n), "frames": int(f.size)}

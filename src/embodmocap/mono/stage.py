@@ -147,7 +147,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             masks = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[..., :W_rgb].astype(bool)
             r = depth_ratios(out.vertices.numpy(), np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
                              masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
-            ratios.setdefault(segment, []).append(r)
+            ratios.setdefault(segment, []).extend(r)
         # coloured points of every ply_frame_stride-th frame (not the person: scene points only)
         H, W = pred.conf.shape[1:]
         rows, cols = grid(H, W, ply_budget)
@@ -177,7 +177,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     M_seg = {}
     for g in range(n_seg):
         fr = np.flatnonzero(res.segment == g)
-        summ = summarise(np.concatenate(ratios.get(g, [np.zeros(0)])))
+        summ = summarise(ratios.get(g, []), cfg.scale.min_frame_samples)
         if res.metric:
             m = 1.0  # the model's units are metres already; the body's figure is a check
         else:
