@@ -26,6 +26,7 @@ from embodmocap.evaluate.report import ReportConfig
 from embodmocap.evaluate.session import EvaluateConfig
 from embodmocap.export.config import ExportConfig
 from embodmocap.motion.config import MotionConfig
+from embodmocap.mono.config import MonoConfig
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
@@ -387,6 +388,33 @@ class Motion:
 
 
 @dataclass(frozen=True)
+class Mono:
+    """Monocular pipeline: one view's video -> camera path, scene points and SMPL motion in a metric,
+    Z-up world (chunked scene model stitched by weighted Umeyama, metric scale from the body)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml); Stage II of the sequence must be done."""
+    seq: str | None = None
+    """Sequence to process; needed only when the session has several."""
+    view: Literal["v1", "v2"] = "v1"
+    """The view whose video is used."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[MonoConfig, tyro.conf.arg(name="")] = MonoConfig()
+    """Pipeline settings."""
+
+    def run(self) -> int:
+        from embodmocap.mono.stage import run
+
+        out = run(self.config, self.session, self.seq, self.view, force=self.force)
+        print(f"sequence {out.name} {out.view}: monocular outputs in {out.layout.root}")
+        for k, v in out.figures.items():
+            if k != "chunks":
+                print(f"  {k}: {v}")
+        return 0
+
+
+@dataclass(frozen=True)
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
@@ -442,6 +470,7 @@ Commands = Union[
     Annotated[Sequence, tyro.conf.subcommand("sequence")],
     Annotated[Calibrate, tyro.conf.subcommand("calibrate")],
     Annotated[Motion, tyro.conf.subcommand("motion")],
+    Annotated[Mono, tyro.conf.subcommand("mono")],
     Annotated[Run, tyro.conf.subcommand("run")],
     Annotated[Batch, tyro.conf.subcommand("batch")],
     Annotated[Catalog, tyro.conf.subcommand("catalog")],
@@ -461,6 +490,8 @@ def _preflight(cmd) -> None:
     from embodmocap.io.preflight import check_writable, prepare_session
 
     if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render)):
+        prepare_session(cmd.session)
+    if isinstance(cmd, Mono):
         prepare_session(cmd.session)
     if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)

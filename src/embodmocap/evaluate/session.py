@@ -35,6 +35,7 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.ground_truth import read_truth_scene_device, read_truth_sequence
 from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d
 from embodmocap.io.stage_manifest import require_sequence_stages
+from embodmocap.mono.evaluate import mono_metrics
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +111,7 @@ def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()
         if not sl.smpl_world.is_file():
             hint = (f"the manifest marks it failed: run `embodmocap run {lay.root} --include-failed`" if entry.failed
                     else f"no fitted motion: run `embodmocap run {lay.root}` first")
-            result["sequences"][name] = {"missing": hint}
+            result["sequences"][name] = {"missing": hint, **mono_metrics(lay, entry.scene, name, manifest.body_model)}
             continue
         try:  # never evaluate outputs that a failed or out-of-date stage left behind
             require_sequence_stages(lay, entry)
@@ -122,6 +123,7 @@ def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()
         metrics = sequence_quality(lay, name, manifest.body_model, cfg)
         if has_gt:
             metrics.update(sequence_errors(lay, entry.scene, name, manifest.body_model))
+        metrics.update(mono_metrics(lay, entry.scene, name, manifest.body_model))
         result["sequences"][name] = metrics
     write_json(lay.evaluation, result)
     return result

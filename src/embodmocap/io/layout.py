@@ -167,6 +167,10 @@ class SequenceLayout:
         """``embodmocap render`` writes its MP4s here."""
         return self.root / "render"
 
+    def mono(self, view: str) -> "MonoLayout":
+        """``embodmocap mono`` outputs of one view."""
+        return MonoLayout(self.root / "mono" / view)
+
 
 @dataclass(frozen=True)
 class PerceptionLayout:
@@ -191,6 +195,43 @@ class PerceptionLayout:
     @property
     def body_prior(self) -> Path:
         return self.root / "body_prior.npz"
+
+    @property
+    def mono_scene_dir(self) -> Path:
+        """``embodmocap mono --scene-model precomputed``: one ``chunk_<first frame:06d>.npz`` per
+        chunk (Pi3 layout: camera_poses, local_points, conf, frames)."""
+        return self.root / "mono_scene"
+
+    @property
+    def mono_human(self) -> Path:
+        """``embodmocap mono --human-model precomputed``: camera-space SMPL per sequence frame."""
+        return self.root / "mono_human.npz"
+
+
+@dataclass(frozen=True)
+class MonoLayout:
+    """``embodmocap mono`` outputs of one view: ``sequences/<seq>/mono/<view>/``."""
+
+    root: Path
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "mono_manifest.json"
+
+    @property
+    def cameras_world(self) -> Path:
+        """T_world_cam per frame in the metric, Z-up monocular world."""
+        return self.root / "cameras_world.npz"
+
+    @property
+    def smpl_world(self) -> Path:
+        """World SMPL motion (Stage IV's format)."""
+        return self.root / "smpl_world.npz"
+
+    @property
+    def points(self) -> Path:
+        """Stitched, coloured scene points."""
+        return self.root / "points.ply"
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,240 @@
+"""``embodmocap mono``: one view's video -> cameras, scene points and SMPL in a metric, Z-up world.
+
+Reads Stage II's outputs of the view (``cameras.npz`` for the intrinsics and the VIO poses that
+give gravity, ``masks.npy``, ``depth.npy`` for the ``vio`` model, ``body_prior.npz`` for the
+``prior`` human model) and the scene/human models' files; writes ``sequences/<seq>/mono/<view>/``.
+Two resumable steps (``io.stage_manifest``): ``stitch`` (chunks -> stitched cameras -> metric
+scale from the body -> gravity; writes ``cameras_world.npz`` and ``points.ply``) and ``body``
+(``smpl_world.npz``). Equations: :mod:`~embodmocap.mono.stitch`, :mod:`~embodmocap.mono.scale`,
+:mod:`~embodmocap.mono.gravity`, :mod:`~embodmocap.mono.body`; docs/formats.md.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from embodmocap.errors import InputError
+from embodmocap.geometry.similarity import similarity_matrix, transform_poses
+from embodmocap.io.layout import MonoLayout, SessionLayout
+from embodmocap.io.manifest import load_manifest
+from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.mono.config import MonoConfig
+from embodmocap.mono.files import plan_chunks, write_mono_cameras, write_points_ply
+from embodmocap.mono.roles import HumanModel, PrecomputedHuman, PrecomputedScene, PriorHuman, SceneModel, VioScene
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MonoOutputs:
+    """What a run gave: the sequence, view, output folder, the manifest's figures, skipped steps."""
+
+    name: str
+    view: str
+    layout: MonoLayout
+    figures: dict
+    skipped: tuple[str, ...]
+
+
+def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> tuple[SceneModel, HumanModel, list[Path]]:
+    vl, pl = lay.sequence(seq).view(view), lay.perception(seq, view)
+    if cfg.scene_model == "precomputed":
+        if not pl.mono_scene_dir.is_dir():
+            raise InputError(pl.mono_scene_dir, "--scene-model precomputed needs the scene model's chunk files here",
+                             "run Pi3 / VGGT / MASt3R per chunk and write chunk_<first frame>.npz files (docs/formats.md, "
+                             "'Monocular pipeline'), or use --scene-model vio")
+        scene: SceneModel = PrecomputedScene(pl.mono_scene_dir)
+        scene_inputs = [pl.mono_scene_dir]
+    else:
+        if not vl.depth.is_file():
+            raise InputError(vl.depth, "--scene-model vio needs Stage II's depth", f"run `embodmocap sequence {lay.root} --seq {seq}`")
+        scene = VioScene(cams.T_world_cam, cams.K_depth, vl.depth)
+        scene_inputs = [vl.depth]
+    if cfg.human_model == "prior":
+        if not vl.body_prior.is_file():
+            raise InputError(vl.body_prior, "--human-model prior needs Stage II's body prior",
+                             "give the view a body_prior in session.toml and rerun `embodmocap sequence`, or use "
+                             "--human-model precomputed")
+        human: HumanModel = PriorHuman(vl.body_prior)
+        human_input = vl.body_prior
+    else:
+        human = PrecomputedHuman(pl.mono_human)
+        human_input = pl.mono_human
+    return scene, human, scene_inputs + [human_input]
+
+
+@tracked_stage
+def run(cfg: MonoConfig, session: str | Path, seq: str | None = None, view: str = "v1", *,
+        force: bool = False) -> MonoOutputs:
+    """Run the monocular pipeline on one view of one sequence (resumable)."""
+    from embodmocap.io.stage_files import read_cameras, sequence_fps
+
+    if view not in ("v1", "v2"):
+        raise InputError(None, f"--view {view!r} is not a view", "use --view v1 or --view v2")
+    lay = SessionLayout(Path(session))
+    manifest = load_manifest(lay.manifest)
+    entry = manifest.sequence(seq)
+    sl = lay.sequence(entry.name)
+    vl = sl.view(view)
+    ml = sl.mono(view)
+    cams = read_cameras(vl.cameras)
+    scene, human, model_inputs = _models(cfg, lay, entry.name, view, cams)
+    inputs = [vl.cameras, vl.masks, *model_inputs]
+    sm = StageManifest(ml.manifest, "mono", {"view": view, **_plain(cfg)}, inputs=inputs, root=lay.root,
+                       upstream=[Upstream(sl.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")])
+    label = f"mono {entry.name} {view}"
+    ml.root.mkdir(parents=True, exist_ok=True)
+    fp_in = [path_fingerprint(p) for p in inputs]
+    with sm.step("stitch", fingerprint("stitch", cfg, view, fp_in), force=force, label=label) as step:
+        if step.run:
+            figs = _stitch_step(cfg, lay, entry, view, cams, scene, human, ml)
+            step.record([ml.cameras_world, ml.points], figs)
+    body_path = manifest.body_model
+    with sm.step("body", fingerprint("body", cfg.human_model, fp_in[-1], path_fingerprint(ml.cameras_world),
+                                     path_fingerprint(body_path) if body_path else None),
+                 force=force, label=label) as step:
+        if step.run:
+            figs = _body_step(cams, human, ml, body_path, sequence_fps(sl.root))
+            step.record([ml.smpl_world], figs)
+    return MonoOutputs(entry.name, view, ml, sm.figures(), tuple(sm.skipped))
+
+
+def _plain(cfg: MonoConfig) -> dict:
+    from dataclasses import asdict
+
+    return asdict(cfg)
+
+
+def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, scene: SceneModel, human: HumanModel,
+                 ml: MonoLayout) -> dict:
+    import torch
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.captures import open_capture
+    from embodmocap.mono import gravity
+    from embodmocap.mono.scale import depth_ratios, summarise
+    from embodmocap.mono.stitch import grid, stitch
+
+    vl = lay.sequence(entry.name).view(view)
+    T = cams.num_frames
+    W_rgb, H_rgb = int(cams.width), int(cams.height)
+    K = np.asarray(cams.K, dtype=np.float64)
+    hum = human.estimate(T)
+    model = load_body_model(load_manifest(lay.manifest).body_model)
+    if not vl.masks.is_file():
+        raise InputError(vl.masks, "the metric scale needs Stage II's person masks",
+                         f"give the view masks and rerun `embodmocap sequence {lay.root} --seq {entry.name}`")
+    masks_packed = np.load(vl.masks, mmap_mode="r")
+    capture = open_capture(entry.views[view].capture)
+    raw = np.asarray(cams.raw_frames, dtype=np.int64)
+    ratios: dict[int, list] = {}
+    pts_acc: list[tuple[int, np.ndarray, np.ndarray]] = []  # (segment, stitched points, colours)
+    ply_budget = max(1, cfg.ply_points // max(1, len(range(0, T, cfg.ply_frame_stride))))
+
+    def visit(pred, S, own, segment):
+        s_k = float(np.cbrt(np.linalg.det(S[:3, :3])))
+        frames = pred.frames[own]
+        ok = hum.valid[frames]
+        if ok.any():
+            idx = own[ok]
+            f = pred.frames[idx]
+            with torch.no_grad():
+                out = model.forward(hum.betas[f], hum.global_orient[f], hum.body_pose[f], hum.transl[f], dtype=torch.float64)
+            masks = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[..., :W_rgb].astype(bool)
+            r = depth_ratios(out.vertices.numpy(), np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
+                             masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
+            ratios.setdefault(segment, []).extend(r)
+        # coloured points of every ply_frame_stride-th frame (not the person: scene points only)
+        H, W = pred.conf.shape[1:]
+        rows, cols = grid(H, W, ply_budget)
+        for i in own[frames % cfg.ply_frame_stride == 0]:
+            f = int(pred.frames[i])
+            c = pred.conf[i][rows][:, cols] >= cfg.stitch.min_conf
+            person = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[:, :W_rgb].astype(bool)
+            ur = np.clip(np.rint((cols + 0.5) * W_rgb / W - 0.5), 0, W_rgb - 1).astype(np.int64)
+            vr = np.clip(np.rint((rows + 0.5) * H_rgb / H - 0.5), 0, H_rgb - 1).astype(np.int64)
+            c &= ~person[vr][:, ur]
+            if not c.any():
+                continue
+            P = pred.world_points(np.array([i]), rows, cols)[0][c]
+            P = P @ S[:3, :3].T + S[:3, 3]
+            rgb = capture.frames.rgb(int(raw[f]))
+            pts_acc.append((segment, P, rgb[vr][:, ur][c]))
+
+    res = stitch(scene, plan_chunks(T, cfg.chunk, cfg.overlap), cfg.stitch, visit)
+    warnings = list(res.warnings)
+    n_seg = int(res.segment.max()) + 1
+    T_world_cam = np.array(res.T_stitch_cam)
+    metric_scale = np.ones(T)
+    scales: dict[str, dict] = {}
+    up_sources: dict[str, str] = {}
+    tracked = ~np.asarray(cams.untracked, dtype=bool) if cams.untracked is not None else np.ones(T, bool)
+    use_vio = cfg.gravity == "vio" or (cfg.gravity == "auto" and tracked.any())
+    M_seg = {}
+    for g in range(n_seg):
+        fr = np.flatnonzero(res.segment == g)
+        summ = summarise(ratios.get(g, []), cfg.scale.min_frame_samples)
+        if res.metric:
+            m = 1.0  # the model's units are metres already; the body's figure is a check
+        else:
+            m = summ["scale"]
+            if summ["samples"] < cfg.scale.min_samples:
+                m = float("nan")
+                warnings.append(f"segment {g} (frames {fr[0]}..{fr[-1]}): only {summ['samples']} body samples for the "
+                                "metric scale: left in the scene model's units, its frames flagged invalid")
+        scales[str(g)] = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in summ.items()}
+        metric_scale[fr] = m
+        Sm = similarity_matrix(np.float64(m if np.isfinite(m) else 1.0), np.eye(3), np.zeros(3))
+        Tm = transform_poses(Sm, res.T_stitch_cam[fr])
+        seg_pts = [p for s, p, _ in pts_acc if s == g]
+        P_m = Sm[0, 0] * np.concatenate(seg_pts) if seg_pts else np.zeros((0, 3))
+        T_vio = np.where(tracked[fr, None, None], cams.T_world_cam[fr], np.nan) if use_vio else None
+        A, up_sources[str(g)] = gravity.world_alignment(Tm, P_m, T_vio)
+        if up_sources[str(g)] == "cameras":
+            warnings.append(f"segment {g}: no floor plane found; Z-up from the cameras' mean up direction")
+        M_seg[g] = A @ Sm
+        T_world_cam[fr] = transform_poses(M_seg[g], res.T_stitch_cam[fr])
+    if not np.isfinite(metric_scale).any():
+        raise InputError(vl.masks, "no segment has enough body samples for the metric scale (person not in the masks, "
+                         "or no confident points on the body)", "check the person masks and the human model's file for this view")
+    write_mono_cameras(ml.cameras_world, T_world_cam, K, W_rgb, H_rgb, res.segment, metric_scale,
+                       float(cams.fps) if cams.fps is not None else float("nan"))
+    if pts_acc:
+        P = np.concatenate([p @ M_seg[s][:3, :3].T + M_seg[s][:3, 3] for s, p, _ in pts_acc])
+        C = np.concatenate([c for _, _, c in pts_acc])
+        if len(P) > cfg.ply_points:
+            keep = np.random.default_rng(0).choice(len(P), cfg.ply_points, replace=False)
+            P, C = P[np.sort(keep)], C[np.sort(keep)]
+    else:
+        P, C = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    write_points_ply(ml.points, P, C)
+    for w in warnings[len(res.warnings):]:
+        log.warning(w)
+    res_rel = [c.residual_rel for c in res.chunks if c.aligned]
+    return {"frames": T, "chunks": [c.as_json() for c in res.chunks], "segments": n_seg,
+            "overlap_residual_rel_median": round(float(np.median(res_rel)), 5) if res_rel else None,
+            "overlap_residual_rel_max": round(float(np.max(res_rel)), 5) if res_rel else None,
+            "metric_scale": scales, "scale_from": "scene model (metric)" if res.metric else "body",
+            "gravity": up_sources, "points": int(len(P)), "warnings": warnings}
+
+
+def _body_step(cams, human: HumanModel, ml: MonoLayout, body_path, fps: float) -> dict:
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.smpl_file import write_smpl_npz
+    from embodmocap.mono.body import world_motion
+    from embodmocap.mono.files import read_mono_cameras
+
+    mc = read_mono_cameras(ml.cameras_world)
+    T = len(mc["T_world_cam"])
+    hum = human.estimate(T)
+    hum = replace(hum, valid=hum.valid & np.isfinite(mc["metric_scale"]))  # unscaled segments: not metric
+    try:
+        params, valid = world_motion(hum, mc["T_world_cam"], load_body_model(body_path), fps)
+    except ValueError as err:
+        raise InputError(getattr(human, "path", None), f"{err}", "check the human model's file") from None
+    write_smpl_npz(ml.smpl_world, params, frames=np.arange(T), valid=valid)
+    return {"valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum())}

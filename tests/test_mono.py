@@ -1,0 +1,230 @@
+"""The monocular pipeline (``embodmocap mono``) on a tiny studio session with Stage II done and the
+studio's precomputed scene-model / human inputs: exact recovery on noise-free inputs, sane
+figures on noisy ones, the vio ablation, gravity, segments, resuming and bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from embodmocap.errors import InputError
+from embodmocap.evaluate.metrics import umeyama
+from embodmocap.geometry.similarity import similarity_parts
+from embodmocap.io.layout import SessionLayout
+from embodmocap.io.smpl_file import read_smpl_npz
+from embodmocap.io.stage_files import read_cameras
+from embodmocap.mono import stage
+from embodmocap.mono.config import MonoConfig
+from embodmocap.mono.files import plan_chunks, read_chunk, read_mono_cameras, read_points_ply, write_chunk
+from embodmocap.synth.config import SynthConfig
+from embodmocap.synth.mono_inputs import MonoInputConfig, write_mono_inputs
+
+SYNTH = SynthConfig(seed=3, seconds=3.0, scene_seconds=1.0, width=320, height=240, depth_width=64, depth_height=48)
+CHUNK, OVERLAP = 32, 8
+CFG = MonoConfig(chunk=CHUNK, overlap=OVERLAP, human_model="precomputed")
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    from embodmocap.sequence import stage as sequence_stage
+    from embodmocap.sequence.config import SequenceConfig
+    from embodmocap.synth.studio import synthesize
+
+    root = tmp_path_factory.mktemp("mono") / "s"
+    synthesize(SYNTH, root)
+    sequence_stage.run(SequenceConfig(), root)
+    return root
+
+
+def _copy(base: Path, dst: Path) -> Path:
+    shutil.copytree(base, dst, symlinks=True)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def exact(base, tmp_path_factory):
+    root = _copy(base, tmp_path_factory.mktemp("exact") / "s")
+    truth = write_mono_inputs(root, cfg=MonoInputConfig(chunk=CHUNK, overlap=OVERLAP, noise=False), seed=1)
+    return root, truth, stage.run(CFG, root)
+
+
+@pytest.fixture(scope="module")
+def noisy(base, tmp_path_factory):
+    root = _copy(base, tmp_path_factory.mktemp("noisy") / "s")
+    truth = write_mono_inputs(root, cfg=MonoInputConfig(chunk=CHUNK, overlap=OVERLAP), seed=2)
+    return root, truth, stage.run(CFG, root)
+
+
+def _centre_errors(out, truth):
+    P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
+    G = truth["T_scene_cam"][:, :3, 3]
+    s, _, _ = umeyama(P, G)
+    _, R1, t1 = umeyama(P, G, with_scale=False)
+    rigid = np.linalg.norm(P @ R1.T + t1 - G, axis=1)
+    s2, R2, t2 = umeyama(P, G)
+    sim = np.linalg.norm(s2 * P @ R2.T + t2 - G, axis=1)
+    return float(s), rigid, sim, R1, float(np.linalg.norm(np.diff(G, axis=0), axis=1).sum())
+
+
+def test_plan_chunks_cover_every_frame_with_the_overlap():
+    assert plan_chunks(100, 32, 8) == [(0, 32), (24, 56), (48, 80), (72, 100)]
+    assert plan_chunks(20, 32, 8) == [(0, 20)]
+    assert plan_chunks(56, 32, 8) == [(0, 32), (24, 56)]
+
+
+def test_noise_free_inputs_are_recovered_exactly(exact):
+    root, truth, out = exact
+    s, rigid, _, R1, path = _centre_errors(out, truth)
+    assert abs(s - 1) < 1e-3  # metric scale within 0.1 %
+    assert rigid.max() < 1e-3  # camera centres within 1 mm after one rigid motion
+    # Z-up from the VIO: the world differs from the true (Z-up) scene frame by a yaw only.
+    assert R1[2, 2] > np.cos(np.deg2rad(1.0))
+    f = out.figures
+    assert f["segments"] == 1 and f["warnings"] == [] and f["scale_from"] == "body"
+    assert f["overlap_residual_rel_max"] < 1e-6
+    # The chunk similarities found are the studio's: chunk k -> chunk 0 = G_0 G_k^-1.
+    G = truth["chunk_similarity"]
+    for rec, Gk in zip(f["chunks"], G):
+        want = G[0] @ np.linalg.inv(Gk)
+        assert np.allclose(np.asarray(rec["S"]), want, atol=1e-4 * max(1.0, np.abs(want).max()))
+    m = f["metric_scale"]["0"]["scale"]
+    assert abs(m * similarity_parts(G[0])[0] - 1) < 1e-3
+
+
+def test_noise_free_body_lands_on_the_true_joints(exact):
+    from embodmocap.mono.evaluate import mono_metrics
+
+    root, truth, out = exact
+    lay = SessionLayout(root)
+    params, frames = read_smpl_npz(out.layout.smpl_world)
+    assert len(params) == len(truth["T_scene_cam"]) and np.array_equal(frames, np.arange(len(params)))
+    e = mono_metrics(lay, SYNTH.scene_name, SYNTH.sequence_name)
+    assert e["v1_mono_reference"] == "ground truth"
+    assert e["v1_mono_w_mpjpe_mm"] < 1.0 and e["v1_mono_wa_mpjpe_mm"] < 1.0
+    assert e["v1_mono_camera_err_cm"] < 0.1 and e["v1_mono_scale_err_pct"] < 0.1 and e["v1_mono_rte_pct"] < 0.1
+    assert e["v1_mono_segments"] == 1
+
+
+def test_points_ply_holds_the_scene_in_the_world(exact):
+    root, truth, out = exact
+    P, C = read_points_ply(out.layout.points)
+    assert len(P) > 1000 and C.shape == P.shape and C.std() > 5
+    # The points are the true scene surface: moved with the cameras' rigid alignment they lie on
+    # the true mesh (the studio's room: floor z = 0 and walls / furniture above it).
+    from embodmocap.io.mesh_file import read_mesh_ply
+    import trimesh
+
+    _, R1, t1 = umeyama(read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3],
+                        truth["T_scene_cam"][:, :3, 3], with_scale=False)
+    v, f, _ = read_mesh_ply(SessionLayout(root).ground_truth.scene_mesh(SYNTH.scene_name))
+    d = np.abs(trimesh.proximity.signed_distance(trimesh.Trimesh(v, f, process=False), (P[:500] @ R1.T + t1)))
+    assert np.median(d) < 0.01
+
+
+def test_noisy_inputs_stitch_within_the_path_and_report_residuals(noisy):
+    root, truth, out = noisy
+    s, rigid, sim, _, path = _centre_errors(out, truth)
+    f = out.figures
+    assert f["segments"] == 1
+    # Stitching alone (a similarity to the truth): within 2 % of the path length.
+    assert sim.mean() < 0.02 * path
+    # The metric scale from a realistic body prior (depth 10 % off, slowly drifting) over 3 s.
+    assert abs(s - 1) < 0.15
+    res = [c["residual_rel"] for c in f["chunks"] if c["aligned"]]
+    assert all(0.001 < r < 0.1 for r in res)
+    sc = f["metric_scale"]["0"]
+    assert sc["samples"] >= 100 and sc["frames"] >= 20 and sc["p10"] <= sc["scale"] <= sc["p90"] and sc["mad_rel"] > 0
+
+
+def test_second_run_skips_and_force_redoes(exact):
+    root, truth, out = exact
+    before = read_mono_cameras(out.layout.cameras_world)["T_world_cam"]
+    again = stage.run(CFG, root)
+    assert set(again.skipped) == {"stitch", "body"}
+    assert np.array_equal(read_mono_cameras(again.layout.cameras_world)["T_world_cam"], before)
+    manifest = json.loads(out.layout.manifest.read_text())
+    assert manifest["status"] == "ok" and set(manifest["steps"]) == {"stitch", "body"}
+
+
+def test_vio_scene_model_reproduces_the_phone_poses(exact):
+    root, truth, _ = exact
+    out = stage.run(replace(CFG, scene_model="vio"), root, view="v1")
+    mc = read_mono_cameras(out.layout.cameras_world)
+    vio = read_cameras(SessionLayout(root).sequence(SYNTH.sequence_name).view("v1").cameras).T_world_cam
+    assert np.allclose(mc["T_world_cam"], vio, atol=1e-6)
+    assert out.figures["scale_from"] == "scene model (metric)"
+    # the body's own scale estimate is still reported (LiDAR depth vs body: close to 1)
+    assert abs(out.figures["metric_scale"]["0"]["scale"] - 1) < 0.05
+
+
+def test_gravity_from_the_floor_plane(exact, tmp_path):
+    root, truth, _ = exact
+    out = stage.run(replace(CFG, gravity="plane"), root, force=True)
+    assert out.figures["gravity"]["0"] == "plane"
+    P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
+    G = truth["T_scene_cam"][:, :3, 3]
+    _, R1, _ = umeyama(P, G, with_scale=False)
+    assert R1[2, 2] > np.cos(np.deg2rad(1.0))  # Z up as the true scene frame's
+    assert np.abs(P[:, 2] - G[:, 2]).max() < 0.02  # the floor is at z = 0 as in the truth
+    stage.run(CFG, root)  # back to the default outputs for the other tests
+
+
+def test_a_chunk_that_cannot_be_aligned_starts_a_segment(exact, tmp_path):
+    root, truth, _ = exact
+    work = _copy(root, tmp_path / "s")
+    folder = SessionLayout(work).perception(SYNTH.sequence_name, "v1").mono_scene_dir
+    path = folder / "chunk_000048.npz"
+    c = read_chunk(path, np.arange(48, 80))
+    rng = np.random.default_rng(0)
+    write_chunk(path, c.frames, c.T_world_cam, rng.uniform(0.5, 5, size=c.local_points.shape), c.conf)
+    out = stage.run(CFG, work, force=True)
+    assert out.figures["segments"] >= 2
+    assert any("could not be aligned" in w and "segment 1" in w for w in out.figures["warnings"])
+    mc = read_mono_cameras(out.layout.cameras_world)
+    seg = mc["segment"]
+    assert seg[0] == 0 and seg[-1] >= 1 and np.all(np.diff(seg) >= 0)
+    # The junk chunk's segment has no body samples: no metric scale, its frames not valid.
+    assert any("body samples for the metric scale" in w for w in out.figures["warnings"])
+    from embodmocap.io.smpl_file import read_smpl_valid
+
+    valid = read_smpl_valid(out.layout.smpl_world)
+    assert np.array_equal(valid, np.isfinite(mc["metric_scale"])) and valid[:48].all() and not valid[56:72].any()
+
+
+def test_bad_inputs_name_the_file(exact, tmp_path):
+    root, truth, _ = exact
+    work = _copy(root, tmp_path / "s")
+    pl = SessionLayout(work).perception(SYNTH.sequence_name, "v1")
+    with pytest.raises(InputError, match="rerun with the --chunk"):
+        stage.run(replace(CFG, chunk=40), work, force=True)
+    d = dict(np.load(pl.mono_human))
+    d["frames"] = d["frames"] + 5  # rows beyond the video's frames
+    np.savez(pl.mono_human, **d)
+    with pytest.raises(InputError, match="mono_human.npz.*do not match the video"):
+        stage.run(CFG, work, force=True)
+    shutil.rmtree(pl.mono_scene_dir)
+    with pytest.raises(InputError, match="mono_scene"):
+        stage.run(CFG, work, force=True)
+
+
+def test_cli_runs_mono(exact):
+    from embodmocap.cli import main
+
+    root, _, _ = exact
+    assert main(["mono", str(root), "--chunk", str(CHUNK), "--overlap", str(OVERLAP), "--human-model", "precomputed"]) == 0
+
+
+def test_evaluate_adds_the_mono_keys(exact):
+    from embodmocap.evaluate.session import evaluate_session
+
+    root, _, _ = exact
+    res = evaluate_session(root)["sequences"][SYNTH.sequence_name]
+    assert "missing" in res  # no Stage IV here: the dual-view keys are missing, the mono ones are not
+    for k in ("w_mpjpe_mm", "wa_mpjpe_mm", "rte_pct", "camera_err_cm", "scale_err_pct"):
+        assert np.isfinite(res[f"v1_mono_{k}"])
+    assert res["v1_mono_reference"] == "ground truth" and "v2_mono_w_mpjpe_mm" not in res
