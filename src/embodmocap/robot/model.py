@@ -186,7 +186,7 @@ class RobotModel:
             mj.mj_comPos(self.model, self.data)
             mj.mj_comVel(self.model, self.data)
             for b in range(1, B + 1):
-                mj.mj_objectVelocity(self.model, self.data, mj.mjtObj.mjOBJ_BODY, b, res, 0)
+                mj.mj_objectVelocity(self.model, self.data, mj.mjtObj.mjOBJ_XBODY, b, res, 0)  # XBODY: the frame origin
                 ang[t, b - 1] = res[:3]
                 lin[t, b - 1] = res[3:]
         return lin, ang
