@@ -189,3 +189,14 @@ def test_missing_motion_is_one_clear_error(tmp_path, session):
     (copy / "sequences" / "seq0" / "smpl_world.npz").unlink()
     with pytest.raises(InputError, match="smpl_world.npz: missing world SMPL motion.*embodmocap motion"):
         retarget_sequence(copy)
+
+
+def test_html_report_has_a_robot_section(out, tmp_path):
+    from embodmocap.evaluate.report import _Page, _robot_tables
+
+    page = _Page(tmp_path, [], [])
+    _robot_tables(page, out.parent)
+    html = "".join(page.html_parts)
+    rep = json.loads((out / "robot_report.json").read_text())
+    assert "<h3>Robot g1</h3>" in html and "joint-limit violations" in html
+    assert f"{rep['keypoint_residual_mean_m']:.4g}" in html

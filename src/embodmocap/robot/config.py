@@ -62,6 +62,10 @@ class RobotConfig:
     velocity_limits: tuple[tuple[str, float], ...] = ()
     """Joint speed limits, ``(regex on the joint name, rad/s)``; the first matching pattern wins;
     joints matching none are not speed limited (and not reported against a limit)."""
+    avoid_collisions: tuple[tuple[str, str], ...] = ()
+    """Pairs of bodies whose collision geoms the IK keeps apart (mink's collision avoidance),
+    e.g. a hand and the hip it would pass through where the robot's hips are wider than the
+    scaled human's."""
     csv_joint_order: tuple[str, ...] = ()
     """Joint order of the BeyondMimic/mjlab motion CSV; empty = every hinge joint in MJCF order
     (the actuated-joint order of models without an actuator list, e.g. mjlab's G1)."""
@@ -99,7 +103,8 @@ class RetargetConfig:
     tolerance_m: float = 1e-4
     """A frame has converged when no tracked body moves more than this in one iteration, metres."""
     posture_weight: float = 1e-3
-    """Cost pulling every joint towards the previous frame's pose (regularises redundant joints)."""
+    """Cost pulling every joint towards the MJCF's zero pose (keeps joints the targets leave free,
+    such as an upper arm's twist, near neutral)."""
     foot_pin_weight: float = 10.0
     """Position and orientation cost of a pinned foot (multiplies its link weights)."""
     lm_damping: float = 1e-3
@@ -168,6 +173,7 @@ def robot_config_from_dict(doc: dict[str, Any], source: Path | None = None) -> R
             height_m=float(doc["height_m"]), joint_limit_margin_rad=float(doc.get("joint_limit_margin_rad", 0.02)),
             velocity_limits=tuple((str(k), float(v)) for k, v in vel.items()),
             csv_joint_order=tuple(str(j) for j in doc.get("csv_joint_order", ())),
+            avoid_collisions=tuple((str(a), str(b)) for a, b in doc.get("avoid_collisions", ())),
         )
     except (TypeError, ValueError) as err:
         raise InputError(source, f"bad value in the robot config ({err})", fix) from err
@@ -201,6 +207,8 @@ def robot_config_to_toml(cfg: RobotConfig) -> str:
              f"height_m = {cfg.height_m!r}", f"joint_limit_margin_rad = {cfg.joint_limit_margin_rad!r}"]
     if cfg.csv_joint_order:
         lines.append("csv_joint_order = [" + ", ".join(q(j) for j in cfg.csv_joint_order) + "]")
+    if cfg.avoid_collisions:
+        lines.append("avoid_collisions = [" + ", ".join(f"[{q(a)}, {q(b)}]" for a, b in cfg.avoid_collisions) + "]")
     lines.append("")
     lines.append("[velocity_limits]")
     lines += [f"{q(p)} = {v!r}" for p, v in cfg.velocity_limits]

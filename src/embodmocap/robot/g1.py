@@ -5,7 +5,8 @@ wrists by position; the pelvis, torso and feet also by orientation (their rest f
 rest frames; the arms' do not, see :class:`BodyLink`). The torso follows ``spine3`` by orientation
 only (its frame origin sits at the waist, far from SMPL's chest joint). Speed limits are Unitree's
 motor specifications (5020: 37 rad/s, 7520-14: 32, 7520-22: 20, 4010: 22) by joint, with the
-two-motor linkages (waist roll/pitch, ankles) limited like one 5020.
+two-motor linkages (waist roll/pitch, ankles) limited like one 5020. Each hand is kept clear of
+the pelvis and its own hip and thigh (collision avoidance).
 """
 
 from __future__ import annotations
@@ -42,6 +43,9 @@ G1 = RobotConfig(
         (r".*_wrist_pitch_joint", 22.0), (r".*_wrist_yaw_joint", 22.0),
         (r".*_joint", 37.0),
     ),
+    # The G1's hips are wider than a scaled human's: hands hanging by the thighs would go through them.
+    avoid_collisions=tuple((f"{s}_wrist_yaw_link", b) for s in ("left", "right")
+                           for b in ("pelvis", f"{s}_hip_roll_link", f"{s}_hip_yaw_link")),
 )
 
 #: Built-in robots by name (``--robot``).

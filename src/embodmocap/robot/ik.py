@@ -2,9 +2,10 @@
 
 Each frame starts from the previous frame's solution (warm start) and takes at most
 ``iterations`` steps of mink's QP: minimise the weighted position and orientation errors of the
-tracked bodies (``FrameTask``) plus a small pull towards the previous frame's pose
+tracked bodies (``FrameTask``) plus a small pull towards the MJCF's zero pose
 (``PostureTask``), subject to the joint ranges shrunk by the robot's margin (``ConfigurationLimit``)
-and the joints' speed limits (``VelocityLimit``). The speed limits hold across a whole frame: each
+and the joints' speed limits (``VelocityLimit``), and the body pairs of the robot's ``avoid_collisions`` kept at least 1 cm
+apart (``CollisionAvoidanceLimit``). The speed limits hold across a whole frame: each
 step lasts ``1 / (fps * iterations)`` seconds, so all the steps of one frame together move a joint
 at most ``limit / fps``. The first frame starts from the MJCF's zero pose placed at the first root
 target and has no speed limit (there is no previous frame). The result is clipped to the joint
@@ -70,8 +71,16 @@ def track(robot: RobotModel, targets: Targets, fps: float, cfg: RetargetConfig =
     for b in targets.bodies:
         tasks[b] = mink.FrameTask(b, "body", position_cost=1.0, orientation_cost=1.0, lm_damping=cfg.lm_damping)
     posture = mink.PostureTask(model, cost=cfg.posture_weight)
+    # Towards the MJCF's zero pose, not the previous frame: joints the targets leave free (an upper
+    # arm's twist) then stay near neutral instead of keeping whatever the first frame found.
+    posture.set_target(np.array(model.qpos0, np.float64))
     vlim = {n: v for n, v in zip(robot.joint_names, robot.velocity_limit) if np.isfinite(v)}
     limits_first = [mink.ConfigurationLimit(model, min_distance_from_limits=robot.cfg.joint_limit_margin_rad)]
+    pairs = [(robot.collision_geoms(a), robot.collision_geoms(b)) for a, b in robot.cfg.avoid_collisions]
+    pairs = [(a, b) for a, b in pairs if a and b]
+    if pairs:
+        limits_first.append(mink.CollisionAvoidanceLimit(model, pairs, minimum_distance_from_collisions=0.01,
+                                                         collision_detection_distance=0.15))
     limits = limits_first + ([mink.VelocityLimit(model, vlim)] if vlim else [])
     lo, hi = robot.joint_range[:, 0], robot.joint_range[:, 1]
     jq = robot.joint_qpos
@@ -101,7 +110,6 @@ def track(robot: RobotModel, targets: Targets, fps: float, cfg: RetargetConfig =
             task.set_target(mink.SE3.from_rotation_and_translation(mink.SO3.from_matrix(R), targets.pos[t, i]))
             active.append(task)
         conf.update(q)
-        posture.set_target(q)
         iters = cfg.first_frame_iterations if first else cfg.iterations
         dt = 1.0 / (fps * (1 if first else iters))
         prev = conf.data.xpos[body_ids].copy()

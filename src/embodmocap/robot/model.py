@@ -70,6 +70,10 @@ class RobotModel:
         adr = self.model.body_jntadr[root]
         if adr < 0 or int(self.model.jnt_type[adr]) != int(mj.mjtJoint.mjJNT_FREE):
             raise InputError(self.mjcf, f"root body {self.cfg.root_body!r} has no free joint", "give the root body a <freejoint/>")
+        for a, b in self.cfg.avoid_collisions:
+            for x in (a, b):
+                if x not in names:
+                    raise InputError(self.mjcf, f"avoid_collisions names body {x!r}, which the MJCF lacks", "fix avoid_collisions")
         for j in self.cfg.csv_joint_order:
             if j not in self.joint_names:
                 raise InputError(self.mjcf, f"csv_joint_order names {j!r}, not a hinge joint of the MJCF", "fix csv_joint_order")
@@ -190,6 +194,12 @@ class RobotModel:
                 ang[t, b - 1] = res[:3]
                 lin[t, b - 1] = res[3:]
         return lin, ang
+
+    def collision_geoms(self, body: str) -> list[int]:
+        """Ids of a body's collision geoms (contype or conaffinity set)."""
+        m = self.model
+        g = np.flatnonzero(np.asarray(m.geom_bodyid) == self.body_id(body))
+        return [int(i) for i in g if m.geom_contype[i] or m.geom_conaffinity[i]]
 
     # ---------------------------------------------------------------- soles
 
