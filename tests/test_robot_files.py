@@ -200,3 +200,33 @@ def test_html_report_has_a_robot_section(out, tmp_path):
     rep = json.loads((out / "robot_report.json").read_text())
     assert "<h3>Robot g1</h3>" in html and "joint-limit violations" in html
     assert f"{rep['keypoint_residual_mean_m']:.4g}" in html
+
+
+def test_viewer_shows_the_robot_layer(session, out):
+    pytest.importorskip("viser")
+    import socket
+
+    from embodmocap.viz.viewer import ViewerConfig, serve
+
+    def port():
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            return s.getsockname()[1]
+
+    handle = serve(session, "seq0", ViewerConfig(port=port(), max_image_side=0, robot_offset_m=(1.0, 0.0, 0.0)))
+    try:
+        nodes = list(handle.nodes["robot"].values())
+        assert len(nodes) == len(handle.robot.meshes) > 20  # the G1's visual meshes
+        handle.set_frame(5)
+        # The first mesh is the pelvis's: where MuJoCo puts its geom at row 5, 1 m to the side.
+        with np.load(out / "qpos.npz") as z:
+            root5 = z["root_pos"][5]
+        assert np.linalg.norm(np.asarray(nodes[0].position) - (root5 + [1.0, 0, 0])) < 0.1
+        np.testing.assert_allclose(nodes[0].position, handle.robot.pos[5, 0] + [1.0, 0, 0], atol=1e-6)
+    finally:
+        handle.stop()
+    handle = serve(session, "seq0", ViewerConfig(port=port(), max_image_side=0, robot="none"))
+    try:
+        assert "robot" not in handle.nodes
+    finally:
+        handle.stop()

@@ -182,6 +182,14 @@ def robot_config_from_dict(doc: dict[str, Any], source: Path | None = None) -> R
     return cfg
 
 
+def robot_config_from_record(rec: dict[str, Any]) -> RobotConfig:
+    """The :class:`RobotConfig` recorded (``dataclasses.asdict`` through JSON) in a robot folder's
+    stage manifest (``config.robot``)."""
+    doc = dict(rec)
+    doc["velocity_limits"] = {str(k): float(v) for k, v in doc.get("velocity_limits", [])}
+    return robot_config_from_dict(doc)
+
+
 def load_robot_config(path: str | Path) -> RobotConfig:
     """Read a robot config TOML file (see docs/robot.md); one clear error for a bad file."""
     try:
