@@ -230,3 +230,22 @@ def test_viewer_shows_the_robot_layer(session, out):
         assert "robot" not in handle.nodes
     finally:
         handle.stop()
+
+
+def test_cli_retargets_to_a_robot_given_by_a_toml_file(session, out, tmp_path):
+    """A user's robot is a TOML file: here the G1 renamed, with its MJCF path written out in full."""
+    from dataclasses import replace
+
+    from embodmocap.robot.config import robot_config_to_toml
+    from embodmocap.robot.g1 import G1
+    from embodmocap.robot.model import resolve_mjcf
+
+    toml = tmp_path / "my_robot.toml"
+    toml.write_text(robot_config_to_toml(replace(G1, name="my_g1", mjcf=str(resolve_mjcf(G1)))))
+    assert main(["robot", "retarget", str(session), "--seq", "seq0", "--robot-config", str(toml)]) == 0
+    mine = session / "sequences" / "seq0" / "robot" / "my_g1"
+    with np.load(mine / "qpos.npz") as a, np.load(out / "qpos.npz") as b:
+        assert str(a["robot"]) == "my_g1"
+        np.testing.assert_allclose(a["joint_pos"], b["joint_pos"], atol=1e-9)  # the same robot, the same motion
+    assert main(["robot", "retarget", str(session), "--robot", "h1"]) == 2  # unknown built-in: one error line
+    shutil.rmtree(mine)
