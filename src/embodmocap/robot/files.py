@@ -119,7 +119,7 @@ def resample(pos: NDArray, quat_wxyz: NDArray, joints: NDArray, fps_in: float, f
     T = len(pos)
     if T < 2:
         return pos.copy(), quat_wxyz.copy(), joints.copy()
-    duration = (T - 1) / fps_in
+    duration = (T - 1) * (1.0 / fps_in)  # csv_to_npz's own expression (same frame count)
     times = np.arange(0.0, duration, 1.0 / fps_out)
     phase = times / duration
     i0 = np.floor(phase * (T - 1)).astype(np.int64)

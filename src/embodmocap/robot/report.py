@@ -46,6 +46,8 @@ def foot_figures(robot: RobotModel, qpos: NDArray, contacts: NDArray, hm: Height
             xy[t, k] = data.xpos[bid, :2]
             p = low(data.xpos, data.xmat)
             pen[t, k] = float(np.max(heights_at(hm, p[:, :2], floor_z) - p[:, 2]))
+    in_contact = np.asarray(contacts, bool)
+    gap = -pen  # sole height above the scene
     drift, slide = [], []
     for k in range(2):
         for a, b in _runs(contacts[:, k]):
@@ -62,6 +64,8 @@ def foot_figures(robot: RobotModel, qpos: NDArray, contacts: NDArray, hm: Height
         "foot_penetration_max_m": float(max(pen.max(), 0.0)),
         "foot_penetration_frames_over_1cm": int(np.sum(pen.max(axis=1) > 0.01)),
         "foot_height_min_m": float(-pen.max()),
+        "foot_contact_height_max_m": float(gap[in_contact].max()) if in_contact.any() else 0.0,
+        "foot_contact_height_mean_m": float(gap[in_contact].mean()) if in_contact.any() else 0.0,
     }
 
 
