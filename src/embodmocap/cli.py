@@ -492,7 +492,7 @@ def _preflight(cmd) -> None:
 
     if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget)):
         prepare_session(cmd.session)
-    if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
+    if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
         folder = cmd.out if cmd.to in ("mimickit", "robot") else cmd.out.parent
