@@ -84,6 +84,9 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
     fp_in = fingerprint(asdict(rcfg), asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
 
     params, frames = read_amass(sl.smpl_world)
+    if frames is not None and len(frames) > 1 and np.any(np.diff(np.asarray(frames)) != 1):
+        log.warning("%s: the sequence frames have gaps; the robot motion plays its rows back to back at %.3f fps "
+                    "(speed limits and velocities across a gap are not meaningful)", sl.smpl_world, params.fps)
     body = load_body_model(manifest.body_model)
     with torch.no_grad():
         joints = body.from_params(params, dtype=torch.float64).joints.numpy()
