@@ -2,11 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import json
-import pickle
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from embodmocap.export.mimickit import HeightMap
 from embodmocap.robot.model import RobotModel, mujoco_module
-from embodmocap.robot.retarget import HumanTargets, _runs, heights_at, lowest_points
+from embodmocap.robot.retarget import HumanTargets, true_runs, heights_at, lowest_points
 
 
 def keypoint_residual(robot: RobotModel, qpos: NDArray, ht: HumanTargets) -> tuple[NDArray[np.float64], list[str]]:
@@ -50,7 +50,7 @@ def foot_figures(robot: RobotModel, qpos: NDArray, contacts: NDArray, hm: Height
     gap = -pen  # sole height above the scene
     drift, slide = [], []
     for k in range(2):
-        for a, b in _runs(contacts[:, k]):
+        for a, b in true_runs(contacts[:, k]):
             d = np.linalg.norm(xy[a:b, k] - xy[a, k], axis=-1)
             drift.append(float(d.max()))
             if b - a > 1:

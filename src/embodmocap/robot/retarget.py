@@ -238,7 +238,7 @@ def human_targets(robot: RobotModel, params: SmplParams, joints: NDArray, human:
         speed = np.linalg.norm(np.gradient(ankles[..., :2], axis=0), axis=-1) * params.fps
     contacts = (ankles[..., 2] - ground - human.ankle_height_m <= cfg.contact_height_m) & (speed <= cfg.contact_speed_mps)
     for side, foot in enumerate(robot.cfg.feet):
-        runs = _runs(contacts[:, side])
+        runs = true_runs(contacts[:, side])
         keep = np.zeros(T, bool)
         if foot not in bodies:
             continue
@@ -255,7 +255,7 @@ def human_targets(robot: RobotModel, params: SmplParams, joints: NDArray, human:
     return HumanTargets(Targets(bodies, pos, rot, pw, rw), scaled, contacts, s, floor, X)
 
 
-def _runs(mask: NDArray) -> list[tuple[int, int]]:
+def true_runs(mask: NDArray) -> list[tuple[int, int]]:
     """``(start, end)`` (end exclusive) of every run of True in a 1-D mask."""
     m = np.concatenate([[False], np.asarray(mask, bool), [False]])
     d = np.flatnonzero(np.diff(m.astype(np.int8)))
