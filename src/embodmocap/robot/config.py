@@ -102,7 +102,7 @@ class RetargetConfig:
     """Most IK iterations for the first frame (from the robot's zero pose, no speed limits)."""
     tolerance_m: float = 1e-4
     """A frame has converged when no tracked body moves more than this in one iteration, metres."""
-    posture_weight: float = 1e-3
+    posture_weight: float = 2e-2
     """Cost pulling every joint towards the MJCF's zero pose (keeps joints the targets leave free,
     such as an upper arm's twist, near neutral)."""
     foot_pin_weight: float = 10.0
