@@ -52,6 +52,7 @@ def test_walk_and_sit_meet_the_issue_figures(walk_sit):
     assert rep["foot_penetration_max_m"] <= 0.01  # feet never more than 1 cm below the floor
     assert rep["foot_skating_max_m"] <= 0.01  # during the human's contacts
     assert rep["joint_speed_over_limit_joints"] == 0
+    assert rep["self_collision_frames"] == 0  # the hands stay clear of the hips
 
 
 def test_the_robot_is_smaller_and_moves_with_the_human(walk_sit):
