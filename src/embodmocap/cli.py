@@ -28,6 +28,7 @@ from embodmocap.export.config import ExportConfig
 from embodmocap.motion.config import MotionConfig
 from embodmocap.mono.config import MonoConfig
 from embodmocap.pipeline import PipelineConfig
+from embodmocap.robot.config import RetargetConfig
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.synth.config import SynthConfig
 from embodmocap.viz.config import RenderConfig, ViewerConfig
@@ -266,7 +267,7 @@ class Export:
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv"]
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot"]
     """Format to write."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
@@ -460,6 +461,34 @@ class SessionImport:
         return 0
 
 
+@dataclass(frozen=True)
+class RobotRetarget:
+    """Retarget a fitted sequence to a humanoid robot (BeyondMimic/mjlab CSV + npz, GMR pkl, scene MJCF, report)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to retarget; needed only when the session has several."""
+    robot: str = "g1"
+    """Built-in robot (g1: the Unitree G1 shipped in the mjlab wheel)."""
+    robot_config: Path | None = None
+    """A robot config TOML (docs/robot.md) instead of a built-in robot."""
+    out: Path | None = None
+    """Output folder; default SESSION/sequences/SEQ/robot/ROBOT/."""
+    force: bool = False
+    """Redo every step even when its outputs are up to date."""
+    config: Annotated[RetargetConfig, tyro.conf.arg(name="")] = RetargetConfig()
+    """Retargeting settings."""
+
+    def run(self) -> int:
+        from embodmocap.robot.stage import retarget_sequence
+
+        path = retarget_sequence(self.session, self.seq, robot=self.robot, robot_config_path=self.robot_config,
+                                 config=self.config, out=self.out, force=self.force)
+        print(f"wrote {path}")
+        return 0
+
+
 #: The subcommands; tyro turns each dataclass (and its field docstrings) into options and help.
 Commands = Union[
     Annotated[Demo, tyro.conf.subcommand("demo")],
@@ -482,6 +511,7 @@ Commands = Union[
     Annotated[Render, tyro.conf.subcommand("render")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
+    Annotated[RobotRetarget, tyro.conf.subcommand("robot:retarget")],
 ]
 
 
@@ -489,14 +519,14 @@ def _preflight(cmd) -> None:
     """Before a command that writes into a session: writable folders, stale temporary files gone."""
     from embodmocap.io.preflight import check_writable, prepare_session
 
-    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render)):
+    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget)):
         prepare_session(cmd.session)
     if isinstance(cmd, Mono):
         prepare_session(cmd.session)
-    if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
+    if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
-        folder = cmd.out if cmd.to == "mimickit" else cmd.out.parent
+        folder = cmd.out if cmd.to in ("mimickit", "robot") else cmd.out.parent
         while not folder.exists() and folder != folder.parent:
             folder = folder.parent  # the export creates the missing folders
         check_writable(folder, "export folder")
@@ -523,7 +553,7 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
     # "body make-test-model" and "session import" read naturally as two words.
-    if len(argv) >= 2 and argv[0] in ("body", "session"):
+    if len(argv) >= 2 and argv[0] in ("body", "session", "robot"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     handler = _setup_logging(debug)
     previous = watch_interrupts()

@@ -121,6 +121,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
         for v in VIEWS:
             page.image(f"{name}_overlay_{v}.png", _overlays(lay, entry, name, v, manifest.body_model, cfg),
                        f"{v}: fitted body over the RGB frames")
+        _robot_tables(page, sl.root / "robot")
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>EmbodMocap report: {html.escape(lay.root.name)}"
            f"</title><style>{_STYLE}</style></head><body>{''.join(page.html_parts)}</body></html>")
     write_text(lay.report_html, doc)
@@ -266,3 +267,30 @@ def _overlays(lay: SessionLayout, entry, seq: str, view: str, body_model, cfg: R
         ax.set_title(f"{view} frame {t}", fontsize=9)
         ax.axis("off")
     return _png(fig)
+
+
+#: Figures of ``robot_report.json`` shown in the report, with their labels.
+_ROBOT_FIGURES: tuple[tuple[str, str], ...] = (
+    ("scale", "scale (robot / human leg length)"),
+    ("keypoint_residual_mean_m", "keypoint residual mean (m)"),
+    ("keypoint_residual_max_m", "keypoint residual max (m)"),
+    ("joint_limit_violations", "joint-limit violations"),
+    ("joint_speed_max_ratio", "peak joint speed / its limit"),
+    ("joint_speed_worst_joint", "joint closest to its speed limit"),
+    ("foot_skating_max_m", "foot skating during contacts, max (m)"),
+    ("foot_penetration_max_m", "foot penetration into the scene, max (m)"),
+    ("self_collision_frames", "self-collision frames"),
+    ("frames", "frames"),
+)
+
+
+def _robot_tables(page: _Page, robot_root: Path) -> None:
+    """One table per retargeted robot of the sequence (``robot/<robot>/robot_report.json``)."""
+    for path in sorted(robot_root.glob("*/robot_report.json")) if robot_root.is_dir() else []:
+        try:
+            rep = json.loads(path.read_text())
+        except (OSError, ValueError):
+            page.para(f"Robot {path.parent.name}: unreadable {path.name}")
+            continue
+        page.heading(f"Robot {rep.get('robot', path.parent.name)}", 3)
+        page.table(["figure", "value"], [[label, rep.get(key)] for key, label in _ROBOT_FIGURES])

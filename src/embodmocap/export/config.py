@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 
@@ -19,3 +20,7 @@ class ExportConfig:
     """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
     heightmap_cell_m: float = 0.05
     """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""
+    robot: str = "g1"
+    """Robot (``--to robot``): a built-in robot name (g1)."""
+    robot_config: Path | None = None
+    """Robot (``--to robot``): a robot config TOML (docs/robot.md) instead of a built-in robot."""

@@ -13,6 +13,8 @@ bvh        ``<seq>.bvh``               SMPL skeleton, Y up (:mod:`.bvh`)
 glb        ``<seq>.glb``               scene + skinned animated body, Y up (:mod:`.gltf`)
 mimickit   ``mimickit/`` (a folder)    motion pkl, skeleton json, scene OBJ + height map
 csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.csv_joints`)
+robot      ``../robot/<robot>/``       robot motion: BeyondMimic CSV + npz, GMR pkl, scene
+                                       MJCF, report (:mod:`embodmocap.robot`, extra ``robot``)
 =========  ==========================  ===================================================
 """
 
@@ -36,7 +38,7 @@ from embodmocap.io.stage_files import read_world_joints
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
-FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv")
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot")
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
@@ -79,6 +81,8 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     """
     if to not in FORMATS:
         raise InputError(None, f"unknown export format {to!r}", f"choose one of {', '.join(FORMATS)}")
+    if to == "robot":
+        return _export_robot(session, seq, out, config)
     layout = SessionLayout(Path(session))
     seq_layout = layout.sequence(seq)
     params, frames = read_amass(_need(seq_layout.smpl_world, seq, layout.root, "motion"))
@@ -106,3 +110,11 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     scene = _scene_mesh(layout, manifest, seq, prefer_simplified=True)
     return write_mimickit(out, params, model, scene, name=seq, loop_mode=config.mimickit_loop,
                           cell_m=config.heightmap_cell_m, frames=frames)
+
+
+def _export_robot(session: str | Path, seq: str, out: str | Path | None, config: ExportConfig) -> Path:
+    """``--to robot``: the same as ``embodmocap robot retarget`` (default output
+    ``sequences/<seq>/robot/<robot>/``, or ``out``)."""
+    from embodmocap.robot.stage import retarget_sequence
+
+    return retarget_sequence(session, seq, robot=config.robot, robot_config_path=config.robot_config, out=out)

@@ -162,6 +162,10 @@ class SequenceLayout:
         """``embodmocap export`` writes here (one file or folder per format)."""
         return self.root / "export"
 
+    def robot_dir(self, robot: str) -> Path:
+        """``embodmocap robot retarget`` writes one robot's motion, exports and report here."""
+        return self.root / "robot" / robot
+
     @property
     def renders_dir(self) -> Path:
         """``embodmocap render`` writes its MP4s here."""

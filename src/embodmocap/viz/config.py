@@ -66,3 +66,9 @@ class ViewerConfig:
     """Playback speed at 1x, frames per second; None = the motion's own frame rate."""
     start_playing: bool = False
     """Start the timeline playing as soon as the server is up."""
+    robot: str = "auto"
+    """Retargeted robot to show (``embodmocap robot retarget``): a robot name, ``auto`` (the first
+    one found, if any) or ``none``."""
+    robot_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Where the robot is drawn relative to its motion, metres (e.g. ``1 0 0`` puts it beside the
+    body instead of in its place)."""

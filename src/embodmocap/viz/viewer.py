@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 VIEW_COLOURS: dict[str, tuple[int, int, int]] = {"v1": (220, 60, 60), "v2": (60, 180, 80)}
 
 #: Scene node names the viewer creates (also the layer names of the checkboxes).
-LAYERS: tuple[str, ...] = ("scene", "body", "cameras", "keypoints", "path")
+LAYERS: tuple[str, ...] = ("scene", "body", "cameras", "keypoints", "path", "robot")
 
 
 class ViewerHandle:
@@ -117,6 +117,11 @@ class ViewerHandle:
             if kp is not None:
                 pts, cols = _keypoint_cloud(data, t)
                 kp.points, kp.colors = pts, cols
+            robot = getattr(self, "robot", None)
+            if robot is not None and row < len(robot.pos):
+                for i, node in enumerate(self.nodes["robot"].values()):
+                    node.position = robot.pos[row, i] + np.asarray(self._cfg.robot_offset_m)
+                    node.wxyz = robot.wxyz[row, i]
 
     def _image(self, view: str, t: int) -> NDArray[np.uint8] | None:
         src = self._sources.get(view)
@@ -258,6 +263,21 @@ def _add_nodes(handle: ViewerHandle, session: Path, cfg: ViewerConfig) -> None:
     segments = np.stack([path[:-1], path[1:]], axis=1) if len(path) > 1 else np.zeros((0, 2, 3))
     nodes["path"] = server.scene.add_line_segments("/path", segments.astype(np.float32), (255, 120, 200),
                                                    thickness=3.0, thickness_units="screen")
+    _add_robot(handle, session, cfg)
+
+
+def _add_robot(handle: ViewerHandle, session: Path, cfg: ViewerConfig) -> None:
+    """The robot layer: one node per visual mesh of the retargeted robot, if there is one."""
+    from embodmocap.viz.robot_layer import RobotFrames, find_robot
+
+    handle.robot = None
+    folder = find_robot(session, handle.data.name, cfg.robot)
+    if folder is None:
+        return
+    handle.robot = RobotFrames.load(folder)
+    handle.nodes["robot"] = {
+        f"/robot/{i}": handle.server.scene.add_mesh_simple(f"/robot/{i}", v, f, color=(200, 200, 205), side="double")
+        for i, (v, f) in enumerate(handle.robot.meshes)}
 
 
 def _add_gui(handle: ViewerHandle, cfg: ViewerConfig) -> None:
