@@ -261,16 +261,16 @@ class Benchmark:
 
 @dataclass(frozen=True)
 class Export:
-    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV)."""
+    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF)."""
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv"]
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "mjcf"]
     """Format to write."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
     out: Path | None = None
-    """Output file (folder for mimickit); default SESSION/sequences/SEQ/export/."""
+    """Output file (folder for mimickit and mjcf); default SESSION/sequences/SEQ/export/."""
     config: Annotated[ExportConfig, tyro.conf.arg(name="")] = ExportConfig()
     """Export settings."""
 
@@ -465,7 +465,7 @@ def _preflight(cmd) -> None:
     if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
-        folder = cmd.out if cmd.to == "mimickit" else cmd.out.parent
+        folder = cmd.out if cmd.to in ("mimickit", "mjcf") else cmd.out.parent
         while not folder.exists() and folder != folder.parent:
             folder = folder.parent  # the export creates the missing folders
         check_writable(folder, "export folder")

@@ -18,4 +18,4 @@ class ExportConfig:
     mimickit_loop: Literal["clamp", "wrap"] = "clamp"
     """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
     heightmap_cell_m: float = 0.05
-    """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""
+    """MimicKit and MJCF: height-map cell size, metres (the paper samples a 0.05 m map)."""

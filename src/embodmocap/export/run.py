@@ -13,6 +13,8 @@ bvh        ``<seq>.bvh``               SMPL skeleton, Y up (:mod:`.bvh`)
 glb        ``<seq>.glb``               scene + skinned animated body, Y up (:mod:`.gltf`)
 mimickit   ``mimickit/`` (a folder)    motion pkl, skeleton json, scene OBJ + height map
 csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.csv_joints`)
+mjcf       ``mjcf/`` (a folder)        MuJoCo performer + scene heightfield + keyframes
+                                       (:func:`embodmocap.sim.session.export_mjcf`, extra ``sim``)
 =========  ==========================  ===================================================
 """
 
@@ -36,7 +38,7 @@ from embodmocap.io.stage_files import read_world_joints
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
-FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv")
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "mjcf")
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
@@ -50,7 +52,8 @@ def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
 
 
 def _default_out(layout: SessionLayout, seq: str, to: str) -> Path:
-    names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv"}
+    names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv",
+             "mjcf": "mjcf"}
     return layout.sequence(seq).exports_dir / names[to]
 
 
@@ -90,6 +93,11 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     if to == "csv":
         joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
         return write_joints_csv(out, joints, params.fps, frames)
+    if to == "mjcf":
+        from embodmocap.sim.config import SceneCollisionConfig
+        from embodmocap.sim.session import export_mjcf
+
+        return export_mjcf(layout.root, seq, out, scene=SceneCollisionConfig(heightmap_cell_m=config.heightmap_cell_m))
 
     from embodmocap.body.model import load_body_model
     from embodmocap.io.manifest import load_manifest
