@@ -28,6 +28,7 @@ from embodmocap.export.config import ExportConfig
 from embodmocap.motion.config import MotionConfig
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.sequence.config import SequenceConfig
+from embodmocap.sim.config import SimCheckConfig, TrainConfig
 from embodmocap.synth.config import SynthConfig
 from embodmocap.viz.config import RenderConfig, ViewerConfig
 
@@ -432,6 +433,73 @@ class SessionImport:
         return 0
 
 
+@dataclass(frozen=True)
+class SimCheck:
+    """Physical plausibility of a fitted sequence in its scene (penetration, floating, foot
+    skating, contacts, residual root force): writes sequences/SEQ/sim/sim_check.json (extra sim)."""
+
+    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folder (holds session.toml)."""
+    seq: str | None = None
+    """Sequence to check; needed only when the session has several."""
+    config: Annotated[SimCheckConfig, tyro.conf.arg(name="")] = SimCheckConfig()
+    """Check settings."""
+
+    def run(self) -> int:
+        from embodmocap.sim.check import sim_check
+
+        path = sim_check(self.session, _sequence_name(self.session, self.seq), self.config)
+        print(f"wrote {path}")
+        return 0
+
+
+@dataclass(frozen=True)
+class SimTrain:
+    """Train a scene-aware tracking policy (PPO, stable-baselines3) on the sessions' motion (extra sim)."""
+
+    sessions: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
+    """Session folders (every fitted sequence of each is a reference clip)."""
+    out: Path = Path("sim_runs/tracking")
+    """Run folder: checkpoints, TensorBoard logs, the final policy."""
+    steps: int = 200_000
+    """Environment steps to train for (all environments together)."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Torch device of the policy."""
+    config: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()
+    """Training settings (num-envs, n-steps, ...; its steps and device are the options above)."""
+
+    def run(self) -> int:
+        import dataclasses
+
+        from embodmocap.sim.train import train
+
+        cfg = dataclasses.replace(self.config, steps=self.steps, device=self.device)
+        path = train(list(self.sessions), self.out, cfg)
+        print(f"wrote {path}")
+        return 0
+
+
+@dataclass(frozen=True)
+class SimEval:
+    """Evaluate a tracking policy: success rate, failure rate, episode length, and an MP4 (extra sim)."""
+
+    checkpoint: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CHECKPOINT")]
+    """A policy zip written by `embodmocap sim train` (its run folder names the sessions)."""
+    episodes: int = 32
+    """Episodes from random start frames (the paper: 3,072 per scene)."""
+    video: bool = True
+    """Render the first episode to an MP4 next to the results."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Torch device of the policy."""
+
+    def run(self) -> int:
+        from embodmocap.sim.train import evaluate
+
+        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
+        print(f"wrote {path}")
+        return 0
+
+
 #: The subcommands; tyro turns each dataclass (and its field docstrings) into options and help.
 Commands = Union[
     Annotated[Demo, tyro.conf.subcommand("demo")],
@@ -453,6 +521,9 @@ Commands = Union[
     Annotated[Render, tyro.conf.subcommand("render")],
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
+    Annotated[SimCheck, tyro.conf.subcommand("sim:check")],
+    Annotated[SimTrain, tyro.conf.subcommand("sim:train")],
+    Annotated[SimEval, tyro.conf.subcommand("sim:eval")],
 ]
 
 
@@ -460,7 +531,7 @@ def _preflight(cmd) -> None:
     """Before a command that writes into a session: writable folders, stale temporary files gone."""
     from embodmocap.io.preflight import check_writable, prepare_session
 
-    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render)):
+    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, SimCheck)):
         prepare_session(cmd.session)
     if isinstance(cmd, (Export, Render)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)
@@ -492,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
     # "body make-test-model" and "session import" read naturally as two words.
-    if len(argv) >= 2 and argv[0] in ("body", "session"):
+    if len(argv) >= 2 and argv[0] in ("body", "session", "sim"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     handler = _setup_logging(debug)
     previous = watch_interrupts()
