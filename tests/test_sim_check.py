@@ -79,3 +79,13 @@ def test_cli_sim_check_writes_the_json(sim_session):
     doc = json.loads((sim_session / "sequences" / "seq0" / "sim" / "sim_check.json").read_text())
     assert doc["version"] == 1 and len(doc["per_frame"]["penetration_cm"]) == len(doc["frames"])
     assert set(doc["per_frame"]["contact"]) == set(doc["summary"]["contact_fraction"])
+
+
+def test_report_has_the_sim_check_section(sim_session):
+    from embodmocap.evaluate.report import write_report
+    from embodmocap.sim.check import sim_check
+
+    sim_check(sim_session)
+    _, md = write_report(sim_session)
+    text = md.read_text()
+    assert "Physical plausibility (sim check)" in text and "penetration_max_cm" in text

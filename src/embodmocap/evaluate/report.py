@@ -114,6 +114,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
         if sl.calibration.is_file():
             _calibration_table(page, json.loads(sl.calibration.read_text()))
         _stage_table(page, "Stage IV", sl.motion_manifest)
+        _sim_check_section(page, sl.sim_check)
         for v in VIEWS:
             sheet = sl.root / f"sync_{v}.png"
             if sheet.is_file():
@@ -266,3 +267,15 @@ def _overlays(lay: SessionLayout, entry, seq: str, view: str, body_model, cfg: R
         ax.set_title(f"{view} frame {t}", fontsize=9)
         ax.axis("off")
     return _png(fig)
+
+
+def _sim_check_section(page: _Page, path: Path) -> None:
+    """Physical plausibility (``embodmocap sim check``), when it was run."""
+    if not path.is_file():
+        return
+    s = json.loads(path.read_text())["summary"]
+    page.heading("Physical plausibility (sim check)", 3)
+    keys = ("penetration_max_cm", "penetration_mean_cm", "floating_max_cm", "floating_mean_cm", "foot_skating_mean_cm",
+            "residual_force_n_per_kg_mean", "residual_torque_nm_per_kg_mean", "mass_kg")
+    page.table(["figure", "value"], [[k, s[k]] for k in keys if k in s])
+    page.table(["body part", "contact fraction"], [[k, v] for k, v in s.get("contact_fraction", {}).items()])
