@@ -13,6 +13,12 @@ used, with one clear error naming the extra when missing.
 
 from __future__ import annotations
 
+import os
+
+# MuJoCo picks its OpenGL backend when first imported; offscreen rendering (``sim eval``'s MP4)
+# needs EGL on a headless machine. A user's own MUJOCO_GL wins.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 ENV_ID = "EmbodMocap/SceneTracking-v0"
 
 __all__ = ["ENV_ID", "TrackingEnv", "export_mjcf", "sim_check", "tracking_success"]
