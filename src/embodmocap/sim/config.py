@@ -15,19 +15,19 @@ class HumanoidConfig:
     density_kg_m3: float = 1000.0
     """Body density, kg/m^3: each geom's mass is its volume times this (the human body is close to water)."""
     capsule_radius_percentile: float = 60.0
-    """Capsule radius = this percentile of the distances of a body's skinned vertices from the capsule
+    """Capsule radius = this percentile of the distances of a body's surface samples from the capsule
     axis (0-100): the median-ish fits the limb's cross-section without swallowing outliers."""
     box_bodies: tuple[str, ...] = ("L_Ankle", "R_Ankle", "L_Toe", "R_Toe")
     """Bodies modelled as boxes (the bounding box of their vertices, body frame) instead of capsules:
     the feet, whose flat soles carry the weight."""
-    kp_nm_rad: float = 300.0
-    """PD stiffness of the legs' and spine's position actuators, N m/rad (MimicKit's SMPL humanoid
-    uses a few hundred for the large joints)."""
-    kp_arm_nm_rad: float = 100.0
+    kp_nm_rad: float = 1000.0
+    """PD stiffness of the legs' and spine's position actuators, N m/rad (300 lets a 73 kg body's
+    replay of standing sag and fall within 2 s; 1000 holds it)."""
+    kp_arm_nm_rad: float = 300.0
     """PD stiffness of the arms, neck, head and hands (shoulder and below, neck and head), N m/rad."""
     kd_ratio_s: float = 0.1
     """PD damping as a fraction of the stiffness, seconds (kd = kd_ratio_s * kp)."""
-    max_torque_nm: float = 400.0
+    max_torque_nm: float = 800.0
     """Largest torque one actuator may apply, N m (legs and spine); arms get a quarter of it."""
     joint_damping: float = 0.5
     """Passive damping of every hinge, N m s/rad (keeps the free fall of an unactuated limb calm)."""

@@ -13,14 +13,17 @@ SMPL joint rotation. Their ranges are Stage IV's anatomical ranges
 (:data:`embodmocap.motion.terms.ANATOMICAL_RANGES`, stated there per axis-angle component; used
 as Euler limits here, equal for small rotations and a fair bound for large ones).
 
-**Geometry**: each body's mesh vertices (the rest-pose vertices whose largest skinning weight is on
-its SMPL joint) are fitted by a capsule along their principal axis (radius: a percentile of the
-distances from the axis), or by their bounding box for the feet (so the sole is the mesh's sole).
-Geoms collide with the scene only, never with each other. Mass comes from the geom volume at the
-body density.
+**Geometry**: each body's part of the fitted mesh (area-uniform samples of the rest-pose surface
+whose interpolated skinning weight is largest on its SMPL joint) is fitted by a capsule along its
+principal axis (radius: a percentile of the distances from the axis, length: the 1st-99th
+percentile extent), or by its bounding box for the feet (so the sole is the mesh's sole).
+Geoms collide with the scene only, never with each other. Each body's mass is the volume of its
+part of the fitted mesh (:func:`part_volumes`) at the body density; MuJoCo derives the inertia from
+the geom's shape with that mass.
 
-**Actuators**: one position (PD) actuator per hinge, ``kp`` 300 N m/rad on legs and spine, 100
-on the arms, neck and head, ``kv = 0.1 s * kp``, torque limited (:class:`HumanoidConfig`).
+**Actuators**: one position (PD) actuator per hinge, ``kp`` 1000 N m/rad on legs and spine, 300
+on the arms, neck and head, ``kv = 0.1 s * kp``, torque limited to 800 N m (arms 200)
+(:class:`HumanoidConfig`).
 
 qpos layout: ``[root xyz (3) | root quaternion wxyz (4) | 69 hinge angles]``, hinges in body order
 then x, y, z.
@@ -68,19 +71,68 @@ def rest_vertices(body_model, betas: NDArray) -> NDArray[np.float64]:
     return out.vertices[0].numpy()
 
 
+def surface_samples(body_model, betas: NDArray, n: int = 60_000, seed: int = 0) -> tuple[NDArray, NDArray]:
+    """Area-uniform points on the shaped rest mesh and the SMPL joint that owns each.
+
+    Returns ``(points (n, 3), owner (n,))``, SMPL's canonical frame. A point's owner is the
+    largest of the skinning weights interpolated at it, so a long triangle spanning a limb (a
+    coarse mesh has no vertices along a straight segment) gives its middle to the limb's joint.
+    """
+    V = rest_vertices(body_model, betas)
+    F = np.asarray(body_model.faces, dtype=np.int64)
+    W = np.asarray(body_model.lbs_weights)
+    tri = V[F]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    rng = np.random.default_rng(seed)
+    f = rng.choice(len(F), size=n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    bary = np.stack([1 - u - v, u, v], axis=1)  # (n, 3)
+    pts = np.einsum("nk,nkc->nc", bary, tri[f])
+    owner = np.einsum("nk,nkj->nj", bary, W[F[f]]).argmax(axis=1)
+    return pts, owner
+
+
+def part_volumes(body_model, betas: NDArray, cell_m: float = 0.01) -> NDArray[np.float64]:
+    """(24,) volume of the shaped rest body around each SMPL joint, m^3.
+
+    The closed mesh's volume (divergence theorem) is shared out by the points of a ``cell_m`` grid
+    inside the mesh (ray-parity occupancy), each given to the owner of its nearest surface sample
+    (:func:`surface_samples`): the parts sum to the mesh's volume exactly.
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    V = rest_vertices(body_model, betas)
+    F = np.asarray(body_model.faces, dtype=np.int64)
+    total = float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    axes = [np.arange(lo[k] + cell_m / 2, hi[k], cell_m) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    inside = scene.compute_occupancy(o3d.core.Tensor(grid.astype(np.float32))).numpy() > 0.5
+    pts, owner = surface_samples(body_model, betas)
+    _, idx = cKDTree(pts).query(grid[inside])
+    counts = np.bincount(owner[idx], minlength=24).astype(np.float64)
+    return abs(total) * counts / max(counts.sum(), 1.0)
+
+
 def body_geoms(body_model, betas: NDArray, cfg: HumanoidConfig = HumanoidConfig()) -> list[dict]:
     """Collision geometry of each humanoid body in its own frame (humanoid axes, origin at its joint).
 
-    Returns one dict per body in :data:`BODY_NAMES` order: ``{"type": "capsule", "fromto": (6,),
-    "radius": r}`` or ``{"type": "box", "pos": (3,), "half": (3,)}`` (metres).
+    Fitted to area-uniform samples of the shaped rest mesh owned by the body's joint
+    (:func:`surface_samples`). Returns one dict per body in :data:`BODY_NAMES` order: ``{"type":
+    "capsule", "fromto": (6,), "radius": r}`` or ``{"type": "box", "pos": (3,), "half": (3,)}``
+    (metres).
     """
-    V = rest_vertices(body_model, betas)
+    pts, owner = surface_samples(body_model, betas)
     J = body_model.rest_joints(betas)
-    owner = np.asarray(body_model.lbs_weights).argmax(axis=1)
     out = []
     for name, j in SMPL_HUMANOID_BODIES:
-        P = (V[owner == j] - J[j]) @ R_HUMANOID_SMPL.T
-        if len(P) < 4:  # a body with (almost) no vertices of its own: a small sphere at the joint
+        P = (pts[owner == j] - J[j]) @ R_HUMANOID_SMPL.T
+        if len(P) < 8:  # a body with (almost) no surface of its own: a small sphere at the joint
             out.append({"type": "capsule", "fromto": np.zeros(6), "radius": 0.02})
             continue
         if name in cfg.box_bodies:
@@ -93,7 +145,7 @@ def body_geoms(body_model, betas: NDArray, cfg: HumanoidConfig = HumanoidConfig(
         t = (P - c) @ d
         radial = np.linalg.norm((P - c) - t[:, None] * d, axis=1)
         r = max(float(np.percentile(radial, cfg.capsule_radius_percentile)), 0.01)
-        lo, hi = np.percentile(t, [2.0, 98.0])
+        lo, hi = np.percentile(t, [1.0, 99.0])
         half = max((hi - lo) / 2 - r, 0.0)
         mid = c + d * (lo + hi) / 2
         out.append({"type": "capsule", "fromto": np.concatenate([mid - half * d, mid + half * d]), "radius": r})
@@ -111,6 +163,8 @@ def humanoid_xml(body_model, betas: NDArray, cfg: HumanoidConfig = HumanoidConfi
     parents = skel["parents"]
     local = np.asarray(skel["local_pos_m"])
     geoms = body_geoms(body_model, betas, cfg)
+    # Masses from the mesh's own volume per part (the capsules only approximate the shape).
+    masses = cfg.density_kg_m3 * np.clip(part_volumes(body_model, betas)[HUMANOID_TO_SMPL], 1e-5, None)
     ranges = hinge_ranges().reshape(23, 3, 2)
     children: dict[int, list[int]] = {i: [] for i in range(len(BODY_NAMES))}
     for i, p in enumerate(parents[1:], start=1):
@@ -119,8 +173,10 @@ def humanoid_xml(body_model, betas: NDArray, cfg: HumanoidConfig = HumanoidConfi
     def geom(i: int) -> str:
         g = geoms[i]
         if g["type"] == "box":
-            return f'<geom name="{BODY_NAMES[i]}_geom" type="box" pos="{_f(g["pos"])}" size="{_f(g["half"])}"/>'
-        return f'<geom name="{BODY_NAMES[i]}_geom" type="capsule" fromto="{_f(g["fromto"])}" size="{g["radius"]:.6g}"/>'
+            return (f'<geom name="{BODY_NAMES[i]}_geom" type="box" pos="{_f(g["pos"])}" size="{_f(g["half"])}" '
+                    f'mass="{masses[i]:.6g}"/>')
+        return (f'<geom name="{BODY_NAMES[i]}_geom" type="capsule" fromto="{_f(g["fromto"])}" size="{g["radius"]:.6g}" '
+                f'mass="{masses[i]:.6g}"/>')
 
     def body(i: int, indent: str) -> list[str]:
         name = BODY_NAMES[i]
