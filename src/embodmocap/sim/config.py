@@ -31,8 +31,9 @@ class HumanoidConfig:
     """Largest torque one actuator may apply, N m (legs and spine); arms get a quarter of it."""
     joint_damping: float = 0.5
     """Passive damping of every hinge, N m s/rad (keeps the free fall of an unactuated limb calm)."""
-    armature: float = 0.02
-    """Rotor inertia added to every hinge, kg m^2: stabilises the light distal joints at the time step."""
+    armature: float = 0.1
+    """Inertia added to every hinge, kg m^2: keeps the stiff PD springs of the light distal bodies
+    stable at the time step (with 0.02, random actions made 14 of 1,500 steps diverge; 0.1: none)."""
     timestep_s: float = 1.0 / 180.0
     """Physics time step, seconds (6 steps per 30 Hz control step)."""
     friction: float = 1.0
