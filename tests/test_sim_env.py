@@ -86,3 +86,12 @@ def test_vector_env_steps_many_environments(clips):
         obs, r, term, trunc, _ = envs.step(envs.action_space.sample())
     assert r.shape == (3,) and np.isfinite(obs).all()
     envs.close()
+
+
+@pytest.mark.parametrize("sub", ["check", "train", "eval"])
+def test_sim_commands_have_help(sub, capsys):
+    from embodmocap.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["sim", sub, "--help"])
+    assert e.value.code == 0 and "usage: embodmocap sim:" in capsys.readouterr().out

@@ -461,20 +461,15 @@ class SimTrain:
     """Session folders (every fitted sequence of each is a reference clip)."""
     out: Path = Path("sim_runs/tracking")
     """Run folder: checkpoints, TensorBoard logs, the final policy."""
-    steps: int = 200_000
-    """Environment steps to train for (all environments together)."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Torch device of the policy."""
+    seq: str | None = None
+    """Train on this sequence of each session only (default: every fitted sequence)."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()
-    """Training settings (num-envs, n-steps, ...; its steps and device are the options above)."""
+    """Training settings (--steps, --device, --num-envs, ...)."""
 
     def run(self) -> int:
-        import dataclasses
-
         from embodmocap.sim.train import train
 
-        cfg = dataclasses.replace(self.config, steps=self.steps, device=self.device)
-        path = train(list(self.sessions), self.out, cfg)
+        path = train(list(self.sessions), self.out, self.config, seq=self.seq)
         print(f"wrote {path}")
         return 0
 

@@ -6,6 +6,7 @@ Every number a figure depends on is here, each with its unit and effect; default
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 
 @dataclass(frozen=True)
@@ -122,8 +123,8 @@ class TrainConfig:
     """Environment steps to train for (all environments together)."""
     num_envs: int = 2
     """Parallel environments (one process each when > 1)."""
-    device: str = "cpu"
-    """Torch device of the policy: cpu or cuda."""
+    device: Literal["cpu", "cuda"] = "cpu"
+    """Torch device of the policy."""
     seed: int = 0
     """Seed of the policy and of the episodes' start frames."""
     n_steps: int = 512
@@ -134,9 +135,5 @@ class TrainConfig:
     """Adam learning rate."""
     checkpoint_every: int = 50_000
     """Save a checkpoint every this many environment steps."""
-    eval_episodes: int = 32
-    """Episodes of ``sim eval`` (the paper uses 3,072 per scene)."""
-    video: bool = True
-    """``sim eval``: render one rollout to MP4."""
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     """The task."""

@@ -7,7 +7,8 @@ TensorBoard logs are standard.
 
 A run folder holds ``run.json`` (sessions, sequence, settings), ``policy.zip`` (the final policy),
 ``vecnormalize.pkl`` (observation/reward normalisation statistics), ``checkpoints/`` (policy and
-statistics every ``checkpoint_every`` steps), ``tb/`` (TensorBoard logs) and, after ``sim eval``,
+statistics every ``checkpoint_every`` steps), ``tb/`` (TensorBoard logs), ``progress.json`` (mean
+episode return and length after each rollout) and, after ``sim eval``,
 ``eval.json`` and ``eval.mp4``.
 """
 
@@ -50,6 +51,32 @@ def _vec_env(clips, cfg: TrackingConfig, n: int, seed: int):
     return SubprocVecEnv(fns, start_method="fork") if n > 1 else DummyVecEnv(fns)
 
 
+def _progress_callback(path: Path):
+    """A callback recording, after each rollout, the mean return and length of the last episodes
+    (stable-baselines3's window of 100), written to ``path`` (``progress.json``) at the end."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Progress(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.rows: dict[str, list] = {"steps": [], "ep_rew_mean": [], "ep_len_mean": []}
+
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_end(self) -> None:
+            eps = list(self.model.ep_info_buffer)
+            if eps:
+                self.rows["steps"].append(int(self.num_timesteps))
+                self.rows["ep_rew_mean"].append(float(np.mean([e["r"] for e in eps])))
+                self.rows["ep_len_mean"].append(float(np.mean([e["l"] for e in eps])))
+
+        def _on_training_end(self) -> None:
+            write_json(path, {"version": 1, **self.rows})
+
+    return Progress()
+
+
 def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainConfig(), *, seq: str | None = None,
           progress: bool = True) -> Path:
     """Train PPO on the clips of ``sessions``; writes the run folder ``out``; returns ``policy.zip``."""
@@ -75,7 +102,8 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
                     policy_kwargs={"net_arch": [512, 256], "log_std_init": -1.0})
     ckpt = CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
                               name_prefix="policy", save_vecnormalize=True)
-    model.learn(total_timesteps=cfg.steps, callback=ckpt, progress_bar=progress, tb_log_name="ppo")
+    model.learn(total_timesteps=cfg.steps, callback=[ckpt, _progress_callback(out / "progress.json")],
+                progress_bar=progress, tb_log_name="ppo")
     model.save(out / "policy.zip")
     venv.save(str(out / "vecnormalize.pkl"))
     venv.close()
