@@ -89,3 +89,26 @@ def test_report_has_the_sim_check_section(sim_session):
     _, md = write_report(sim_session)
     text = md.read_text()
     assert "Physical plausibility (sim check)" in text and "penetration_max_cm" in text
+
+
+def test_repair_removes_penetration_and_floating(sim_session, tmp_path):
+    import shutil
+
+    from embodmocap.cli import main
+    from embodmocap.export.amass import read_amass, write_amass
+
+    work = tmp_path / "s"
+    shutil.copytree(sim_session, work)
+    smpl = work / "sequences" / "seq0" / "smpl_world.npz"
+    params, frames = read_amass(smpl)
+    transl = np.array(params.transl)
+    transl[:, 2] += np.linspace(-0.04, 0.04, len(transl))  # drifting from 4 cm into the floor to 4 cm above
+    write_amass(smpl, dataclasses.replace(params, transl=transl), frames=frames)
+    assert main(["sim", "check", str(work), "--repair"]) == 0
+    doc = json.loads((work / "sequences" / "seq0" / "sim" / "sim_check.json").read_text())
+    rep = doc["repair"]
+    assert rep["before"]["penetration_max_cm"] > 3.5 and rep["before"]["floating_max_cm"] > 3.5
+    assert rep["after"]["penetration_max_cm"] < 1.5 and rep["after"]["floating_max_cm"] < 1.5
+    assert 1.5 < rep["shift_mean_cm"] < 3.0 and rep["shift_max_cm"] < 5.0
+    fixed, _ = read_amass(work / "sequences" / "seq0" / "sim" / rep["file"])
+    assert np.allclose(fixed.body_pose, params.body_pose) and np.allclose(fixed.transl[:, :2], params.transl[:, :2])

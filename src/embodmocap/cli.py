@@ -442,13 +442,16 @@ class SimCheck:
     """Session folder (holds session.toml)."""
     seq: str | None = None
     """Sequence to check; needed only when the session has several."""
+    repair: bool = False
+    """Also move each frame vertically onto the support (smallest smooth shift), check the result
+    and write it to sequences/SEQ/sim/smpl_repaired.npz (before/after in sim_check.json)."""
     config: Annotated[SimCheckConfig, tyro.conf.arg(name="")] = SimCheckConfig()
     """Check settings."""
 
     def run(self) -> int:
         from embodmocap.sim.check import sim_check
 
-        path = sim_check(self.session, _sequence_name(self.session, self.seq), self.config)
+        path = sim_check(self.session, _sequence_name(self.session, self.seq), self.config, repair=self.repair)
         print(f"wrote {path}")
         return 0
 

@@ -226,8 +226,37 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
     return {"summary": summary, "per_frame": per_frame}
 
 
-def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig = SimCheckConfig()) -> Path:
-    """Run the check on a sequence of a session and write ``sequences/<seq>/sim/sim_check.json``."""
+def vertical_repair(sq: SimSequence, per_frame: dict, cfg: SimCheckConfig = SimCheckConfig()) -> NDArray[np.float64]:
+    """(T,) vertical shift of each frame (metres) that puts the lowest body point on the support.
+
+    The smallest smooth correction: ``min sum_t w_t (d_t - g_t)^2 + repair_smooth * sum_t (d_{t+1} -
+    2 d_t + d_{t-1})^2`` with ``g_t = penetration_t - floating_t`` and ``w_t = 1`` where ``|g_t| <
+    repair_max_m`` (else 0: a jump stays a jump). Penalising the second difference keeps a slow
+    drift (a ramp) fully corrected while an abrupt change is spread over a few frames.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    g = (np.asarray(per_frame["penetration_cm"]) - np.asarray(per_frame["floating_cm"])) / 100.0
+    w = (np.abs(g) < cfg.repair_max_m).astype(np.float64)
+    T = len(g)
+    if T < 3:
+        return w * g
+    D2 = sp.diags([np.ones(T - 2), -2 * np.ones(T - 2), np.ones(T - 2)], [0, 1, 2], shape=(T - 2, T))
+    A = sp.diags(w + 1e-9) + cfg.repair_smooth * (D2.T @ D2)
+    return np.asarray(spsolve(A.tocsc(), w * g))
+
+
+def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig = SimCheckConfig(),
+              repair: bool = False) -> Path:
+    """Run the check on a sequence of a session and write ``sequences/<seq>/sim/sim_check.json``.
+
+    With ``repair``, also :func:`vertical_repair` the motion, check it again, write it to
+    ``sequences/<seq>/sim/smpl_repaired.npz`` (AMASS-style, like ``smpl_world.npz``) and add
+    ``repair`` (shift statistics, summary before and after) to the JSON.
+    """
+    import dataclasses
+
     from embodmocap.io.atomic import write_json
     from embodmocap.io.layout import SessionLayout
 
@@ -237,6 +266,19 @@ def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig =
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = {"version": SIM_FORMAT_VERSION, "sequence": sq.name, "frames": np.asarray(sq.frames).tolist(),
            "config": asdict(cfg), **res}
+    if repair:
+        from embodmocap.export.amass import write_amass
+
+        shift = vertical_repair(sq, res["per_frame"], cfg)
+        transl = np.array(sq.params.transl)
+        transl[:, 2] += shift
+        fixed = dataclasses.replace(sq.params, transl=transl)
+        after = plausibility(sq.with_params(fixed), cfg)["summary"]
+        out = path.parent / "smpl_repaired.npz"
+        write_amass(out, fixed, frames=np.asarray(sq.frames))
+        doc["repair"] = {"file": out.name, "shift_max_cm": float(np.abs(shift).max() * 100) if len(shift) else 0.0,
+                         "shift_mean_cm": float(np.abs(shift).mean() * 100) if len(shift) else 0.0,
+                         "before": res["summary"], "after": after}
     write_json(path, doc)
     s = res["summary"]
     log.info("sim check %s: penetration max %.2f cm, floating max %.2f cm, skating %.2f cm/frame, residual %.2f N/kg",

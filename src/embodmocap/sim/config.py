@@ -75,6 +75,12 @@ class SimCheckConfig:
     """Contact points per frame used to explain the root wrench (a subsample of the touching vertices)."""
     friction: float = 1.0
     """Friction coefficient of the contact forces that may explain the motion (the pyramid's slope)."""
+    repair_max_m: float = 0.15
+    """``--repair``: frames whose lowest point is within this of the support (penetrating or
+    floating) are moved onto it; higher ones (a jump) are left alone, metres."""
+    repair_smooth: float = 10.0
+    """``--repair``: weight of the vertical correction's second difference between frames (larger =
+    smoother, less exact contact on abrupt changes; a steady drift is corrected exactly)."""
 
 
 @dataclass(frozen=True)
