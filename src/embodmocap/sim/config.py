@@ -53,11 +53,6 @@ class SceneCollisionConfig:
     becomes a column at the cap."""
     margin_m: float = 0.5
     """The heightfield covers the motion's footprint grown by this much (at least the mesh under it), metres."""
-    coacd: bool = False
-    """Also decompose the scene mesh into convex pieces with coacd (slow: minutes for a room; cached
-    under ``sim/coacd/`` by the mesh's fingerprint) and use them instead of the heightfield."""
-    coacd_threshold: float = 0.05
-    """coacd's concavity threshold (smaller = more, tighter pieces)."""
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
-"""The scene as collision geometry: a MuJoCo heightfield of the support surfaces (and, optionally,
-convex pieces from coacd).
+"""The scene as collision geometry: a MuJoCo heightfield of the support surfaces (coacd convex
+pieces are not built: see docs/sim.md, Limits).
 
 MuJoCo collides a ``mesh`` geom as its convex hull, so a room mesh given as one geom would be a
 solid block. A heightfield is exact for everything a body can stand, sit or lie on, and cheap.
