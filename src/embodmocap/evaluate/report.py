@@ -275,7 +275,8 @@ def _sim_check_section(page: _Page, path: Path) -> None:
         return
     s = json.loads(path.read_text())["summary"]
     page.heading("Physical plausibility (sim check)", 3)
-    keys = ("penetration_max_cm", "penetration_mean_cm", "floating_max_cm", "floating_mean_cm", "foot_skating_mean_cm",
+    keys = ("penetration_max_cm", "penetration_mean_cm", "floating_max_cm", "floating_mean_cm", "unsupported_frames",
+            "foot_skating_mean_cm",
             "residual_force_n_per_kg_mean", "residual_torque_nm_per_kg_mean", "mass_kg")
     page.table(["figure", "value"], [[k, s[k]] for k in keys if k in s])
     page.table(["body part", "contact fraction"], [[k, v] for k, v in s.get("contact_fraction", {}).items()])

@@ -10,7 +10,9 @@ penetration                 deepest body vertex inside the scene: ``max(0, -min_
                             normal gives the side: scene meshes are oriented outwards)
 floating                    lowest body point above the support under it: ``min_v`` of the   cm
                             straight-down gap from each vertex to the scene, 0 on frames
-                            that penetrate (a frame in flight counts as floating)
+                            that penetrate (a frame in flight counts as floating); null
+                            where no vertex has any surface below it (a hole in the scan,
+                            counted in ``unsupported_frames``)
 foot skating                MotionVAE's measure (the paper's *jitter*): per foot, the         cm
                             horizontal displacement of its ankle and toe joints to the
                             next frame, weighted ``2 - 2^(h/H)`` where its lowest point is
@@ -24,7 +26,9 @@ residual root force/torque  the part of the root wrench that MuJoCo inverse dyna
                             generalized force, per kg of body mass
 ==========================  ==============================================================  =====
 
-The summary gives the max and mean over frames of each figure and the fraction of frames in
+Vertices whose closest surface is more than ``max_depth_m`` (0.3 m) "inside" are not counted as
+penetrating or touching: a scanned mesh has holes, and there the closest surface is a far one
+whose normal says nothing. The summary gives the max and mean over frames of each figure and the fraction of frames in
 contact per part. Contact and the residual use the fitted mesh; the inverse dynamics use the
 MuJoCo model of :mod:`embodmocap.sim.model` (masses from its geoms).
 """
@@ -171,11 +175,17 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
     sd, normals = query.signed_distance(verts.reshape(-1, 3))
     sd, normals = sd.reshape(T, V), normals.reshape(T, V, 3)
     gap = query.down_gap(verts.reshape(-1, 3)).reshape(T, V)
-    gap = np.where(sd < 0, 0.0, gap)  # inside a solid: no gap
-    pen = np.clip(-sd.min(axis=1), 0.0, None)
-    floating = np.where(pen > 0, 0.0, np.nanmin(np.where(np.isfinite(gap), gap, np.nan), axis=1))
-    floating = np.clip(np.nan_to_num(floating, nan=0.0), 0.0, None)
-    touch = sd < cfg.contact_m
+    near = sd > -cfg.max_depth_m  # farther inside than that: a hole in the scan, not a penetration
+    gap = np.where((sd < 0) & near, 0.0, gap)  # inside a solid: no gap
+    pen = np.clip(-np.where(near, sd, np.inf).min(axis=1), 0.0, None)
+    import warnings
+
+    with warnings.catch_warnings():  # an all-NaN row (no support under any vertex) is expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lowest = np.nanmin(np.where(np.isfinite(gap), gap, np.nan), axis=1)  # NaN: no support below at all
+    floating = np.where(pen > 0, 0.0, np.clip(lowest, 0.0, None))
+    supported = np.isfinite(floating)
+    touch = (sd < cfg.contact_m) & near
     contact = {name: (touch & (part == k)).any(axis=1) for k, name in enumerate(BODY_PARTS)}
     # Foot skating: each foot's joints horizontally, its lowest point's gap.
     import torch
@@ -193,8 +203,9 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
         "frames": int(T), "fps": float(sq.params.fps),
         "penetration_max_cm": float(pen.max() * 100) if T else 0.0,
         "penetration_mean_cm": float(pen.mean() * 100) if T else 0.0,
-        "floating_max_cm": float(floating.max() * 100) if T else 0.0,
-        "floating_mean_cm": float(floating.mean() * 100) if T else 0.0,
+        "floating_max_cm": float(floating[supported].max() * 100) if supported.any() else 0.0,
+        "floating_mean_cm": float(floating[supported].mean() * 100) if supported.any() else 0.0,
+        "unsupported_frames": int((~supported).sum()),
         "foot_skating_mean_cm": float(skate[:-1].mean() * 100) if T > 1 else 0.0,
         "foot_skating_max_cm": float(skate.max() * 100) if T else 0.0,
         "contact_fraction": {k: float(v.mean()) if T else 0.0 for k, v in contact.items()},
@@ -221,7 +232,8 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
             "residual_torque_nm_per_kg_max": float(torque.max()) if T else 0.0,
         })
     summary["seconds"] = time.perf_counter() - t0
-    per_frame = {k: np.round(np.asarray(v, dtype=np.float64), 4).tolist() for k, v in out_frames.items()}
+    per_frame = {k: [None if not np.isfinite(x) else x for x in np.round(np.asarray(v, dtype=np.float64), 4).tolist()]
+                 for k, v in out_frames.items()}
     per_frame["contact"] = {k: v.astype(int).tolist() for k, v in contact.items()}
     return {"summary": summary, "per_frame": per_frame}
 

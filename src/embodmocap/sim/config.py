@@ -61,6 +61,10 @@ class SimCheckConfig:
 
     contact_m: float = 0.02
     """A body vertex within this distance of the scene (or inside it) touches it, metres."""
+    max_depth_m: float = 0.3
+    """A vertex whose closest scene surface is farther than this is neither penetrating nor touching,
+    whatever the side: a scanned mesh has holes (no floor under the performer), and the far
+    surface's normal says nothing about being inside, metres."""
     skate_height_m: float = 0.025
     """MotionVAE's foot-skating height H: a foot whose lowest point is below H counts, weighted
     ``2 - 2^(h/H)``, metres."""
