@@ -145,19 +145,23 @@ def residual_root_wrench(sq: SimSequence, contact_pts: list[NDArray], contact_no
         d.qpos[:], d.qvel[:], d.qacc[:] = q[t], qvel[t], qacc[t]
         mujoco.mj_inverse(m, d)
         b = d.qfrc_inverse[:6].copy()
-        cols = []
-        for p, n, body in zip(contact_pts[t], contact_normals[t], contact_bodies[t]):
-            mujoco.mj_jac(m, d, jacp, None, p, int(body))
-            t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-            t1 /= np.linalg.norm(t1)
-            t2 = np.cross(n, t1)
-            for a in ang:  # friction pyramid edges
-                e = n + cfg.friction * (np.cos(a) * t1 + np.sin(a) * t2)
-                cols.append(jacp[:, :6].T @ e)
+        pts, nrm, bodies = contact_pts[t], contact_normals[t], contact_bodies[t]
         r = b
-        if cols:
-            f, _ = nnls(np.array(cols).T, b, maxiter=200)
-            r = b - np.array(cols).T @ f
+        if len(pts):
+            J6 = np.empty((len(pts), 3, 6))
+            for i, (p, body) in enumerate(zip(pts, bodies)):
+                mujoco.mj_jac(m, d, jacp, None, p, int(body))
+                J6[i] = jacp[:, :6]
+            n = nrm / np.linalg.norm(nrm, axis=1, keepdims=True).clip(1e-12)
+            ref = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+            t1 = np.cross(n, ref)
+            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+            t2 = np.cross(n, t1)
+            # Friction pyramid edges (K, 4, 3), mapped to the free joint's generalized force (K*4, 6).
+            E = n[:, None] + cfg.friction * (np.cos(ang)[None, :, None] * t1[:, None] + np.sin(ang)[None, :, None] * t2[:, None])
+            A = np.einsum("kcs,kdc->kds", J6, E).reshape(-1, 6).T
+            f, _ = nnls(A, b, maxiter=200)
+            r = b - A @ f
         force[t], torque[t] = np.linalg.norm(r[:3]) / mass, np.linalg.norm(r[3:]) / mass
     return force, torque, mass
 
