@@ -70,6 +70,7 @@ def check_rows(sessions: list[Path]) -> list[dict]:
 
 def check_time_60s(session: Path) -> dict:
     from embodmocap.sim.check import plausibility
+    from embodmocap.sim.config import SimCheckConfig
     from embodmocap.sim.session import load_sequence
 
     sq = load_sequence(session)
@@ -78,9 +79,12 @@ def check_time_60s(session: Path) -> dict:
     idx = np.tile(np.arange(len(p)), reps)[: int(round(60.0 * p.fps))]
     long = sq.with_params(dataclasses.replace(p, global_orient=p.global_orient[idx], body_pose=p.body_pose[idx],
                                               transl=p.transl[idx]))
-    t0 = time.perf_counter()
-    plausibility(long)
-    return {"frames": int(len(idx)), "fps": float(p.fps), "seconds": time.perf_counter() - t0}
+    out = {"frames": int(len(idx)), "fps": float(p.fps), "vertices": int(sq.body_model.num_vertices)}
+    for stride in (1, 4):
+        t0 = time.perf_counter()
+        plausibility(long, SimCheckConfig(vertex_stride=stride))
+        out[f"seconds_stride_{stride}"] = time.perf_counter() - t0
+    return out
 
 
 def env_speed(session: Path, steps: int, num_envs: int) -> dict:
