@@ -78,7 +78,10 @@ class SceneQuery:
         p = np.asarray(points, np.float32).reshape(-1, 3)
         r = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
         n = r["primitive_normals"].numpy()
-        return np.einsum("nc,nc->n", p - r["points"].numpy(), n), n
+        diff = p - r["points"].numpy()
+        # The distance to the closest point, signed by the side of its triangle (the projection on
+        # the normal alone would call a point far beside a surface close to it).
+        return np.sign(np.einsum("nc,nc->n", diff, n)) * np.linalg.norm(diff, axis=1), n
 
     def down_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight down to the first surface (inf where none)."""
