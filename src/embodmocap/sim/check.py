@@ -79,9 +79,14 @@ class SceneQuery:
         r = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
         n = r["primitive_normals"].numpy()
         diff = p - r["points"].numpy()
-        # The distance to the closest point, signed by the side of its triangle (the projection on
-        # the normal alone would call a point far beside a surface close to it).
-        return np.sign(np.einsum("nc,nc->n", diff, n)) * np.linalg.norm(diff, axis=1), n
+        dist = np.linalg.norm(diff, axis=1)
+        # The distance to the closest point (the projection on the normal alone would call a point
+        # far beside a surface close to it), negative when the point is behind its triangle. Inside
+        # a solid the closest point lies inside a face, straight behind it; a closest point on an
+        # edge or corner (diff far from the normal, e.g. a hand above a table's edge whose closest
+        # triangle is the table's side) means outside, whatever the side of that triangle.
+        inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
+        return np.where(inside, -dist, dist), n
 
     def down_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight down to the first surface (inf where none)."""
