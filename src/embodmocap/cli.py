@@ -28,7 +28,7 @@ from embodmocap.export.config import ExportConfig
 from embodmocap.motion.config import MotionConfig
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.sequence.config import SequenceConfig
-from embodmocap.sim.config import SimCheckConfig, TrainConfig
+from embodmocap.sim.commands import SimCheck, SimEval, SimTrain
 from embodmocap.synth.config import SynthConfig
 from embodmocap.viz.config import RenderConfig, ViewerConfig
 
@@ -429,71 +429,6 @@ class SessionImport:
             self.sheet, self.session, capture_pattern=self.capture_pattern,
             contact_sheet=self.contact_sheet, force=self.force, check=self.check,
         )
-        print(f"wrote {path}")
-        return 0
-
-
-@dataclass(frozen=True)
-class SimCheck:
-    """Physical plausibility of a fitted sequence in its scene (penetration, floating, foot
-    skating, contacts, residual root force): writes sequences/SEQ/sim/sim_check.json (extra sim)."""
-
-    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
-    """Session folder (holds session.toml)."""
-    seq: str | None = None
-    """Sequence to check; needed only when the session has several."""
-    repair: bool = False
-    """Also move each frame vertically onto the support (smallest smooth shift), check the result
-    and write it to sequences/SEQ/sim/smpl_repaired.npz (before/after in sim_check.json)."""
-    config: Annotated[SimCheckConfig, tyro.conf.arg(name="")] = SimCheckConfig()
-    """Check settings."""
-
-    def run(self) -> int:
-        from embodmocap.sim.check import sim_check
-
-        path = sim_check(self.session, _sequence_name(self.session, self.seq), self.config, repair=self.repair)
-        print(f"wrote {path}")
-        return 0
-
-
-@dataclass(frozen=True)
-class SimTrain:
-    """Train a scene-aware tracking policy (PPO, stable-baselines3) on the sessions' motion (extra sim)."""
-
-    sessions: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
-    """Session folders (every fitted sequence of each is a reference clip)."""
-    out: Path = Path("sim_runs/tracking")
-    """Run folder: checkpoints, TensorBoard logs, the final policy."""
-    seq: str | None = None
-    """Train on this sequence of each session only (default: every fitted sequence)."""
-    config: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()
-    """Training settings (--steps, --device, --num-envs, ...)."""
-
-    def run(self) -> int:
-        from embodmocap.sim.train import train
-
-        path = train(list(self.sessions), self.out, self.config, seq=self.seq)
-        print(f"wrote {path}")
-        return 0
-
-
-@dataclass(frozen=True)
-class SimEval:
-    """Evaluate a tracking policy: success rate, failure rate, episode length, and an MP4 (extra sim)."""
-
-    checkpoint: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="CHECKPOINT")]
-    """A policy zip written by `embodmocap sim train` (its run folder names the sessions)."""
-    episodes: int = 32
-    """Episodes from random start frames (the paper: 3,072 per scene)."""
-    video: bool = True
-    """Render the first episode to an MP4 next to the results."""
-    device: Literal["cpu", "cuda"] = "cpu"
-    """Torch device of the policy."""
-
-    def run(self) -> int:
-        from embodmocap.sim.train import evaluate
-
-        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
         print(f"wrote {path}")
         return 0
 
