@@ -22,8 +22,8 @@ def test_smoke_training_raises_the_mean_return_and_eval_writes_the_table(sim_ses
                  "--n-steps", "512", "--batch-size", "256", "--checkpoint-every", "2048"]) == 0
     prog = json.loads((run / "progress.json").read_text())
     assert len(prog["ep_rew_mean"]) >= 10
-    first, last = prog["ep_rew_mean"][0], prog["ep_rew_mean"][-1]
-    assert last > first, prog["ep_rew_mean"]
+    first, last = sum(prog["ep_rew_mean"][:3]) / 3, sum(prog["ep_rew_mean"][-3:]) / 3
+    assert last > first, prog["ep_rew_mean"]  # measured: 6.25 -> 6.81 (episodes 25 -> 28 steps)
     assert (run / "policy.zip").is_file() and list((run / "checkpoints").glob("policy_*_steps.zip"))
     assert list((run / "tb").rglob("events.out.tfevents.*"))
     assert main(["sim", "eval", str(run / "policy.zip"), "--episodes", "3"]) == 0

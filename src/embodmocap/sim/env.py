@@ -28,7 +28,8 @@ root's facing direction projected on the ground, z up):
 
 **Reward** (the paper's): ``w_p exp(-100 mean|p - p^|^2) + w_r exp(-10 mean angle(q, q^)^2) + w_v
 exp(-0.1 mean|v - v^|^2) + w_w exp(-0.1 mean|w - w^|^2) - w_s |a_t - a_{t-1}|^2``, means over the 24
-bodies, world frame; the maximum is 1 (weights 0.25 each).
+bodies, world frame, clipped at 0 (a negative step reward with early termination would pay the
+policy to fall); the maximum is 1 (weights 0.25 each).
 """
 
 from __future__ import annotations
@@ -252,7 +253,9 @@ class TrackingEnv(gym.Env):
              + c.w_vel * np.exp(-0.1 * ((lin - rvel) ** 2).sum(-1).mean())
              + c.w_angvel * np.exp(-0.1 * ((ang - rang) ** 2).sum(-1).mean())
              - c.w_smooth * float(((a - self._prev_action) ** 2).sum()))
-        return float(r), float(np.sqrt(dp).mean())
+        # Clipped at 0: with early termination a negative step reward would teach the policy to
+        # end episodes sooner (fall on purpose) rather than track.
+        return max(float(r), 0.0), float(np.sqrt(dp).mean())
 
     def _observe(self) -> NDArray[np.float32]:
         xpos, xquat, lin, ang = self._bodies()

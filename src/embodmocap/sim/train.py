@@ -99,7 +99,7 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     model = sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
                     gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
                     device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
-                    policy_kwargs={"net_arch": [512, 256], "log_std_init": -1.0})
+                    policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
     ckpt = CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
                               name_prefix="policy", save_vecnormalize=True)
     model.learn(total_timesteps=cfg.steps, callback=[ckpt, _progress_callback(out / "progress.json")],
