@@ -112,3 +112,16 @@ def test_repair_removes_penetration_and_floating(sim_session, tmp_path):
     assert 1.5 < rep["shift_mean_cm"] < 3.0 and rep["shift_max_cm"] < 5.0
     fixed, _ = read_amass(work / "sequences" / "seq0" / "sim" / rep["file"])
     assert np.allclose(fixed.body_pose, params.body_pose) and np.allclose(fixed.transl[:, :2], params.transl[:, :2])
+
+
+def test_sim_check_without_a_fit_names_the_file_and_the_command(sim_session, tmp_path, capsys):
+    import shutil
+
+    from embodmocap.cli import main
+
+    work = tmp_path / "nofit"
+    shutil.copytree(sim_session, work)
+    (work / "sequences" / "seq0" / "smpl_world.npz").unlink()
+    assert main(["sim", "check", str(work)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "smpl_world.npz" in err and "embodmocap motion" in err
