@@ -30,6 +30,7 @@ from embodmocap.mono.config import MonoConfig
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.robot.config import RetargetConfig
 from embodmocap.sequence.config import SequenceConfig
+from embodmocap.sim.commands import SimCheck, SimEval, SimTrain
 from embodmocap.synth.config import SynthConfig
 from embodmocap.viz.config import RenderConfig, ViewerConfig
 
@@ -263,16 +264,16 @@ class Benchmark:
 
 @dataclass(frozen=True)
 class Export:
-    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV)."""
+    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF)."""
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot"]
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf"]
     """Format to write."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
     out: Path | None = None
-    """Output file (folder for mimickit); default SESSION/sequences/SEQ/export/."""
+    """Output file (folder for mimickit and mjcf); default SESSION/sequences/SEQ/export/."""
     config: Annotated[ExportConfig, tyro.conf.arg(name="")] = ExportConfig()
     """Export settings."""
 
@@ -512,6 +513,9 @@ Commands = Union[
     Annotated[BodyMakeTestModel, tyro.conf.subcommand("body:make-test-model")],
     Annotated[SessionImport, tyro.conf.subcommand("session:import")],
     Annotated[RobotRetarget, tyro.conf.subcommand("robot:retarget")],
+    Annotated[SimCheck, tyro.conf.subcommand("sim:check")],
+    Annotated[SimTrain, tyro.conf.subcommand("sim:train")],
+    Annotated[SimEval, tyro.conf.subcommand("sim:eval")],
 ]
 
 
@@ -519,14 +523,14 @@ def _preflight(cmd) -> None:
     """Before a command that writes into a session: writable folders, stale temporary files gone."""
     from embodmocap.io.preflight import check_writable, prepare_session
 
-    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget)):
+    if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget, SimCheck)):
         prepare_session(cmd.session)
     if isinstance(cmd, Mono):
         prepare_session(cmd.session)
     if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file():
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
-        folder = cmd.out if cmd.to in ("mimickit", "robot") else cmd.out.parent
+        folder = cmd.out if cmd.to in ("mimickit", "robot", "mjcf") else cmd.out.parent
         while not folder.exists() and folder != folder.parent:
             folder = folder.parent  # the export creates the missing folders
         check_writable(folder, "export folder")
@@ -553,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
     # "body make-test-model" and "session import" read naturally as two words.
-    if len(argv) >= 2 and argv[0] in ("body", "session", "robot"):
+    if len(argv) >= 2 and argv[0] in ("body", "session", "robot", "sim"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     handler = _setup_logging(debug)
     previous = watch_interrupts()

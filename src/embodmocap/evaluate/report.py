@@ -114,6 +114,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
         if sl.calibration.is_file():
             _calibration_table(page, json.loads(sl.calibration.read_text()))
         _stage_table(page, "Stage IV", sl.motion_manifest)
+        _sim_check_section(page, sl.sim_check)
         for v in VIEWS:
             sheet = sl.root / f"sync_{v}.png"
             if sheet.is_file():
@@ -294,3 +295,16 @@ def _robot_tables(page: _Page, robot_root: Path) -> None:
             continue
         page.heading(f"Robot {rep.get('robot', path.parent.name)}", 3)
         page.table(["figure", "value"], [[label, rep.get(key)] for key, label in _ROBOT_FIGURES])
+
+
+def _sim_check_section(page: _Page, path: Path) -> None:
+    """Physical plausibility (``embodmocap sim check``), when it was run."""
+    if not path.is_file():
+        return
+    s = json.loads(path.read_text())["summary"]
+    page.heading("Physical plausibility (sim check)", 3)
+    keys = ("penetration_max_cm", "penetration_mean_cm", "floating_max_cm", "floating_mean_cm", "unsupported_frames",
+            "foot_skating_mean_cm",
+            "residual_force_n_per_kg_mean", "residual_torque_nm_per_kg_mean", "mass_kg")
+    page.table(["figure", "value"], [[k, s[k]] for k in keys if k in s])
+    page.table(["body part", "contact fraction"], [[k, v] for k, v in s.get("contact_fraction", {}).items()])

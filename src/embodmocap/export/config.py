@@ -19,7 +19,7 @@ class ExportConfig:
     mimickit_loop: Literal["clamp", "wrap"] = "clamp"
     """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
     heightmap_cell_m: float = 0.05
-    """MimicKit: height-map cell size, metres (the paper samples a 0.05 m map)."""
+    """MimicKit and MJCF: height-map cell size, metres (the paper samples a 0.05 m map)."""
     robot: str = "g1"
     """Robot (``--to robot``): a built-in robot name (g1)."""
     robot_config: Path | None = None

@@ -15,6 +15,8 @@ mimickit   ``mimickit/`` (a folder)    motion pkl, skeleton json, scene OBJ + he
 csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.csv_joints`)
 robot      ``../robot/<robot>/``       robot motion: BeyondMimic CSV + npz, GMR pkl, scene
                                        MJCF, report (:mod:`embodmocap.robot`, extra ``robot``)
+mjcf       ``mjcf/`` (a folder)        MuJoCo performer + scene heightfield + keyframes
+                                       (:func:`embodmocap.sim.session.export_mjcf`, extra ``sim``)
 =========  ==========================  ===================================================
 """
 
@@ -38,7 +40,7 @@ from embodmocap.io.stage_files import read_world_joints
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
-FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot")
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf")
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
@@ -52,7 +54,8 @@ def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
 
 
 def _default_out(layout: SessionLayout, seq: str, to: str) -> Path:
-    names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv"}
+    names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv",
+             "mjcf": "mjcf"}
     return layout.sequence(seq).exports_dir / names[to]
 
 
@@ -94,6 +97,11 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     if to == "csv":
         joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
         return write_joints_csv(out, joints, params.fps, frames)
+    if to == "mjcf":
+        from embodmocap.sim.config import SceneCollisionConfig
+        from embodmocap.sim.session import export_mjcf
+
+        return export_mjcf(layout.root, seq, out, scene=SceneCollisionConfig(heightmap_cell_m=config.heightmap_cell_m))
 
     from embodmocap.body.model import load_body_model
     from embodmocap.io.manifest import load_manifest

@@ -15,7 +15,7 @@ like this (raw captures may also live elsewhere; the manifest names them)::
         body_prior.npz                camera-space body prior per frame
       ground_truth/                   only for synthetic sessions
       scenes/<scene>/                 stage I outputs
-      sequences/<seq>/                stage II-IV outputs (export/, render/ from export and render)
+      sequences/<seq>/                stage II-IV outputs (export/, render/, sim/ from export, render, sim)
       evaluation.json                 metrics (embodmocap evaluate)
       report.html, report.md, report_assets/   the report (embodmocap report)
 """
@@ -174,6 +174,16 @@ class SequenceLayout:
     def mono(self, view: str) -> "MonoLayout":
         """``embodmocap mono`` outputs of one view."""
         return MonoLayout(self.root / "mono" / view)
+
+    @property
+    def sim_dir(self) -> Path:
+        """``embodmocap sim`` writes here (``sim_check.json``, caches, training runs)."""
+        return self.root / "sim"
+
+    @property
+    def sim_check(self) -> Path:
+        """``embodmocap sim check``: physical plausibility of the fitted motion."""
+        return self.root / "sim" / "sim_check.json"
 
 
 @dataclass(frozen=True)

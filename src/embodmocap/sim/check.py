@@ -1,0 +1,311 @@
+"""Physical plausibility of a fitted motion against its scene (``embodmocap sim check``).
+
+Per frame, from the posed SMPL mesh (every ``vertex_stride``-th vertex) and the scene mesh:
+
+==========================  ==============================================================  =====
+figure                      definition                                                      unit
+==========================  ==============================================================  =====
+penetration                 deepest body vertex inside the scene: ``max(0, -min_v sd(v))``,  cm
+                            ``sd`` the signed distance to the closest scene triangle (its
+                            normal gives the side: scene meshes are oriented outwards)
+floating                    lowest body point above the support under it: ``min_v`` of the   cm
+                            straight-down gap from each vertex to the scene, 0 on frames
+                            that penetrate (a frame in flight counts as floating); null
+                            where no vertex has any surface below it (a hole in the scan,
+                            counted in ``unsupported_frames``)
+foot skating                MotionVAE's measure (the paper's *jitter*): per foot, the         cm
+                            horizontal displacement of its ankle and toe joints to the
+                            next frame, weighted ``2 - 2^(h/H)`` where its lowest point is
+                            ``h < H`` above the support (0 above ``H``), mean of the feet
+contact per body part       a part touches when one of its vertices is within                0/1
+                            ``contact_m`` of the scene (or inside it)
+residual root force/torque  the part of the root wrench that MuJoCo inverse dynamics needs   N/kg,
+                            which no contact force can supply: ``min |b - A f|`` over         N m/kg
+                            forces ``f`` in friction pyramids at the touching vertices
+                            (non-negative least squares), ``b`` the free joint's
+                            generalized force, per kg of body mass
+==========================  ==============================================================  =====
+
+Vertices whose closest surface is more than ``max_depth_m`` (0.3 m) "inside" are not counted as
+penetrating or touching: a scanned mesh has holes, and there the closest surface is a far one
+whose normal says nothing. The summary gives the max and mean over frames of each figure and the fraction of frames in
+contact per part. Contact and the residual use the fitted mesh; the inverse dynamics use the
+MuJoCo model of :mod:`embodmocap.sim.model` (masses from its geoms).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from embodmocap.export.mimickit import HUMANOID_TO_SMPL
+from embodmocap.sim.config import HumanoidConfig, SimCheckConfig
+from embodmocap.sim.session import SIM_FORMAT_VERSION, SimSequence, body_vertices, load_sequence
+
+log = logging.getLogger(__name__)
+
+#: Body parts for the contact figures: part -> SMPL joints whose skinned vertices belong to it.
+BODY_PARTS: dict[str, tuple[int, ...]] = {
+    "left_foot": (7, 10), "right_foot": (8, 11),
+    "left_leg": (1, 4), "right_leg": (2, 5),
+    "pelvis": (0,), "torso": (3, 6, 9, 13, 14),
+    "head": (12, 15),
+    "left_arm": (16, 18), "right_arm": (17, 19),
+    "left_hand": (20, 22), "right_hand": (21, 23),
+}
+#: SMPL joints of each foot used for the skating figure (ankle, toe).
+FEET: tuple[tuple[int, int], ...] = ((7, 10), (8, 11))
+
+
+class SceneQuery:
+    """Signed distance and downward gap of points to a triangle mesh (open3d ray casting)."""
+
+    def __init__(self, vertices: NDArray, faces: NDArray) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
+                                 o3d.core.Tensor(np.asarray(faces, np.uint32)))
+
+    def signed_distance(self, points: NDArray) -> tuple[NDArray, NDArray]:
+        """(N,) signed distance (negative inside) and (N, 3) outward normal of the closest triangle."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        r = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
+        n = r["primitive_normals"].numpy()
+        diff = p - r["points"].numpy()
+        dist = np.linalg.norm(diff, axis=1)
+        # The distance to the closest point (the projection on the normal alone would call a point
+        # far beside a surface close to it), negative when the point is behind its triangle. Inside
+        # a solid the closest point lies inside a face, straight behind it; a closest point on an
+        # edge or corner (diff far from the normal, e.g. a hand above a table's edge whose closest
+        # triangle is the table's side) means outside, whatever the side of that triangle.
+        inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
+        return np.where(inside, -dist, dist), n
+
+    def down_gap(self, points: NDArray) -> NDArray:
+        """(N,) distance straight down to the first surface (inf where none)."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        rays = np.concatenate([p, np.tile(np.float32([0, 0, -1]), (len(p), 1))], axis=1)
+        return self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
+
+
+def _part_of_vertex(body_model) -> NDArray[np.int64]:
+    owner = np.asarray(body_model.lbs_weights).argmax(axis=1)
+    part = np.full(len(owner), -1)
+    for k, joints in enumerate(BODY_PARTS.values()):
+        part[np.isin(owner, joints)] = k
+    return part
+
+
+def foot_skating(foot_xy: NDArray, foot_h: NDArray, H: float) -> NDArray[np.float64]:
+    """MotionVAE foot skating per frame (T,), metres (last frame 0).
+
+    Args:
+        foot_xy: (T, F, 2) horizontal foot positions; foot_h: (T, F) height of each foot's lowest
+            point above the support; H: height threshold, metres.
+    """
+    disp = np.linalg.norm(np.diff(foot_xy, axis=0), axis=-1)  # (T-1, F)
+    h = np.clip(foot_h[:-1], 0.0, None)
+    w = np.where(h < H, 2.0 - np.power(2.0, h / H), 0.0)
+    out = np.zeros(len(foot_xy))
+    if len(disp):
+        out[:-1] = (disp * w).mean(axis=1)
+    return out
+
+
+def residual_root_wrench(sq: SimSequence, contact_pts: list[NDArray], contact_normals: list[NDArray],
+                         contact_bodies: list[NDArray], cfg: SimCheckConfig,
+                         hcfg: HumanoidConfig = HumanoidConfig()) -> tuple[NDArray, NDArray, float]:
+    """Residual root force and torque per kg (T,), (T,) and the model's mass (kg).
+
+    ``contact_*[t]`` are frame t's touching points (K, 3), scene normals (K, 3) and MuJoCo body
+    ids (K,). Velocities and accelerations are central differences of the reference qpos.
+    """
+    import mujoco
+    from scipy.optimize import nnls
+
+    from embodmocap.sim.model import performer_mjcf, reference_qpos
+
+    m = mujoco.MjModel.from_xml_string(performer_mjcf(sq.body_model, sq.params.betas, hcfg))
+    d = mujoco.MjData(m)
+    mass = float(m.body_subtreemass[1])
+    q = reference_qpos(sq.params, sq.rest_joints)
+    T, dt = len(q), 1.0 / sq.params.fps
+    v_half = np.zeros((max(T - 1, 0), m.nv))
+    for t in range(T - 1):
+        mujoco.mj_differentiatePos(m, v_half[t], dt, q[t], q[t + 1])
+    qvel = np.zeros((T, m.nv))
+    qacc = np.zeros((T, m.nv))
+    if T > 1:
+        qvel[1:-1] = (v_half[1:] + v_half[:-1]) / 2
+        qvel[0], qvel[-1] = v_half[0], v_half[-1]
+        qacc[1:-1] = (v_half[1:] - v_half[:-1]) / dt
+    ang = np.linspace(0, 2 * np.pi, 4, endpoint=False)
+    force, torque = np.zeros(T), np.zeros(T)
+    jacp = np.zeros((3, m.nv))
+    for t in range(T):
+        d.qpos[:], d.qvel[:], d.qacc[:] = q[t], qvel[t], qacc[t]
+        mujoco.mj_inverse(m, d)
+        b = d.qfrc_inverse[:6].copy()
+        pts, nrm, bodies = contact_pts[t], contact_normals[t], contact_bodies[t]
+        r = b
+        if len(pts):
+            J6 = np.empty((len(pts), 3, 6))
+            for i, (p, body) in enumerate(zip(pts, bodies)):
+                mujoco.mj_jac(m, d, jacp, None, p, int(body))
+                J6[i] = jacp[:, :6]
+            n = nrm / np.linalg.norm(nrm, axis=1, keepdims=True).clip(1e-12)
+            ref = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+            t1 = np.cross(n, ref)
+            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+            t2 = np.cross(n, t1)
+            # Friction pyramid edges (K, 4, 3), mapped to the free joint's generalized force (K*4, 6).
+            E = n[:, None] + cfg.friction * (np.cos(ang)[None, :, None] * t1[:, None] + np.sin(ang)[None, :, None] * t2[:, None])
+            A = np.einsum("kcs,kdc->kds", J6, E).reshape(-1, 6).T
+            f, _ = nnls(A, b, maxiter=200)
+            r = b - A @ f
+        force[t], torque[t] = np.linalg.norm(r[:3]) / mass, np.linalg.norm(r[3:]) / mass
+    return force, torque, mass
+
+
+def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, residual: bool = True) -> dict:
+    """Per-frame and summary figures of :mod:`this module <embodmocap.sim.check>` for one sequence."""
+    t0 = time.perf_counter()
+    verts_all = body_vertices(sq.body_model, sq.params)
+    stride = max(int(cfg.vertex_stride), 1)
+    verts = verts_all[:, ::stride]
+    part = _part_of_vertex(sq.body_model)[::stride]
+    owner = np.asarray(sq.body_model.lbs_weights).argmax(axis=1)[::stride]
+    T, V = verts.shape[:2]
+    query = SceneQuery(sq.scene_vertices, sq.scene_faces)
+    sd, normals = query.signed_distance(verts.reshape(-1, 3))
+    sd, normals = sd.reshape(T, V), normals.reshape(T, V, 3)
+    gap = query.down_gap(verts.reshape(-1, 3)).reshape(T, V)
+    near = sd > -cfg.max_depth_m  # farther inside than that: a hole in the scan, not a penetration
+    gap = np.where((sd < 0) & near, 0.0, gap)  # inside a solid: no gap
+    pen = np.clip(-np.where(near, sd, np.inf).min(axis=1), 0.0, None)
+    import warnings
+
+    with warnings.catch_warnings():  # an all-NaN row (no support under any vertex) is expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lowest = np.nanmin(np.where(np.isfinite(gap), gap, np.nan), axis=1)  # NaN: no support below at all
+    floating = np.where(pen > 0, 0.0, np.clip(lowest, 0.0, None))
+    supported = np.isfinite(floating)
+    touch = (sd < cfg.contact_m) & near
+    contact = {name: (touch & (part == k)).any(axis=1) for k, name in enumerate(BODY_PARTS)}
+    # Foot skating: each foot's joints horizontally, its lowest point's gap.
+    import torch
+
+    with torch.no_grad():
+        joints = sq.body_model.from_params(sq.params, dtype=torch.float64).joints.numpy()
+    foot_xy = np.stack([joints[:, list(f), :2].mean(axis=1) for f in FEET], axis=1)
+    foot_h = np.stack([np.where(np.isfinite(g := np.where(np.isin(owner, f), gap, np.inf)), g, np.inf).min(axis=1)
+                       for f in FEET], axis=1)
+    skate = foot_skating(foot_xy, foot_h, cfg.skate_height_m)
+    out_frames = {
+        "penetration_cm": pen * 100, "floating_cm": floating * 100, "foot_skating_cm": skate * 100,
+    }
+    summary = {
+        "frames": int(T), "fps": float(sq.params.fps),
+        "penetration_max_cm": float(pen.max() * 100) if T else 0.0,
+        "penetration_mean_cm": float(pen.mean() * 100) if T else 0.0,
+        "floating_max_cm": float(floating[supported].max() * 100) if supported.any() else 0.0,
+        "floating_mean_cm": float(floating[supported].mean() * 100) if supported.any() else 0.0,
+        "unsupported_frames": int((~supported).sum()),
+        "foot_skating_mean_cm": float(skate[:-1].mean() * 100) if T > 1 else 0.0,
+        "foot_skating_max_cm": float(skate.max() * 100) if T else 0.0,
+        "contact_fraction": {k: float(v.mean()) if T else 0.0 for k, v in contact.items()},
+    }
+    if residual:
+        h_of_smpl = {int(j): i + 1 for i, j in enumerate(HUMANOID_TO_SMPL)}  # MuJoCo body id (0 = world)
+        rng = np.random.default_rng(0)
+        pts, nrm, bod = [], [], []
+        for t in range(T):
+            idx = np.flatnonzero(touch[t])
+            if len(idx) > cfg.max_contact_points:
+                idx = np.sort(rng.choice(idx, cfg.max_contact_points, replace=False))
+            pts.append(verts[t, idx].astype(np.float64))
+            nrm.append(normals[t, idx].astype(np.float64))
+            bod.append(np.array([h_of_smpl[int(o)] for o in owner[idx]], dtype=np.int64))
+        force, torque, mass = residual_root_wrench(sq, pts, nrm, bod, cfg)
+        out_frames["residual_force_n_per_kg"] = force
+        out_frames["residual_torque_nm_per_kg"] = torque
+        summary.update({
+            "mass_kg": mass,
+            "residual_force_n_per_kg_mean": float(force.mean()) if T else 0.0,
+            "residual_force_n_per_kg_max": float(force.max()) if T else 0.0,
+            "residual_torque_nm_per_kg_mean": float(torque.mean()) if T else 0.0,
+            "residual_torque_nm_per_kg_max": float(torque.max()) if T else 0.0,
+        })
+    summary["seconds"] = time.perf_counter() - t0
+    per_frame = {k: [None if not np.isfinite(x) else x for x in np.round(np.asarray(v, dtype=np.float64), 4).tolist()]
+                 for k, v in out_frames.items()}
+    per_frame["contact"] = {k: v.astype(int).tolist() for k, v in contact.items()}
+    return {"summary": summary, "per_frame": per_frame}
+
+
+def vertical_repair(sq: SimSequence, per_frame: dict, cfg: SimCheckConfig = SimCheckConfig()) -> NDArray[np.float64]:
+    """(T,) vertical shift of each frame (metres) that puts the lowest body point on the support.
+
+    The smallest smooth correction: ``min sum_t w_t (d_t - g_t)^2 + repair_smooth * sum_t (d_{t+1} -
+    2 d_t + d_{t-1})^2`` with ``g_t = penetration_t - floating_t`` and ``w_t = 1`` where ``|g_t| <
+    repair_max_m`` (else 0: a jump stays a jump). Penalising the second difference keeps a slow
+    drift (a ramp) fully corrected while an abrupt change is spread over a few frames.
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    g = (np.asarray(per_frame["penetration_cm"]) - np.asarray(per_frame["floating_cm"])) / 100.0
+    w = (np.abs(g) < cfg.repair_max_m).astype(np.float64)
+    T = len(g)
+    if T < 3:
+        return w * g
+    D2 = sp.diags([np.ones(T - 2), -2 * np.ones(T - 2), np.ones(T - 2)], [0, 1, 2], shape=(T - 2, T))
+    A = sp.diags(w + 1e-9) + cfg.repair_smooth * (D2.T @ D2)
+    return np.asarray(spsolve(A.tocsc(), w * g))
+
+
+def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig = SimCheckConfig(),
+              repair: bool = False) -> Path:
+    """Run the check on a sequence of a session and write ``sequences/<seq>/sim/sim_check.json``.
+
+    With ``repair``, also :func:`vertical_repair` the motion, check it again, write it to
+    ``sequences/<seq>/sim/smpl_repaired.npz`` (AMASS-style, like ``smpl_world.npz``) and add
+    ``repair`` (shift statistics, summary before and after) to the JSON.
+    """
+    import dataclasses
+
+    from embodmocap.io.atomic import write_json
+    from embodmocap.io.layout import SessionLayout
+
+    sq = load_sequence(session, seq)
+    res = plausibility(sq, cfg)
+    path = SessionLayout(sq.session).sequence(sq.name).sim_check
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"version": SIM_FORMAT_VERSION, "sequence": sq.name, "frames": np.asarray(sq.frames).tolist(),
+           "config": asdict(cfg), **res}
+    if repair:
+        from embodmocap.export.amass import write_amass
+
+        shift = vertical_repair(sq, res["per_frame"], cfg)
+        transl = np.array(sq.params.transl)
+        transl[:, 2] += shift
+        fixed = dataclasses.replace(sq.params, transl=transl)
+        after = plausibility(sq.with_params(fixed), cfg)["summary"]
+        out = path.parent / "smpl_repaired.npz"
+        write_amass(out, fixed, frames=np.asarray(sq.frames))
+        doc["repair"] = {"file": out.name, "shift_max_cm": float(np.abs(shift).max() * 100) if len(shift) else 0.0,
+                         "shift_mean_cm": float(np.abs(shift).mean() * 100) if len(shift) else 0.0,
+                         "before": res["summary"], "after": after}
+    write_json(path, doc)
+    s = res["summary"]
+    log.info("sim check %s: penetration max %.2f cm, floating max %.2f cm, skating %.2f cm/frame, residual %.2f N/kg",
+             sq.name, s["penetration_max_cm"], s["floating_max_cm"], s["foot_skating_mean_cm"],
+             s.get("residual_force_n_per_kg_mean", float("nan")))
+    return path

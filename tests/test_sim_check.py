@@ -1,0 +1,127 @@
+"""`embodmocap sim check`: plausibility figures recover constructed cases and are small on the
+studio's ground-truth motion."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+
+from embodmocap.sim.check import foot_skating, plausibility  # noqa: E402
+from embodmocap.sim.session import load_sequence  # noqa: E402
+from sim_session import sim_session  # noqa: E402,F401
+
+
+@pytest.fixture(scope="module")
+def truth(sim_session):
+    return load_sequence(sim_session)
+
+
+def _shifted(sq, dz=0.0, dx_per_frame=0.0, static=False):
+    p = sq.params
+    if static:  # the first frame held for 20 frames
+        idx = np.zeros(20, dtype=int)
+        p = dataclasses.replace(p, global_orient=p.global_orient[idx], body_pose=p.body_pose[idx], transl=p.transl[idx])
+    transl = np.array(p.transl)
+    transl[:, 2] += dz
+    transl[:, 0] += dx_per_frame * np.arange(len(transl))
+    return sq.with_params(dataclasses.replace(p, transl=transl))
+
+
+def test_truth_is_plausible(truth):
+    s = plausibility(truth)["summary"]
+    assert s["penetration_max_cm"] < 1.0 and s["floating_max_cm"] < 1.0
+    assert s["contact_fraction"]["left_foot"] > 0.5 and s["contact_fraction"]["right_foot"] > 0.5
+    assert s["contact_fraction"]["head"] == 0.0
+    # Standing and turning on the floor: contact forces explain the motion.
+    assert s["residual_force_n_per_kg_mean"] < 0.5
+
+
+def test_pushed_into_the_floor_and_lifted_are_recovered(truth):
+    base = plausibility(truth, residual=False)["per_frame"]
+    pushed = plausibility(_shifted(truth, dz=-0.05), residual=False)
+    assert abs(pushed["summary"]["penetration_max_cm"] - 5.0) < 0.5
+    assert np.allclose(pushed["per_frame"]["penetration_cm"], 5.0 + np.array(base["penetration_cm"]), atol=0.5)
+    assert pushed["summary"]["floating_max_cm"] == 0.0
+    lifted = plausibility(_shifted(truth, dz=0.05))
+    assert np.allclose(lifted["per_frame"]["floating_cm"], 5.0 + np.array(base["floating_cm"]), atol=0.5)
+    assert lifted["summary"]["penetration_max_cm"] == 0.0
+    assert sum(lifted["summary"]["contact_fraction"].values()) == 0.0
+    # In the air nothing holds the body up: the residual is its weight, g per kg.
+    assert abs(lifted["summary"]["residual_force_n_per_kg_mean"] - 9.81) < 0.5
+
+
+def test_sliding_feet_are_recovered(truth):
+    still = plausibility(_shifted(truth, static=True), residual=False)["summary"]
+    assert still["foot_skating_mean_cm"] < 0.1
+    sliding = plausibility(_shifted(truth, static=True, dx_per_frame=0.01), residual=False)["summary"]
+    assert abs(sliding["foot_skating_mean_cm"] - 1.0) < 0.5
+
+
+def test_foot_skating_weights_by_height():
+    xy = np.zeros((3, 1, 2))
+    xy[:, 0, 0] = [0.0, 0.02, 0.04]
+    h = np.array([[0.0], [0.0125], [0.0]])
+    H = 0.025
+    out = foot_skating(xy, h, H)
+    assert np.allclose(out, [0.02, 0.02 * (2 - 2 ** 0.5), 0.0])
+    assert np.allclose(foot_skating(xy, np.full((3, 1), 0.03), H), 0.0)
+
+
+def test_cli_sim_check_writes_the_json(sim_session):
+    from embodmocap.cli import main
+
+    assert main(["sim", "check", str(sim_session)]) == 0
+    doc = json.loads((sim_session / "sequences" / "seq0" / "sim" / "sim_check.json").read_text())
+    assert doc["version"] == 1 and len(doc["per_frame"]["penetration_cm"]) == len(doc["frames"])
+    assert set(doc["per_frame"]["contact"]) == set(doc["summary"]["contact_fraction"])
+
+
+def test_report_has_the_sim_check_section(sim_session):
+    from embodmocap.evaluate.report import write_report
+    from embodmocap.sim.check import sim_check
+
+    sim_check(sim_session)
+    _, md = write_report(sim_session)
+    text = md.read_text()
+    assert "Physical plausibility (sim check)" in text and "penetration_max_cm" in text
+
+
+def test_repair_removes_penetration_and_floating(sim_session, tmp_path):
+    import shutil
+
+    from embodmocap.cli import main
+    from embodmocap.export.amass import read_amass, write_amass
+
+    work = tmp_path / "s"
+    shutil.copytree(sim_session, work)
+    smpl = work / "sequences" / "seq0" / "smpl_world.npz"
+    params, frames = read_amass(smpl)
+    transl = np.array(params.transl)
+    transl[:, 2] += np.linspace(-0.04, 0.04, len(transl))  # drifting from 4 cm into the floor to 4 cm above
+    write_amass(smpl, dataclasses.replace(params, transl=transl), frames=frames)
+    assert main(["sim", "check", str(work), "--repair"]) == 0
+    doc = json.loads((work / "sequences" / "seq0" / "sim" / "sim_check.json").read_text())
+    rep = doc["repair"]
+    assert rep["before"]["penetration_max_cm"] > 3.5 and rep["before"]["floating_max_cm"] > 3.5
+    assert rep["after"]["penetration_max_cm"] < 1.5 and rep["after"]["floating_max_cm"] < 1.5
+    assert 1.5 < rep["shift_mean_cm"] < 3.0 and rep["shift_max_cm"] < 5.0
+    fixed, _ = read_amass(work / "sequences" / "seq0" / "sim" / rep["file"])
+    assert np.allclose(fixed.body_pose, params.body_pose) and np.allclose(fixed.transl[:, :2], params.transl[:, :2])
+
+
+def test_sim_check_without_a_fit_names_the_file_and_the_command(sim_session, tmp_path, capsys):
+    import shutil
+
+    from embodmocap.cli import main
+
+    work = tmp_path / "nofit"
+    shutil.copytree(sim_session, work)
+    (work / "sequences" / "seq0" / "smpl_world.npz").unlink()
+    assert main(["sim", "check", str(work)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "smpl_world.npz" in err and "embodmocap motion" in err

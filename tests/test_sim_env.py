@@ -1,0 +1,97 @@
+"""The tracking environment `EmbodMocap/SceneTracking-v0` on the tiny studio session."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+gym = pytest.importorskip("gymnasium")
+pytest.importorskip("mujoco")
+
+import embodmocap.sim  # noqa: E402  (registers the environment)
+from embodmocap.export.mimickit import egocentric_heightmap  # noqa: E402
+from embodmocap.sim.config import TrackingConfig  # noqa: E402
+from embodmocap.sim.env import TrackingEnv, _heading, load_clips, tracking_success, tracking_table  # noqa: E402
+from sim_session import sim_session  # noqa: E402,F401
+
+
+@pytest.fixture(scope="module")
+def clips(sim_session):
+    return load_clips(sim_session)
+
+
+def test_registered_made_by_id_and_passes_the_checker(sim_session):
+    from gymnasium.utils.env_checker import check_env
+
+    assert embodmocap.sim.ENV_ID in gym.registry
+    env = gym.make(embodmocap.sim.ENV_ID, session=str(sim_session), seq="seq0")
+    assert isinstance(env.unwrapped, embodmocap.sim.TrackingEnv)
+    check_env(env.unwrapped, skip_render_check=True)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == env.observation_space.shape and env.action_space.shape == (69,)
+
+
+def _replay(env, start=0):
+    env.reset(seed=0, options={"start": start})
+    rewards, info = [], {}
+    for _ in range(400):
+        _, r, term, trunc, info = env.step(env.reference_action())
+        rewards.append(r)
+        if term or trunc:
+            return np.array(rewards), term, info
+    return np.array(rewards), False, info
+
+
+def test_replaying_the_reference_keeps_the_reward_near_its_maximum(clips):
+    # With the residual root assist the actuators reproduce the reference: reward ~ 1 (its maximum).
+    r, term, info = _replay(TrackingEnv(clips=clips, config=TrackingConfig(root_assist=True)))
+    assert not term and len(r) == 300 and info["time_s"] == pytest.approx(10.0)  # a 10 s episode
+    assert r.mean() > 0.9
+    # Without it (the paper's task), the ideal actions alone still track this standing clip.
+    r, term, _ = _replay(TrackingEnv(clips=clips))
+    assert not term and r[:30].mean() > 0.9 and r.mean() > 0.7
+    # Random actions fall behind.
+    env = TrackingEnv(clips=clips)
+    env.reset(seed=1, options={"start": 0})
+    rr = [env.step(env.action_space.sample())[1] for _ in range(30)]
+    assert np.mean(rr) < r[:30].mean() - 0.1
+
+
+def test_random_starts_and_the_egocentric_height_map(clips):
+    env = TrackingEnv(clips=clips)
+    starts = {env.reset(seed=s)[1]["start"] for s in range(20)}
+    assert len(starts) > 3
+    obs, _ = env.reset(seed=0)
+    d = env.data
+    root = d.xpos[1]
+    grid = egocentric_heightmap(clips[0].heightmap, root[:2], np.float64(_heading(d.xquat[1])), fill=np.nanmin(clips[0].heightmap.heights))
+    assert np.allclose(obs[-121:], (grid - root[2]).ravel(), atol=1e-5)
+    # Standing on the studio floor (z = 0): the grid under the performer is the floor below the root.
+    assert obs[-121 + 60] == pytest.approx(-root[2], abs=1e-4)
+
+
+def test_success_metric():
+    lengths = np.array([10.0, 9.0, 8.0, 3.0, 8.1])
+    assert tracking_success(lengths) == pytest.approx(3 / 5)  # more than 8 s
+    t = tracking_table(lengths)
+    assert t["success_rate"] == pytest.approx(60.0) and t["failure_rate"] == pytest.approx(40.0)
+    assert t["failure_len_mean_s"] == pytest.approx(5.5) and t["episodes"] == 5
+
+
+def test_vector_env_steps_many_environments(clips):
+    envs = gym.make_vec(embodmocap.sim.ENV_ID, num_envs=3, vectorization_mode="sync", clips=clips)
+    obs, _ = envs.reset(seed=0)
+    assert obs.shape == (3,) + envs.single_observation_space.shape
+    for _ in range(5):
+        obs, r, term, trunc, _ = envs.step(envs.action_space.sample())
+    assert r.shape == (3,) and np.isfinite(obs).all()
+    envs.close()
+
+
+@pytest.mark.parametrize("sub", ["check", "train", "eval"])
+def test_sim_commands_have_help(sub, capsys):
+    from embodmocap.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["sim", sub, "--help"])
+    assert e.value.code == 0 and "usage: embodmocap sim:" in capsys.readouterr().out
