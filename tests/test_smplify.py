@@ -255,8 +255,14 @@ def test_windows_are_seamless_and_match_one_window(body, motion):
     # (The largest deviation of both is at the clip's sharpest turn, frame 100, not at a seam: the
     # acceleration term rounds it off; 8 mm/frame with w_kp3d 1, about 18 with the default 0.25.)
     dv = np.linalg.norm(np.diff(c, axis=0) - np.diff(coco, axis=0), axis=-1).max()
-    dv1 = np.linalg.norm(np.diff(c1, axis=0) - np.diff(coco, axis=0), axis=-1).max()
-    assert dv < 0.025 and dv < dv1 + 0.003
+    assert dv < 0.025
+    # At the seams (the windows' overlaps, where they are blended) no worse than the one window.
+    seams = np.zeros(len(c) - 1, dtype=bool)
+    for (_, e), (s, _) in zip(res.windows, res.windows[1:]):
+        seams[s:e] = True
+    dv_seam = np.linalg.norm(np.diff(c, axis=0) - np.diff(coco, axis=0), axis=-1)[seams].max()
+    dv1_seam = np.linalg.norm(np.diff(c1, axis=0) - np.diff(coco, axis=0), axis=-1)[seams].max()
+    assert dv_seam < dv1_seam + 0.003
     ev = np.linalg.norm(np.diff(c, axis=0) - np.diff(coco, axis=0), axis=-1)
     assert np.percentile(ev, 99) < 0.012
 

@@ -13,6 +13,16 @@ from embodmocap.motion.label_track import LabelTrackConfig
 from embodmocap.motion.temporal import TemporalConfig
 
 
+#: Lowest 2D confidence that Stage IV triangulates. A weak detection is usually a joint the
+#: detector half sees (occluded, blurred), roughly in place: on the ten hard studio sessions
+#: detections at confidence 0.1-0.3 were 19 px off (median), 1 % more than 60 px, like those at
+#: 0.3-0.5 (21 px, 14 % > 60 px), while the blunders sit below 0.05 (391 px median). Leaving
+#: them out left knees and ankles seen well by one view and weakly by the other untriangulated,
+#: their depth free along the first view's ray (knees 150-290 mm off over 30 frames in seed 6);
+#: the bone-length gate, the swap checks and the robust 3D term still judge every point.
+TRIANGULATION_MIN_CONF = 0.1
+
+
 @dataclass(frozen=True)
 class SmplifyConfig:
     """Weights, schedules and robust scales of the world-space SMPLify."""
@@ -43,6 +53,23 @@ class SmplifyConfig:
     """Weight of the translation velocity term (per m^2)."""
     w_transl_acc: float = 30.0
     """Weight of the translation acceleration term (per m^2)."""
+    w_edge_vel: float = 100.0
+    """Weight of the edge velocity term (per m^2 of frame-to-frame displacement of the joints
+    relative to the pelvis, mean over joints and over all of the sequence's frame differences,
+    those outside the edges counting 0): applied only over the first and last ``edge_frames``
+    frames of each run of frames where the body can be placed (the sequence's ends, the frames
+    next to unplaceable ones; :func:`embodmocap.motion.terms.edge_weights`). Inside a run a limb that the
+    keypoints do not pin (seen in one view only, or triangulated wrong) is held by the
+    acceleration term between well-seen neighbours on both sides; at an end there is a neighbour
+    on one side only, and an acceleration term lets such a limb drift at constant velocity (a
+    straight-line extrapolation) into the first frames. This term makes that drift cost: the
+    limb's articulation holds still beyond the frames that pin it, while the body itself (the
+    pelvis) moves freely. 0 = off. Measured on the ten hard studio sessions without a prior
+    (BENCHMARKS.md, issue 11, fourth pass): the first frames of a sequence (the ones W-MPJPE's
+    alignment uses) had an arm or leg 100-350 mm off, turning the whole chunk by 4-17 degrees;
+    a weight of 300 or more freezes real movement at the start (worse)."""
+    edge_frames: int = 10
+    """Frames at each edge of a run of placeable frames covered by ``w_edge_vel``."""
     w_pose_prior: float = 0.01
     """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
     used only when a prior pose is given."""
@@ -150,8 +177,9 @@ class ContactConfig:
 class MotionConfig:
     """How Stage IV triangulates, fits and aligns the motion."""
 
-    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
-    """Triangulation of the two views' 2D keypoints."""
+    triangulation: TriangulationConfig = field(default_factory=lambda: TriangulationConfig(min_conf=TRIANGULATION_MIN_CONF))
+    """Triangulation of the two views' 2D keypoints. Its ``min_conf`` is
+    :data:`TRIANGULATION_MIN_CONF` here (the geometry default, 0.3, is Pose2Sim's)."""
     smplify: SmplifyConfig = field(default_factory=SmplifyConfig)
     """The two-phase world SMPLify (weights, iterations, windows, device)."""
     contact: ContactConfig = field(default_factory=ContactConfig)

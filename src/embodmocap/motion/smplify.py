@@ -229,11 +229,12 @@ class _Data:
     conf2d: torch.Tensor  # (T, V, 17)
     prior: torch.Tensor | None  # (T, 69)
     prior_conf: torch.Tensor | None  # (T,)
+    edge: torch.Tensor | None = None  # (T,) weight of the edge velocity term (1 near the sequence's ends)
 
     def slice(self, idx: slice | torch.Tensor) -> "_Data":
         cut = lambda x: None if x is None else x[idx]  # noqa: E731
         return _Data(cut(self.kp3d), cut(self.conf3d), self.K, cut(self.T_world_cam), cut(self.kp2d),
-                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf))
+                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge))
 
 
 def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: SmplParams, prior, model_betas: int) -> int:
@@ -264,7 +265,7 @@ def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: Smpl
     return T
 
 
-def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device) -> _Data:
+def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, valid=None) -> _Data:
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
     T = len(kp3d)
     conf3 = np.where(np.isfinite(kp3d).all(-1) & (np.nan_to_num(kp3d_conf) >= cfg.min_conf), kp3d_conf, 0.0)
@@ -282,7 +283,11 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device) -
         prior = np.asarray(prior, dtype=np.float64)
         ok = np.isfinite(prior).all(-1) & (np.abs(np.nan_to_num(prior)).sum(-1) > 0)  # all-zero row = missing
         prior_t, prior_c = tt(np.where(ok[:, None], np.nan_to_num(prior), 0.0)), tt(ok.astype(np.float64))
-    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c)
+    edge = None
+    if cfg.w_edge_vel > 0 and cfg.edge_frames > 0:
+        edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames))
+    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c,
+                 edge)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -317,6 +322,8 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
+        if d.edge is not None:
+            out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge)
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
     if phase <= 1.25:
         return out
@@ -516,6 +523,7 @@ def fit_world_smpl(
     cfg: SmplifyConfig = SmplifyConfig(),
     layout: str = "COCO17",
     prior_weight: NDArray | None = None,
+    valid: NDArray | None = None,
 ) -> SmplifyResult:
     """Fit world-space SMPL motion to 3D and 2D keypoints with the cameras fixed.
 
@@ -531,6 +539,9 @@ def fit_world_smpl(
         layout: the keypoint layout (its hip definition, :func:`embodmocap.body.joints.coco17_matrix`).
         prior_weight: (T,) per-frame weight of the pose prior (e.g. 0 where the prior disagrees
             with the triangulation); None = 1 wherever the prior has a row.
+        valid: (T,) bool frames where the body can be placed; the edge velocity term
+            (``cfg.w_edge_vel``) covers the frames next to unplaceable ones as well as the
+            sequence's ends; None = every frame placeable.
 
     Returns:
         :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
@@ -547,10 +558,11 @@ def fit_world_smpl(
         kp3d_conf[:, :5] = 0.0
         views = [ViewObservations(v.K, v.T_world_cam, np.concatenate(
             [np.zeros_like(np.asarray(v.keypoints)[:, :5]), np.asarray(v.keypoints)[:, 5:]], 1), v.name) for v in views]
-    data = _to_data(kp3d, kp3d_conf, views, prior_body_pose, cfg, dtype, device)
+    data = _to_data(kp3d, kp3d_conf, views, prior_body_pose, cfg, dtype, device, valid)
     if prior_weight is not None and data.prior_conf is not None:
         data = _Data(data.kp3d, data.conf3d, data.K, data.T_world_cam, data.kp2d, data.conf2d, data.prior,
-                     data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device))
+                     data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device),
+                     data.edge)
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
     start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
 

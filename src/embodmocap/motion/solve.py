@@ -188,7 +188,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
             cfg.smplify.reproj_scale_px, min_conf)
         n_propagated = int(carried.sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
-                         prior_weight=prior_w)
+                         prior_weight=prior_w, valid=valid)
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
         "init_frames_from_keypoints": n_replaced if v_best else int(T),

@@ -26,7 +26,9 @@ by zeros before use, so no NaN reaches the gradient).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from numpy.typing import NDArray
 
 from embodmocap.geometry.robust import robust_rho
 
@@ -113,6 +115,47 @@ def velocity_term(x: torch.Tensor) -> torch.Tensor:
     if x.shape[0] < 2:
         return x.sum() * 0.0
     return ((x[1:] - x[:-1]) ** 2).sum(-1).mean()
+
+
+def edge_weights(valid: NDArray, n: int) -> NDArray:
+    """(T,) 1.0 where the edge velocity term applies, else 0.0: the ``n`` frames of each run of
+    placeable frames next to an unplaceable frame (``valid`` False) or to an end of the sequence
+    (the frames that have well-seen neighbours on one side only). Unplaceable frames get 0: they
+    are not scored, and holding them still would pin their neighbours to a guess.
+
+    Args:
+        valid: (T,) bool; n: frames covered at each edge of a run (0 = none).
+    """
+    valid = np.asarray(valid, dtype=bool)
+    T = len(valid)
+    if n <= 0 or T == 0:
+        return np.zeros(T)
+    # Distance (frames) from each frame to the nearest unplaceable frame or beyond either end.
+    blocked = np.concatenate([[-1], np.flatnonzero(~valid), [T]])
+    t = np.arange(T)
+    right = blocked[np.searchsorted(blocked, t, side="left")] - t
+    left = t - blocked[np.searchsorted(blocked, t, side="right") - 1]
+    return (valid & (np.minimum(left, right) <= n)).astype(np.float64)
+
+
+def edge_velocity_term(joints: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Weighted mean squared norm of the first frame difference of the joints relative to the
+    root (joint 0): the articulation's speed, not the body's.
+
+    Args:
+        joints: (T, J, 3) metres; weight: (T,) per frame in [0, 1]; a difference ``t -> t+1``
+            counts with the larger of its two frames' weights.
+    Returns:
+        m^2 per frame^2: mean over joints and over all ``T - 1`` differences (those without
+        weight count 0), so that each covered frame weighs the same in any sequence, like a
+        frame of :func:`velocity_term`.
+    """
+    if joints.shape[0] < 2:
+        return joints.sum() * 0.0
+    rel = joints - joints[:, :1]
+    w = torch.maximum(weight[1:], weight[:-1])
+    d2 = ((rel[1:] - rel[:-1]) ** 2).sum(-1).mean(-1)
+    return (w * d2).mean()
 
 
 def acceleration_term(x: torch.Tensor) -> torch.Tensor:
