@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -99,3 +101,10 @@ def test_bad_robot_configs_get_one_clear_error(tmp_path):
         RobotModel.load(load_robot_config(bad))
     with pytest.raises(InputError, match="not found"):
         load_robot_config(tmp_path / "missing.toml")
+
+
+def test_the_g1_toml_in_docs_is_the_built_in_g1(tmp_path):
+    text = (Path(__file__).parents[1] / "docs" / "robot.md").read_text()
+    block = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "g1.toml").write_text(block)
+    assert load_robot_config(tmp_path / "g1.toml") == G1
