@@ -283,11 +283,9 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
         prior = np.asarray(prior, dtype=np.float64)
         ok = np.isfinite(prior).all(-1) & (np.abs(np.nan_to_num(prior)).sum(-1) > 0)  # all-zero row = missing
         prior_t, prior_c = tt(np.where(ok[:, None], np.nan_to_num(prior), 0.0)), tt(ok.astype(np.float64))
-    edge = None
-    if cfg.w_edge_vel > 0 and cfg.edge_frames > 0:
-        edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames))
-    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c,
-                 edge)
+    on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # (T,) edge weights, sliced with the windows
+    edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)) if on else None
+    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -539,9 +537,8 @@ def fit_world_smpl(
         layout: the keypoint layout (its hip definition, :func:`embodmocap.body.joints.coco17_matrix`).
         prior_weight: (T,) per-frame weight of the pose prior (e.g. 0 where the prior disagrees
             with the triangulation); None = 1 wherever the prior has a row.
-        valid: (T,) bool frames where the body can be placed; the edge velocity term
-            (``cfg.w_edge_vel``) covers the frames next to unplaceable ones as well as the
-            sequence's ends; None = every frame placeable.
+        valid: (T,) bool placeable frames: ``cfg.w_edge_vel`` also covers the frames next to
+            unplaceable ones, not only the sequence's ends; None = every frame placeable.
 
     Returns:
         :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
