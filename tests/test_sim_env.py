@@ -106,3 +106,14 @@ def test_clips_from_a_folder_of_sessions_each_with_its_model(sim_session):
     _, info1 = env.reset(seed=0, options={"clip": 1, "start": 2})
     assert env.model is not m0 and info1["start"] == 2
     assert np.allclose(env.data.qpos, clips[1].qpos[2])
+
+
+def test_a_missing_extra_is_one_line_naming_it(monkeypatch):
+    import sys
+
+    from embodmocap.errors import MissingExtraError
+    from embodmocap.sim import deps
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # as if not installed
+    with pytest.raises(MissingExtraError, match=r"embodmocap\[sim\]"):
+        deps.mujoco()
