@@ -95,3 +95,25 @@ def test_sim_commands_have_help(sub, capsys):
     with pytest.raises(SystemExit) as e:
         main(["sim", sub, "--help"])
     assert e.value.code == 0 and "usage: embodmocap sim:" in capsys.readouterr().out
+
+
+def test_clips_from_a_folder_of_sessions_each_with_its_model(sim_session):
+    clips = load_clips([sim_session.parent, sim_session])  # a folder holding the session, and the session
+    assert [c.name for c in clips] == ["session/seq0", "session/seq0"]
+    env = TrackingEnv(clips=clips)
+    _, info0 = env.reset(seed=0, options={"clip": 0, "start": 0})
+    m0 = env.model
+    _, info1 = env.reset(seed=0, options={"clip": 1, "start": 2})
+    assert env.model is not m0 and info1["start"] == 2
+    assert np.allclose(env.data.qpos, clips[1].qpos[2])
+
+
+def test_a_missing_extra_is_one_line_naming_it(monkeypatch):
+    import sys
+
+    from embodmocap.errors import MissingExtraError
+    from embodmocap.sim import deps
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # as if not installed
+    with pytest.raises(MissingExtraError, match=r"embodmocap\[sim\]"):
+        deps.mujoco()

@@ -213,3 +213,28 @@ def test_mass_is_the_mesh_volume_at_body_density_and_capsules_hug_the_mesh(sim_s
         assert np.median(dist) < 0.025, name
         if name not in ("Pelvis", "Torso", "Spine", "Chest", "Neck"):
             assert np.mean(dist < 0.02) > 0.8, name
+
+
+def test_a_body_dropped_on_a_bed_lies_on_its_top(tmp_path):
+    import dataclasses
+
+    from stage4_session import SYNTH, make_stage4_session
+
+    root = tmp_path / "bed"
+    make_stage4_session(root, dataclasses.replace(SYNTH, seed=1))  # studio seed 1 furnishes a bed
+    bed = furniture(root)["bed"]
+    sq = load_sequence(root)
+    hm = support_heightmap(sq.scene_vertices, sq.scene_faces, 2.0, cell_m=0.05)
+    asset, geom = heightfield_mjcf(hm)
+    m = mujoco.MjModel.from_xml_string(performer_mjcf(sq.body_model, sq.params.betas, scene_assets=asset, scene_geoms=geom))
+    body_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] > 0]
+    # On its back along the bed's length (the bed's local y), in the middle of the mattress.
+    d = _drop(m, {}, np.asarray(bed["centre_xy"]), bed["top_z"], yaw=bed["yaw"] + np.pi / 2, pitch=-np.pi / 2)
+    assert abs(_lowest(m, d, body_geoms) - bed["top_z"]) < 0.01 and np.abs(d.qvel[:3]).max() < 0.05
+    # Sitting on its edge, facing out of the bed (its local +x side).
+    fwd = np.array([np.cos(bed["yaw"]), np.sin(bed["yaw"])])
+    xy = np.asarray(bed["centre_xy"]) + fwd * (bed["size"][0] / 2 - 0.2)
+    d = _drop(m, SIT, xy, bed["top_z"], yaw=bed["yaw"])
+    seat_geoms = {m.geom(f"{b}_geom").id for b in ("Pelvis", "L_Hip", "R_Hip")}
+    on_bed = [c for c in d.contact[:d.ncon] if m.geom("scene").id in (c.geom1, c.geom2) and {c.geom1, c.geom2} & seat_geoms]
+    assert on_bed and all(abs(c.pos[2] - bed["top_z"]) < 0.01 for c in on_bed)

@@ -127,10 +127,12 @@ def residual_root_wrench(sq: SimSequence, contact_pts: list[NDArray], contact_no
     ``contact_*[t]`` are frame t's touching points (K, 3), scene normals (K, 3) and MuJoCo body
     ids (K,). Velocities and accelerations are central differences of the reference qpos.
     """
-    import mujoco
     from scipy.optimize import nnls
 
+    from embodmocap.sim.deps import mujoco as _mujoco
     from embodmocap.sim.model import performer_mjcf, reference_qpos
+
+    mujoco = _mujoco()  # one clear line naming the extra when missing
 
     m = mujoco.MjModel.from_xml_string(performer_mjcf(sq.body_model, sq.params.betas, hcfg))
     d = mujoco.MjData(m)

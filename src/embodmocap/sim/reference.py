@@ -65,8 +65,9 @@ def resample_qpos(qpos: NDArray, fps: float, hz: float) -> NDArray[np.float64]:
 
 def make_clip(name: str, xml: str, heightmap: HeightMap, qpos: NDArray, fps: float, hz: float) -> Clip:
     """Build a :class:`Clip` (runs MuJoCo forward kinematics on every sample)."""
-    import mujoco
+    from embodmocap.sim.deps import mujoco as _mujoco
 
+    mujoco = _mujoco()  # one clear line naming the extra when missing
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
     q = resample_qpos(qpos, fps, hz)
