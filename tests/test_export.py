@@ -293,6 +293,26 @@ def test_heightmap_of_a_box_scene_and_the_egocentric_grid():
     assert (batch[1] == -1.0).all()
 
 
+def test_mimickit_heightmap_is_the_support_under_a_ceiling_not_the_ceiling(tmp_path, model, params):
+    """Indoors the highest surface of every cell is the ceiling: the bundle's height map must show
+    the floor and the box the performer moves among instead (a flat 2.6 m map was written before)."""
+    from embodmocap.export import write_mimickit
+
+    v, f = _box_scene()
+    ceiling_v = np.array([[0, 0, 2.6], [4, 0, 2.6], [4, 3, 2.6], [0, 3, 2.6]], float)
+    v2 = np.concatenate([v, ceiling_v])
+    f2 = np.concatenate([f, np.array([[0, 2, 1], [0, 3, 2]]) + len(v)])
+    out = write_mimickit(tmp_path / "mk", params, model, (v2, f2), name="seq0")
+    hm = read_heightmap(out / "scene_heightmap.npz")
+    centres_x = hm.origin[0] + (np.arange(hm.heights.shape[1]) + 0.5) * hm.cell_m
+    centres_y = hm.origin[1] + (np.arange(hm.heights.shape[0]) + 0.5) * hm.cell_m
+    X, Y = np.meshgrid(centres_x, centres_y)
+    in_box = (X > 1.05) & (X < 1.95) & (Y > 1.05) & (Y < 1.95)
+    on_floor = (X > 0.05) & (X < 3.95) & (Y > 0.05) & (Y < 2.95) & ~((X > 0.95) & (X < 2.05) & (Y > 0.95) & (Y < 2.05))
+    np.testing.assert_allclose(hm.heights[in_box], 0.5, atol=1e-6)
+    np.testing.assert_allclose(hm.heights[on_floor], 0.0, atol=1e-6)
+
+
 def test_heightmap_round_trip(tmp_path):
     from embodmocap.export import write_heightmap
 

@@ -42,6 +42,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from embodmocap.errors import InputError
+# HeightMap and scene_heightmap live in the shared geometry package; re-exported here for callers of the export API.
+from embodmocap.geometry.heightmap import HeightMap, scene_heightmap, support_heightmap  # noqa: F401
 from embodmocap.io.atomic import atomic_dir, write_bytes, write_json, write_npz, write_text
 from embodmocap.io.npz_file import load_npz
 from embodmocap.types import SmplParams
@@ -138,64 +140,6 @@ def obj_text(vertices: NDArray, faces: NDArray) -> str:
     return buf.getvalue()
 
 
-@dataclass(frozen=True)
-class HeightMap:
-    """Highest scene surface per grid cell, world Z up, metres.
-
-    Attributes:
-        heights: (H, W) float32; ``heights[i, j]`` covers ``x in [origin_x + j * cell_m, +cell_m)``
-            and ``y in [origin_y + i * cell_m, +cell_m)``; NaN where no surface.
-        origin: (2,) world (x, y) of the corner of cell [0, 0], metres.
-        cell_m: cell size, metres.
-    """
-
-    heights: NDArray[np.float32]
-    origin: NDArray[np.float64]
-    cell_m: float
-
-    def __post_init__(self) -> None:
-        h = np.array(self.heights, dtype=np.float32, copy=True)
-        o = np.array(self.origin, dtype=np.float64, copy=True).reshape(2)
-        h.setflags(write=False)
-        o.setflags(write=False)
-        object.__setattr__(self, "heights", h)
-        object.__setattr__(self, "origin", o)
-        if h.ndim != 2 or not self.cell_m > 0:
-            raise ValueError(f"heights must be (H, W) and cell_m > 0; got {h.shape}, {self.cell_m}")
-
-
-def scene_heightmap(vertices: NDArray, faces: NDArray, *, cell_m: float = 0.05, subsamples: int = 3,
-                    margin_m: float = 0.0) -> HeightMap:
-    """Height map of a triangle mesh (Z up): the highest surface in each ``cell_m`` cell.
-
-    Rays are cast straight down at ``subsamples x subsamples`` points spread evenly inside every
-    cell (never on its border, so a wall standing on a cell border does not raise the cell next
-    to it) and the highest hit is kept. Cells with no hit are NaN. The grid covers the mesh's xy
-    bounding box grown by ``margin_m``.
-    """
-    import open3d as o3d
-
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if len(v) == 0 or len(f) == 0:
-        raise ValueError("the mesh is empty")
-    lo = v[:, :2].min(axis=0) - margin_m
-    W, H = np.maximum(np.ceil((v[:, :2].max(axis=0) + margin_m - lo) / cell_m).astype(int), 1)
-    # Sub-sample centres inside each cell, as fractions of the cell.
-    frac = (np.arange(subsamples) + 0.5) / subsamples
-    ii, jj, a, b = np.meshgrid(np.arange(H), np.arange(W), frac, frac, indexing="ij")
-    x = lo[0] + (jj + b) * cell_m
-    y = lo[1] + (ii + a) * cell_m
-    top = v[:, 2].max() + 1.0
-    rays = np.stack([x, y, np.full_like(x, top), np.zeros_like(x), np.zeros_like(x), -np.ones_like(x)], axis=-1)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
-    t = scene.cast_rays(o3d.core.Tensor(rays.reshape(-1, 6).astype(np.float32)))["t_hit"].numpy()
-    z = np.where(np.isfinite(t), top - t, -np.inf).reshape(H, W, -1).max(axis=-1)
-    heights = np.where(np.isfinite(z), z, np.nan).astype(np.float32)
-    return HeightMap(heights=heights, origin=lo, cell_m=float(cell_m))
-
-
 def write_heightmap(path: str | Path, hm: HeightMap) -> Path:
     """Write ``heights`` (H, W) float32, ``origin`` (2,), ``cell_m`` (), ``version`` () as npz."""
     write_npz(path, heights=hm.heights, origin=hm.origin, cell_m=np.array(hm.cell_m), version=np.array(MIMICKIT_EXPORT_VERSION))
@@ -245,6 +189,23 @@ def egocentric_heightmap(heightmap: HeightMap, xy: NDArray, yaw: NDArray, size: 
 
 # ------------------------------------------------------------------------------------ bundle
 
+#: Surfaces higher than the performer's highest joint plus this are no support (ceilings, lamps),
+#: metres: the head joint sits ~0.1 m below the top of the head, and a raised arm stays below it.
+SUPPORT_CAP_ABOVE_JOINTS_M = 0.5
+
+
+def motion_support_heightmap(vertices: NDArray, faces: NDArray, params: SmplParams, model, *,
+                             cell_m: float = 0.05) -> HeightMap:
+    """The scene's support height map for a motion: :func:`support_heightmap` capped at the
+    performer's highest joint over the motion plus :data:`SUPPORT_CAP_ABOVE_JOINTS_M`.
+
+    The plain :func:`scene_heightmap` keeps the highest surface per cell, which indoors is the
+    ceiling everywhere: a policy would see a flat world 2.5-3 m up.
+    """
+    joints = model.from_params(params).joints.detach().cpu().numpy() if len(params) else np.zeros((1, 24, 3))
+    return support_heightmap(vertices, faces, float(np.max(joints[..., 2])) + SUPPORT_CAP_ABOVE_JOINTS_M, cell_m=cell_m)
+
+
 
 def write_mimickit(out_dir: str | Path, params: SmplParams, model, scene: tuple | None = None, *, name: str = "motion",
                    loop_mode: str = "clamp", cell_m: float = 0.05, frames: NDArray | None = None) -> Path:
@@ -262,6 +223,6 @@ def write_mimickit(out_dir: str | Path, params: SmplParams, model, scene: tuple 
         write_json(tmp / f"{name}_skeleton.json", humanoid_skeleton(rest, model.parents))
         if scene is not None:
             write_text(tmp / "scene.obj", obj_text(scene[0], scene[1]))
-            write_heightmap(tmp / "scene_heightmap.npz", scene_heightmap(scene[0], scene[1], cell_m=cell_m))
+            write_heightmap(tmp / "scene_heightmap.npz", motion_support_heightmap(scene[0], scene[1], params, model, cell_m=cell_m))
     log.info("wrote MimicKit bundle %s (%d frames)", out_dir, len(params))
     return out_dir

@@ -322,16 +322,13 @@ def ground_heightmap(vertices: NDArray, faces: NDArray, joints: NDArray, cell_m:
                      headroom_m: float = 0.25) -> HeightMap:
     """The scene's height map of what the performer can stand or sit on.
 
-    :func:`embodmocap.export.mimickit.scene_heightmap` keeps the highest surface of each cell,
-    which indoors is the ceiling; so triangles whose centre is higher than the performer's highest
-    joint over the sequence plus ``headroom_m`` are left out first (ceilings, lamps, the top of
-    tall shelves). ``joints`` (T, 24, 3) world."""
-    from embodmocap.export.mimickit import scene_heightmap
+    :func:`embodmocap.geometry.heightmap.support_heightmap` capped at the performer's highest joint
+    over the sequence plus ``headroom_m`` (the plain highest-surface map is the ceiling indoors);
+    walls rising through the cap stay solid at the cap. ``joints`` (T, 24, 3) world."""
+    from embodmocap.geometry.heightmap import support_heightmap
 
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
     cap = float(np.nanmax(np.asarray(joints)[..., 2])) + headroom_m
-    keep = v[f].mean(axis=1)[:, 2] < cap
-    if not keep.any():
-        raise ValueError("no scene surface below the performer's head: is the scene Z up, in metres?")
-    return scene_heightmap(v, f[keep], cell_m=cell_m)
+    try:
+        return support_heightmap(vertices, faces, cap, cell_m=cell_m)
+    except ValueError:
+        raise ValueError("no scene surface below the performer's head: is the scene Z up, in metres?") from None
