@@ -51,7 +51,7 @@ class ScaleConfig:
     """A pixel whose 3x3 point-map depths spread more than this fraction of its depth is on a depth
     edge (person against background, an object in front) and is left out."""
     min_frame_samples: int = 10
-    """A frame with fewer usable body pixels than this does not vote."""
+    """A frame whose person mask covers fewer point-map pixels than this does not vote."""
     min_samples: int = 50
     """Fewer (pixel, frame) samples in a segment than this: no metric scale (the segment stays in
     the model's units, its frames flagged invalid)."""
