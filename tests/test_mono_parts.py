@@ -105,4 +105,7 @@ def test_scale_summary_is_a_median_of_frame_medians():
     frames = [np.full(100, 1.0), np.full(10, 2.0), np.full(10, 2.0), np.full(5, 100.0)]  # the last frame has too few
     s = summarise(frames, min_frame_samples=10)
     assert s["scale"] == 2.0 and s["frames"] == 3 and s["samples"] == 120
+    # Frames vote by their mask's size, not by their own sample count.
+    s = summarise(frames, np.array([50, 50, 5, 50]), min_frame_samples=10)
+    assert s["frames"] == 3 and s["scale"] == 2.0 and s["samples"] == 115
     assert np.isnan(summarise([])["scale"])

@@ -132,6 +132,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     capture = open_capture(entry.views[view].capture)
     raw = np.asarray(cams.raw_frames, dtype=np.int64)
     ratios: dict[int, list] = {}
+    covered: dict[int, list] = {}
     pts_acc: list[tuple[int, np.ndarray, np.ndarray]] = []  # (segment, stitched points, colours)
     ply_budget = max(1, cfg.ply_points // max(1, len(range(0, T, cfg.ply_frame_stride))))
 
@@ -145,9 +146,10 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             with torch.no_grad():
                 out = model.forward(hum.betas[f], hum.global_orient[f], hum.body_pose[f], hum.transl[f], dtype=torch.float64)
             masks = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[..., :W_rgb].astype(bool)
-            r = depth_ratios(out.vertices.numpy(), np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
+            r, cov = depth_ratios(out.vertices.numpy(), np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
                              masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
             ratios.setdefault(segment, []).extend(r)
+            covered.setdefault(segment, []).extend(cov)
         # coloured points of every ply_frame_stride-th frame (not the person: scene points only)
         H, W = pred.conf.shape[1:]
         rows, cols = grid(H, W, ply_budget)
@@ -177,7 +179,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     M_seg = {}
     for g in range(n_seg):
         fr = np.flatnonzero(res.segment == g)
-        summ = summarise(ratios.get(g, []), cfg.scale.min_frame_samples)
+        summ = summarise(ratios.get(g, []), np.asarray(covered.get(g, []), dtype=np.int64), cfg.scale.min_frame_samples)
         if res.metric:
             m = 1.0  # the model's units are metres already; the body's figure is a check
         else:
