@@ -6,6 +6,10 @@ and ``broken`` (its scene capture lost its poses file). Two local workers; the w
 outputs equal those of `embodmocap run` on the same capture alone; ``broken`` fails alone with its
 cause in the catalog; a second batch redoes nothing; the catalog's rows match the sessions' files;
 SequenceDataset windows match smpl_world.npz, also through DataLoader workers.
+
+With Ray: Ctrl-C in the middle of Stage III stops cleanly (as with the local pool) and the next
+batch resumes; a Ray worker killed in the middle of Stage III is retried with nothing lost; `batch
+--address` runs on a Ray head started by `ray start --head`.
 """
 
 from __future__ import annotations

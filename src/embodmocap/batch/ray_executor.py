@@ -77,9 +77,10 @@ def _remote_run(task: Task, cfg: PipelineConfig, force: bool, log_file: str | No
         try:
             return run_task(task, cfg, force, log_file, gate=gate)
         finally:
+            # Not joined: a look at the flag in flight (the actor may still be starting) must not
+            # delay the result. The thread ends after that look; a request it makes then finds
+            # this task's gate closed and does nothing.
             done.set()
-            if watcher.is_alive():
-                watcher.join(1.0)
 
 
 class RayExecutor:
