@@ -26,9 +26,9 @@ from embodmocap.evaluate.report import ReportConfig
 from embodmocap.evaluate.session import EvaluateConfig
 from embodmocap.export.config import ExportConfig
 from embodmocap.motion.config import MotionConfig
-from embodmocap.mono.config import MonoConfig
+from embodmocap.mono.commands import Mono
 from embodmocap.pipeline import PipelineConfig
-from embodmocap.robot.config import RetargetConfig
+from embodmocap.robot.commands import RobotRetarget
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.sim.commands import SimCheck, SimEval, SimTrain
 from embodmocap.synth.config import SynthConfig
@@ -390,33 +390,6 @@ class Motion:
 
 
 @dataclass(frozen=True)
-class Mono:
-    """Monocular pipeline: one view's video -> camera path, scene points and SMPL motion in a metric,
-    Z-up world (chunked scene model stitched by weighted Umeyama, metric scale from the body)."""
-
-    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
-    """Session folder (holds session.toml); Stage II of the sequence must be done."""
-    seq: str | None = None
-    """Sequence to process; needed only when the session has several."""
-    view: Literal["v1", "v2"] = "v1"
-    """The view whose video is used."""
-    force: bool = False
-    """Redo every step even when its outputs are up to date."""
-    config: Annotated[MonoConfig, tyro.conf.arg(name="")] = MonoConfig()
-    """Pipeline settings."""
-
-    def run(self) -> int:
-        from embodmocap.mono.stage import run
-
-        out = run(self.config, self.session, self.seq, self.view, force=self.force)
-        print(f"sequence {out.name} {out.view}: monocular outputs in {out.layout.root}")
-        for k, v in out.figures.items():
-            if k != "chunks":
-                print(f"  {k}: {v}")
-        return 0
-
-
-@dataclass(frozen=True)
 class BodyMakeTestModel:
     """Generate the built-in body model (SMPL file layout; needs no licensed file)."""
 
@@ -462,32 +435,7 @@ class SessionImport:
         return 0
 
 
-@dataclass(frozen=True)
-class RobotRetarget:
-    """Retarget a fitted sequence to a humanoid robot (BeyondMimic/mjlab CSV + npz, GMR pkl, scene MJCF, report)."""
 
-    session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
-    """Session folder (holds session.toml)."""
-    seq: str | None = None
-    """Sequence to retarget; needed only when the session has several."""
-    robot: str = "g1"
-    """Built-in robot (g1: the Unitree G1 shipped in the mjlab wheel)."""
-    robot_config: Path | None = None
-    """A robot config TOML (docs/robot.md) instead of a built-in robot."""
-    out: Path | None = None
-    """Output folder; default SESSION/sequences/SEQ/robot/ROBOT/."""
-    force: bool = False
-    """Redo every step even when its outputs are up to date."""
-    config: Annotated[RetargetConfig, tyro.conf.arg(name="")] = RetargetConfig()
-    """Retargeting settings."""
-
-    def run(self) -> int:
-        from embodmocap.robot.stage import retarget_sequence
-
-        path = retarget_sequence(self.session, self.seq, robot=self.robot, robot_config_path=self.robot_config,
-                                 config=self.config, out=self.out, force=self.force)
-        print(f"wrote {path}")
-        return 0
 
 
 #: The subcommands; tyro turns each dataclass (and its field docstrings) into options and help.
