@@ -188,7 +188,10 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
             cfg.smplify.reproj_scale_px, min_conf)
         n_propagated = int(carried.sum())
     n_turned = 0
-    if cfg.turn_unplaced and not valid.all():
+    # Only a keypoint start holds a neighbour's orientation there: a body prior's own estimate for
+    # the frame is kept (measured on the hard outdoor seed: the search from one view with swapped
+    # limbs turned the prior's start up to 115 degrees the wrong way).
+    if cfg.turn_unplaced and not priors and not valid.all():
         from embodmocap.motion.smplify import KeypointBody
         from embodmocap.motion.unplaced import turn_unplaced
 
