@@ -49,6 +49,9 @@ CAPTURE_METHODS = ("monocular", "single_v1", "single_v2", "dual")
 ABLATIONS = ("no_track", "no_chamfer", "no_reproj", "no_smooth", "no_kp3d", "all")
 _ERR_KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500", "w_mpjpe_mm_c1000",
              "wa_mpjpe_mm_c1000", "rte_pct")
+# The frames the dual fit flagged unplaceable (left out of the figures above, as `evaluate` does) and
+# W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged).
+_FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid")
 _QUALITY_KEYS = ("mask_iou_pct", "reproj_err_px", "depth_err_m2", "jitter", "w_mpjpe_mm")
 
 
@@ -128,20 +131,26 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     ctx = _Context(lay, seq, scene, model)
 
     methods: dict[str, dict] = {}
-    # Dual: the pipeline's own result.
+    # Dual: the pipeline's own result. Frames Stage IV flagged unplaceable (``valid`` False in
+    # smpl_world.npz: e.g. one view sees nobody) are scored as ``evaluate`` scores them: left out,
+    # counted in ``invalid_frames``, with ``w_mpjpe_mm_incl_invalid`` beside. Every capture method
+    # is scored on the same frames, so the rows compare like with like.
     dual_params, frames = ctx.final_params()
-    methods["dual"] = motion_errors(ctx.joints(dual_params), frames, truth)
+    dual_valid = ctx.final_valid()
+    methods["dual"] = motion_errors(ctx.joints(dual_params), frames, truth, dual_valid)
     # Monocular: v1's prior through v1's calibrated cameras.
     mono = ctx.prior_in_world("v1", ctx.cameras("v1"))
-    methods["monocular"] = motion_errors(ctx.joints(mono), np.arange(len(mono)), truth)
+    methods["monocular"] = motion_errors(ctx.joints(mono), np.arange(len(mono)), truth,
+                                         same_frames(frames, dual_valid, len(mono)))
     for v in VIEWS:
         cams = ctx.single_view_cameras(v)
         params = ctx.fit(single_view=v, cameras={v: cams})
-        methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth)
+        methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth,
+                                               same_frames(frames, dual_valid, len(params)))
     result = {"methods": methods}
     if cfg.fit_without_prior:
-        params = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False)
-        result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth)}
+        params, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
+        result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth, valid)}
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -152,6 +161,15 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
             ablation[name] = {k: q.get(k) for k in _QUALITY_KEYS}
         result["ablation"] = ablation
     return result
+
+
+def same_frames(frames: np.ndarray, valid: np.ndarray, n: int) -> np.ndarray:
+    """(n,) bool over sequence frames 0..n-1: False where the dual fit flagged its frame
+    ``frames[i]`` invalid (``valid`` (F,) bool), so another method is scored on the same frames."""
+    out = np.ones(n, dtype=bool)
+    bad = np.asarray(frames)[~np.asarray(valid, dtype=bool)]
+    out[bad[(bad >= 0) & (bad < n)]] = False
+    return out
 
 
 class _Context:
@@ -168,6 +186,11 @@ class _Context:
         from embodmocap.io.smpl_file import read_smpl_npz
 
         return read_smpl_npz(self.sl.smpl_world)
+
+    def final_valid(self) -> np.ndarray:
+        from embodmocap.io.smpl_file import read_smpl_valid
+
+        return read_smpl_valid(self.sl.smpl_world)
 
     def joints(self, params) -> np.ndarray:
         import torch
@@ -233,11 +256,12 @@ class _Context:
     # -- Stage IV variants
 
     def fit(self, cameras: dict[str, np.ndarray], single_view: str | None = None, variant: str = "all",
-            prior: bool = True):
+            prior: bool = True, flagged: bool = False):
         """The motion fitted with ``cameras``: dual view through Stage IV's own steps
         (:func:`embodmocap.motion.solve.triangulate_views`, :func:`~embodmocap.motion.solve.fit_motion`)
         with ``variant``'s terms switched off and, with ``prior=False``, no body prior; or one view
-        (reprojection + smoothness + prior only: no triangulation is possible, so not Stage IV)."""
+        (reprojection + smoothness + prior only: no triangulation is possible, so not Stage IV).
+        ``flagged`` (dual view): return ``(params, valid)``, the (T,) placeable frames too."""
         from embodmocap.motion import solve as s4
         from embodmocap.motion.config import MotionConfig
         from embodmocap.motion.stage import keypoint_layout
@@ -258,7 +282,8 @@ class _Context:
         if not single_view:
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
             priors = self._priors(mcfg.min_prior_fraction) if prior else {}
-            return s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq).params
+            fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
+            return (fitted.params, fitted.valid) if flagged else fitted.params
         if not prior:
             raise ValueError("a single view cannot be fitted without a body prior")
         from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
@@ -277,18 +302,18 @@ def tables_markdown(rows: list[dict]) -> str:
     lines = [f"Seeds: {len(ok)} of {len(rows)} succeeded"
              + "".join(f"; seed {r['seed']} ({r['preset']}) failed: {r['error']}" for r in rows if "error" in r), ""]
     lines += ["### Capture methods (W-/WA-MPJPE in mm at chunk 100 / 500 / 1000, RTE in %)", "",
-              "| method | prior | perception | sessions | " + " | ".join(_ERR_KEYS) + " |",
-              "|---|---|---|---|" + "---|" * len(_ERR_KEYS)]
+              "| method | prior | perception | sessions | " + " | ".join(_ERR_KEYS + _FLAG_KEYS) + " |",
+              "|---|---|---|---|" + "---|" * len(_ERR_KEYS + _FLAG_KEYS)]
     for perception in ("clean", "hard"):
         sel = [r for r in ok if r.get("perception", "clean") == perception]
         if not sel:
             continue
         for m in CAPTURE_METHODS:
-            vals = [np.mean([r["methods"][m][k] for r in sel]) for k in _ERR_KEYS]
+            vals = [np.mean([_err(r["methods"][m], k) for r in sel]) for k in _ERR_KEYS + _FLAG_KEYS]
             lines.append(f"| {m} | realistic | {perception} | {len(sel)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
         nop = [r for r in sel if "methods_no_prior" in r]
         if nop:
-            vals = [np.mean([r["methods_no_prior"]["dual"][k] for r in nop]) for k in _ERR_KEYS]
+            vals = [np.mean([_err(r["methods_no_prior"]["dual"], k) for r in nop]) for k in _ERR_KEYS + _FLAG_KEYS]
             lines.append(f"| dual | none | {perception} | {len(nop)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
     abl = [r for r in ok if "ablation" in r]
     if abl:
@@ -299,6 +324,14 @@ def tables_markdown(rows: list[dict]) -> str:
                     for k in _QUALITY_KEYS]
             lines.append(f"| {a} | " + " | ".join(f"{x:.4g}" for x in vals) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _err(x: dict, k: str) -> float:
+    """One figure of a method's errors; rows written before the valid flags were scored count 0
+    invalid frames, and W-MPJPE with the flagged frames kept is W-MPJPE when none was flagged."""
+    if k == "w_mpjpe_mm_incl_invalid":
+        return x.get(k, x["w_mpjpe_mm"])
+    return x.get(k, 0) if k == "invalid_frames" else x[k]
 
 
 def summary(result: dict) -> str:

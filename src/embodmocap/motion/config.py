@@ -225,6 +225,11 @@ class MotionConfig:
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that
     (:mod:`embodmocap.motion.propagate`)."""
+    turn_unplaced: bool = True
+    """Start the frames that cannot be placed (see ``min_valid_joints``) facing the way the views
+    that still see them say: their held orientation turned about Z to the turn whose keypoints
+    reproject best (:mod:`embodmocap.motion.unplaced`). Keypoint starts only: a body prior's
+    own orientation for those frames is kept."""
     init_median_frames: int = 0
     """The keypoint start (not the fit) reads the 3D keypoints through a running median over this
     many frames (0 or 1 = off): a detector's one-frame blunders do not bend the starting limbs."""

@@ -187,6 +187,19 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
             np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
             cfg.smplify.reproj_scale_px, min_conf)
         n_propagated = int(carried.sum())
+    n_turned = 0
+    # Only a keypoint start holds a neighbour's orientation there: a body prior's own estimate for
+    # the frame is kept (measured on the hard outdoor seed: the search from one view with swapped
+    # limbs turned the prior's start up to 115 degrees the wrong way).
+    if cfg.turn_unplaced and not priors and not valid.all():
+        from embodmocap.motion.smplify import KeypointBody
+        from embodmocap.motion.unplaced import turn_unplaced
+
+        # Unplaceable frames hold a neighbour's orientation; face them the way the views that see them say.
+        init, turn = turn_unplaced(
+            KeypointBody(model, layout=layout), init, valid, np.stack([cams[v]["K"] for v in VIEWS]),
+            np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.reproj_scale_px, min_conf)
+        n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
     figures = {
@@ -195,6 +208,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         "keypoint_layout": layout,
         "points_dropped_bone_length": int(gated.sum()),
         "limb_starts_propagated": n_propagated,
+        "unplaced_frames_turned": n_turned,
         "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
         "terms_before": res.terms_before, "terms_after": res.terms_after,
         **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},

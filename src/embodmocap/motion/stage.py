@@ -104,7 +104,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
                          cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol,
-                         cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.kp3d_conf,
+                         cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.turn_unplaced, cfg.kp3d_conf,
                          cfg.init_median_frames, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
