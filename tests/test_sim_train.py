@@ -18,12 +18,15 @@ def test_smoke_training_raises_the_mean_return_and_eval_writes_the_table(sim_ses
     from embodmocap.cli import main
 
     run = tmp_path / "run"
-    assert main(["sim", "train", str(sim_session), "--out", str(run), "--steps", "6144", "--num-envs", "1",
-                 "--n-steps", "512", "--batch-size", "256", "--checkpoint-every", "2048"]) == 0
+    assert main(["sim", "train", str(sim_session), "--out", str(run), "--steps", "16384", "--num-envs", "1",
+                 "--n-steps", "512", "--batch-size", "256", "--checkpoint-every", "4096"]) == 0
     prog = json.loads((run / "progress.json").read_text())
     assert len(prog["ep_rew_mean"]) >= 10
     first, last = sum(prog["ep_rew_mean"][:3]) / 3, sum(prog["ep_rew_mean"][-3:]) / 3
-    assert last > first, prog["ep_rew_mean"]  # measured: 6.25 -> 6.81 (episodes 25 -> 28 steps)
+    # 6,144 steps were too few: the trend was within run-to-run noise (6.25 -> 6.81 once, 6.49 ->
+    # 6.36 another time). Measured at 16,384 steps: 6.25 -> 7.08, episodes 25 -> 30 steps.
+    assert last > first, prog["ep_rew_mean"]
+    assert sum(prog["ep_len_mean"][-3:]) > sum(prog["ep_len_mean"][:3]), prog["ep_len_mean"]
     assert (run / "policy.zip").is_file() and list((run / "checkpoints").glob("policy_*_steps.zip"))
     assert list((run / "tb").rglob("events.out.tfevents.*"))
     assert main(["sim", "eval", str(run / "policy.zip"), "--episodes", "3"]) == 0
