@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from embodmocap.geometry.similarity import weighted_umeyama
+
 F = NDArray[np.float64]
 
 #: The four SMPL foot-sole vertices (left heel, left toe, right heel, right toe) GVHMR and WHAM
@@ -55,24 +57,8 @@ def umeyama(src: ArrayLike, dst: ArrayLike, with_scale: bool = True) -> tuple[F,
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
         raise ValueError(f"umeyama needs src and dst of the same shape (..., N, 3); got {src.shape}, {dst.shape}")
-    mu_s, mu_d = src.mean(axis=-2), dst.mean(axis=-2)
-    x, y = src - mu_s[..., None, :], dst - mu_d[..., None, :]
-    n = src.shape[-2]
-    sigma = np.einsum("...ni,...nj->...ij", y, x) / n
-    U, D, Vt = np.linalg.svd(sigma)
-    sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    sign = np.where(sign == 0, 1.0, sign)  # rank-deficient input: keep the plain solution
-    S = np.ones(D.shape)
-    S[..., 2] = sign
-    R = np.einsum("...ij,...j,...jk->...ik", U, S, Vt)
-    if with_scale:
-        var = (x ** 2).sum(axis=(-2, -1)) / n
-        safe = np.where(var > 0, var, 1.0)
-        s = np.where(var > 0, (D * S).sum(axis=-1) / safe, 1.0)
-    else:
-        s = np.ones(src.shape[:-2])
-    t = mu_d - s[..., None] * np.einsum("...ij,...j->...i", R, mu_s)
-    return s, R, t
+    # The shared closed form with all weights equal (the monocular stitching uses its weights).
+    return weighted_umeyama(src, dst, None, with_scale)
 
 
 def _apply_sim(s: F, R: F, t: F, points: F) -> F:

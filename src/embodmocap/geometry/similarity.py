@@ -8,7 +8,7 @@ A similarity maps a point ``x`` to ``s R x + t`` (``s > 0``, ``R`` a rotation). 
 minimise ``sum_i w_i |y_i - (s R x_i + t)|^2``. With ``W = sum w``,
 ``mu_x = sum w x / W``, ``Sigma = sum w (y - mu_y)(x - mu_x)^T / W = U D V^T``,
 ``E = diag(1, 1, sign det(U V^T))``: ``R = U E V^T``, ``s = tr(D E) / (sum w |x - mu_x|^2 / W)``,
-``t = mu_y - s R mu_x``. With all weights equal this is ``evaluate.metrics.umeyama``.
+``t = mu_y - s R mu_x``. With all weights equal this is ``evaluate.metrics.umeyama`` (which calls it).
 """
 
 from __future__ import annotations
