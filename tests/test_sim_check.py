@@ -125,3 +125,41 @@ def test_sim_check_without_a_fit_names_the_file_and_the_command(sim_session, tmp
     assert main(["sim", "check", str(work)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "smpl_world.npz" in err and "embodmocap motion" in err
+
+
+def test_rerun_and_a_copy_reached_by_a_relative_path_redo_nothing_and_keep_the_bytes(sim_session, tmp_path, monkeypatch,
+                                                                                    caplog):
+    import logging
+    import shutil
+    import subprocess
+
+    from embodmocap.cli import main
+
+    work = tmp_path / "s"
+    shutil.copytree(sim_session, work, symlinks=True)
+    assert main(["sim", "check", str(work)]) == 0
+    out = work / "sequences" / "seq0" / "sim" / "sim_check.json"
+    first = out.read_bytes()
+    man = json.loads((out.parent / "manifest.json").read_text())
+    assert man["status"] == "ok" and man["steps"]["check"]["seconds"] > 0
+    assert "seconds" not in json.loads(first)["summary"]  # wall time lives in the manifest
+    finished = man["steps"]["check"]["finished"]
+    subprocess.run(["cp", "-a", str(work), str(tmp_path / "copy")], check=True)
+    monkeypatch.chdir(tmp_path)
+    for session in (str(work), "copy"):
+        assert main(["sim", "check", session]) == 0
+    copy_out = tmp_path / "copy" / "sequences" / "seq0" / "sim" / "sim_check.json"
+    assert out.read_bytes() == first and copy_out.read_bytes() == first
+    for root in (work, tmp_path / "copy"):
+        m = json.loads((root / "sequences" / "seq0" / "sim" / "manifest.json").read_text())
+        assert m["steps"]["check"]["finished"] == finished  # skipped, not redone
+    # A fresh run on an untouched copy gives the same bytes; --force redoes it.
+    fresh = tmp_path / "fresh"
+    shutil.copytree(sim_session, fresh, symlinks=True)
+    shutil.rmtree(fresh / "sequences" / "seq0" / "sim", ignore_errors=True)
+    assert main(["sim", "check", str(fresh)]) == 0
+    assert (fresh / "sequences" / "seq0" / "sim" / "sim_check.json").read_bytes() == first
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="embodmocap.io.stage_manifest"):
+        assert main(["sim", "check", str(work), "--force"]) == 0
+    assert "check done in" in caplog.text  # the step ran again

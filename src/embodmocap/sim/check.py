@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.export.mimickit import HUMANOID_TO_SMPL
+from embodmocap.io.stage_manifest import tracked_stage
 from embodmocap.sim.config import HumanoidConfig, SimCheckConfig
 from embodmocap.sim.session import SIM_FORMAT_VERSION, SimSequence, body_vertices, load_sequence
 
@@ -273,40 +274,57 @@ def vertical_repair(sq: SimSequence, per_frame: dict, cfg: SimCheckConfig = SimC
     return np.asarray(spsolve(A.tocsc(), w * g))
 
 
+@tracked_stage
 def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig = SimCheckConfig(),
-              repair: bool = False) -> Path:
+              repair: bool = False, *, force: bool = False) -> Path:
     """Run the check on a sequence of a session and write ``sequences/<seq>/sim/sim_check.json``.
 
     With ``repair``, also :func:`vertical_repair` the motion, check it again, write it to
     ``sequences/<seq>/sim/smpl_repaired.npz`` (AMASS-style, like ``smpl_world.npz``) and add
     ``repair`` (shift statistics, summary before and after) to the JSON.
+
+    Resumable like the stages (``sim/manifest.json``): a rerun with the same motion, mesh, body
+    model and settings redoes nothing; the check's run time goes to the manifest, not the JSON, so
+    the same input gives the same bytes.
     """
     import dataclasses
 
     from embodmocap.io.atomic import write_json
     from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
 
     sq = load_sequence(session, seq)
-    res = plausibility(sq, cfg)
     path = SessionLayout(sq.session).sequence(sq.name).sim_check
     path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"version": SIM_FORMAT_VERSION, "sequence": sq.name, "frames": np.asarray(sq.frames).tolist(),
-           "config": asdict(cfg), **res}
-    if repair:
-        from embodmocap.export.amass import write_amass
+    sm = StageManifest(path.parent / "manifest.json", "sim", {"check": asdict(cfg), "repair": repair},
+                       inputs=sq.inputs, root=sq.session)
+    fp = fingerprint("sim_check", SIM_FORMAT_VERSION, asdict(cfg), repair, *[path_fingerprint(p) for p in sq.inputs])
+    with sm.step("check", fp, force=force) as st:
+        if not st.run:
+            return path
+        res = plausibility(sq, cfg)
+        res["summary"].pop("seconds")  # wall time: recorded by the manifest
+        doc = {"version": SIM_FORMAT_VERSION, "sequence": sq.name, "frames": np.asarray(sq.frames).tolist(),
+               "config": asdict(cfg), **res}
+        outputs = [path]
+        if repair:
+            from embodmocap.export.amass import write_amass
 
-        shift = vertical_repair(sq, res["per_frame"], cfg)
-        transl = np.array(sq.params.transl)
-        transl[:, 2] += shift
-        fixed = dataclasses.replace(sq.params, transl=transl)
-        after = plausibility(sq.with_params(fixed), cfg)["summary"]
-        out = path.parent / "smpl_repaired.npz"
-        write_amass(out, fixed, frames=np.asarray(sq.frames))
-        doc["repair"] = {"file": out.name, "shift_max_cm": float(np.abs(shift).max() * 100) if len(shift) else 0.0,
-                         "shift_mean_cm": float(np.abs(shift).mean() * 100) if len(shift) else 0.0,
-                         "before": res["summary"], "after": after}
-    write_json(path, doc)
-    s = res["summary"]
+            shift = vertical_repair(sq, res["per_frame"], cfg)
+            transl = np.array(sq.params.transl)
+            transl[:, 2] += shift
+            fixed = dataclasses.replace(sq.params, transl=transl)
+            after = plausibility(sq.with_params(fixed), cfg)["summary"]
+            after.pop("seconds")
+            out = path.parent / "smpl_repaired.npz"
+            write_amass(out, fixed, frames=np.asarray(sq.frames))
+            outputs.append(out)
+            doc["repair"] = {"file": out.name, "shift_max_cm": float(np.abs(shift).max() * 100) if len(shift) else 0.0,
+                             "shift_mean_cm": float(np.abs(shift).mean() * 100) if len(shift) else 0.0,
+                             "before": res["summary"], "after": after}
+        write_json(path, doc)
+        s = res["summary"]
+        st.record(outputs, {k: s[k] for k in ("penetration_max_cm", "floating_max_cm", "foot_skating_mean_cm") if k in s})
     log.info("sim check %s: penetration max %.2f cm, floating max %.2f cm, skating %.2f cm/frame, residual %.2f N/kg",
              sq.name, s["penetration_max_cm"], s["floating_max_cm"], s["foot_skating_mean_cm"],
              s.get("residual_force_n_per_kg_mean", float("nan")))

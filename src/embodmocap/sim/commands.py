@@ -24,13 +24,15 @@ class SimCheck:
     repair: bool = False
     """Also move each frame vertically onto the support (smallest smooth shift), check the result
     and write it to sequences/SEQ/sim/smpl_repaired.npz (before/after in sim_check.json)."""
+    force: bool = False
+    """Redo the check even when sim_check.json is up to date (sim/manifest.json)."""
     config: Annotated[SimCheckConfig, tyro.conf.arg(name="")] = SimCheckConfig()
     """Check settings."""
 
     def run(self) -> int:
         from embodmocap.sim.check import sim_check
 
-        path = sim_check(self.session, self.seq, self.config, repair=self.repair)
+        path = sim_check(self.session, self.seq, self.config, repair=self.repair, force=self.force)
         print(f"wrote {path}")
         return 0
 

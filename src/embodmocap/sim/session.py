@@ -37,6 +37,8 @@ class SimSequence:
         params: world SMPL motion (Z up); frames: (T,) sequence frame numbers.
         body_model: the session's body model.
         scene_vertices: (N, 3), scene_faces: (F, 3) the scene mesh, world metres.
+        inputs: the files it was read from (motion, scene mesh, body model), for fingerprints;
+            empty for a sequence made in memory.
     """
 
     session: Path
@@ -46,6 +48,7 @@ class SimSequence:
     body_model: object
     scene_vertices: NDArray
     scene_faces: NDArray
+    inputs: tuple[Path, ...] = ()
 
     @property
     def rest_joints(self) -> NDArray[np.float64]:
@@ -78,7 +81,8 @@ def load_sequence(session: str | Path, seq: str | None = None) -> SimSequence:
         raise InputError(mesh, "no scene mesh", f"run `embodmocap scene {layout.root}` first")
     v, f, _ = read_mesh_ply(mesh)
     return SimSequence(layout.root, entry.name, params, np.asarray(frames), load_body_model(manifest.body_model),
-                       np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64))
+                       np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64),
+                       inputs=tuple(Path(x) for x in (sl.smpl_world, mesh, manifest.body_model) if x is not None))
 
 
 def body_vertices(body_model, params: SmplParams, chunk: int = 512) -> NDArray[np.float32]:
