@@ -35,6 +35,22 @@ def _register() -> None:
 
 _register()
 
+#: The interaction skills' environments, ``EmbodMocap/Skill-<name>-v0`` (:mod:`.skill_env`).
+SKILL_ENV_IDS = {name: f"EmbodMocap/Skill-{name}-v0" for name in ("follow", "sit", "climb", "lie", "prone", "support")}
+
+
+def _register_skills() -> None:
+    try:
+        import gymnasium
+    except ImportError:
+        return
+    for name, env_id in SKILL_ENV_IDS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(env_id, entry_point="embodmocap.sim.skill_env:SkillEnv", kwargs={"skill": name})
+
+
+_register_skills()
+
 
 def __getattr__(name: str):
     if name == "TrackingEnv":
@@ -45,6 +61,10 @@ def __getattr__(name: str):
         from embodmocap.sim.env import tracking_success
 
         return tracking_success
+    if name == "SkillEnv":
+        from embodmocap.sim.skill_env import SkillEnv
+
+        return SkillEnv
     if name == "export_mjcf":
         from embodmocap.sim.session import export_mjcf
 
