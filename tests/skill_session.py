@@ -6,7 +6,8 @@ Not a test module.
 Targets follow the supplement (and the skills.json contract): sit = 10 cm above the seat's top
 centre, climb = 94 cm above the box top's centre, support = the point of the table's top the hands
 reach (their mean position over the hold, on the top), follow = the pelvis path every 0.1 s. The
-studio scripts no lie or prone on this branch; those clips exist once it does (``script.clips``).
+studio scripts no lie or prone on this branch: stand-in clips (``<skill>_standin``, the sit's
+frames on the bed) exercise those two environments.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from embodmocap.body.model import load_body_model
 from embodmocap.io.atomic import write_json
@@ -79,6 +81,15 @@ def skill_clips(script, spec, joints: np.ndarray) -> list[dict]:
                       "object": furniture_box(t), "target": {"position": [hands[0], hands[1], t.top_z], "path": None,
                                                              "facing": None},
                       "parts": ["left_hand", "right_hand"], "score": 1.0})
+    # Stand-ins for lie and prone, which the studio on this branch does not script: the sit's
+    # frames labelled lie / prone on the bed or sofa, target 10 cm above its top's centre. They
+    # exercise the environments (spaces, steps); no test reads success from them.
+    bed = f.get("bed", f.get("sofa"))
+    if sit and bed is not None and not hasattr(script, "clips"):
+        for skill in ("lie", "prone"):
+            c = dict(next(c for c in clips if c["skill"] == "sit"), id=f"{skill}_standin", skill=skill, object=furniture_box(bed), score=0.0,
+                     target={"position": [bed.centre_xy[0], bed.centre_xy[1], bed.top_z + 0.10], "path": None, "facing": None})
+            clips.append(c)
     walks = [(s, e) for n, s, e in script.segments if n == "walk" and e - s >= FPS]
     if walks:
         s, e = walks[0]
@@ -118,3 +129,11 @@ def make_skill_session(root: Path, seed: int = 0, seconds: float = 24.0, skills_
                    {"format": "embodmocap.skills/1", "session": str(root), "sequence": "seq0", "fps": FPS,
                     "n_frames": len(script.params), "clips": clips, "config": {"written_by": "tests/skill_session.py"}})
     return {"spec": built.spec, "script": script, "clips": clips, "joints": joints}
+
+
+@pytest.fixture(scope="session")
+def skill_session(tmp_path_factory) -> Path:
+    """The 36 s studio session with skills.json (sit, climb, support, follow; lie / prone stand-ins)."""
+    root = tmp_path_factory.mktemp("skills") / "session"
+    make_skill_session(root, seconds=36.0)
+    return root

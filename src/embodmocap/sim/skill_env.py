@@ -132,7 +132,6 @@ def load_skill_clips(session, skill: str, seq: str | None = None, control_hz: fl
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
     from embodmocap.sim.env import _session_folders
-    from embodmocap.sim.session import load_sequence, sequence_mjcf
 
     if skill not in tasks.SKILLS:
         raise ValueError(f"unknown skill {skill!r}: one of {', '.join(tasks.SKILLS)}")
@@ -151,10 +150,8 @@ def load_skill_clips(session, skill: str, seq: str | None = None, control_hz: fl
                 mine = [c for c in doc["clips"] if c.get("skill") == skill]
                 if not mine:
                     continue
-                sq = load_sequence(folder, name)
-                xml, hm, qpos = sequence_mjcf(sq, humanoid, scene, keyframes=False)
+                xml, hm, qpos, fps = _sequence_model(folder, name, humanoid, scene)
                 floor = float(np.nanmin(hm.heights))
-                fps = float(sq.params.fps)
                 for c in mine:
                     # The reference ends with the interaction (its hold's end, when it has one):
                     # a clip that goes on to stand up again would teach the style of leaving.
@@ -172,6 +169,25 @@ def load_skill_clips(session, skill: str, seq: str | None = None, control_hz: fl
         raise InputError(looked[0] if looked else Path(paths[0]), f"no {skill!r} clip in skills.json",
                          f"run `embodmocap skills` on a session with a {skill} interaction, or pick another skill")
     return out
+
+
+_SEQUENCE_CACHE: dict[tuple, tuple] = {}
+
+
+def _sequence_model(folder: Path, name: str, humanoid: HumanoidConfig, scene: SceneCollisionConfig) -> tuple:
+    """``(xml, heightmap, qpos, fps)`` of a sequence, kept for the process: the six environments
+    and a trainer's parallel copies share one build (the height map skins every frame). Keyed by
+    the inputs' paths and modification times, so a refitted sequence is rebuilt."""
+    from embodmocap.sim.session import load_sequence, sequence_mjcf
+
+    sq = load_sequence(folder, name)
+    key = (str(folder.resolve()), name, humanoid, scene,
+           tuple((str(p), p.stat().st_mtime_ns) for p in sq.inputs if p.is_file()))
+    if key not in _SEQUENCE_CACHE:
+        xml, hm, qpos = sequence_mjcf(sq, humanoid, scene, keyframes=False)
+        _SEQUENCE_CACHE.clear()  # one sequence at a time is the common case; bound the memory
+        _SEQUENCE_CACHE[key] = (xml, hm, qpos, float(sq.params.fps))
+    return _SEQUENCE_CACHE[key]
 
 
 def _batch_goal(g: tasks.SkillGoal, time_s: float) -> tasks.SkillGoal:
