@@ -130,16 +130,18 @@ class Discriminator:
             for s in range(0, n, batch):
                 fb = fake_t[torch.as_tensor(order[s:s + batch], device=self.device)]
                 rb = self.real[torch.as_tensor(self.rng.integers(len(self.real), size=len(fb)), device=self.device)]
-                rb = rb.clone().requires_grad_(True)
-                dr, df = self._d(rb), self._d(fb)
+                # The penalty is on the normalised input (what the network sees), as AMP's on its
+                # normalised observations: per raw unit, a near-constant feature would dominate it.
+                rn = ((rb - self.mean) / self.std).requires_grad_(True)
+                dr, df = self.net(rn)[:, 0], self._d(fb)
                 loss = ((dr - 1) ** 2).mean() + ((df + 1) ** 2).mean()
-                g = torch.autograd.grad(dr.sum(), rb, create_graph=True)[0]
+                g = torch.autograd.grad(dr.sum(), rn, create_graph=True)[0]
                 loss = loss + self.grad_penalty * (g ** 2).sum(-1).mean()
                 self.opt.zero_grad()
                 loss.backward()
                 self.opt.step()
-                stats["disc_loss"] += float(loss)
-                stats["d_real"] += float(dr.mean())
+                stats["disc_loss"] += float(loss.detach())
+                stats["d_real"] += float(dr.detach().mean())
                 stats["d_fake"] += float(df.mean())
                 steps += 1
         return {k: v / max(steps, 1) for k, v in stats.items()}

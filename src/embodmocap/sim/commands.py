@@ -53,6 +53,12 @@ class SimTrain:
     def run(self) -> int:
         from embodmocap.sim.train import train
 
+        if self.config.skill is not None:  # an interaction skill: task + AMP style (sim/skill_train.py)
+            from embodmocap.sim.skill_train import train_skill
+
+            out = Path(f"sim_runs/skill_{self.config.skill}") if self.out == Path("sim_runs/tracking") else self.out
+            print(f"wrote {train_skill(list(self.sessions), out, self.config, seq=self.seq)}")
+            return 0
         path = train(list(self.sessions), self.out, self.config, seq=self.seq)
         print(f"wrote {path}")
         return 0
