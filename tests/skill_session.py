@@ -81,15 +81,27 @@ def skill_clips(script, spec, joints: np.ndarray) -> list[dict]:
                       "object": furniture_box(t), "target": {"position": [hands[0], hands[1], t.top_z], "path": None,
                                                              "facing": None},
                       "parts": ["left_hand", "right_hand"], "score": 1.0})
-    # Stand-ins for lie and prone, which the studio on this branch does not script: the sit's
+    # The studio's own lie / prone clips, where it scripts them (``MotionScript.clips``): target 10 cm
+    # above the centre of the bed's top (the supplement: "typically centered on the surface").
+    for sc in getattr(script, "clips", []):
+        if sc.skill in ("lie", "prone") and sc.furniture in f:
+            b = f[sc.furniture]
+            clips.append({"id": f"{sc.skill}_{sum(c['skill'] == sc.skill for c in clips):02d}", "skill": sc.skill,
+                          "start": int(sc.start), "end": int(sc.end), "contact_start": int(sc.contact_start),
+                          "contact_end": int(sc.contact_end), "object": furniture_box(b),
+                          "target": {"position": [b.centre_xy[0], b.centre_xy[1], b.top_z + 0.10], "path": None,
+                                     "facing": None}, "parts": ["back" if sc.skill == "lie" else "front"], "score": 1.0})
+    # Stand-ins for lie and prone where the studio scripted none (this branch's studio cannot): the sit's
     # frames labelled lie / prone on the bed or sofa, target 10 cm above its top's centre. They
     # exercise the environments (spaces, steps); no test reads success from them.
     bed = f.get("bed", f.get("sofa"))
-    if sit and bed is not None and not hasattr(script, "clips"):
-        for skill in ("lie", "prone"):
-            c = dict(next(c for c in clips if c["skill"] == "sit"), id=f"{skill}_standin", skill=skill, object=furniture_box(bed), score=0.0,
-                     target={"position": [bed.centre_xy[0], bed.centre_xy[1], bed.top_z + 0.10], "path": None, "facing": None})
-            clips.append(c)
+    have = {c["skill"] for c in clips}
+    if sit and bed is not None:
+        for skill in sorted({"lie", "prone"} - have):
+            sit_clip = next(c for c in clips if c["skill"] == "sit")
+            clips.append(dict(sit_clip, id=f"{skill}_standin", skill=skill, object=furniture_box(bed), score=0.0,
+                              target={"position": [bed.centre_xy[0], bed.centre_xy[1], bed.top_z + 0.10], "path": None,
+                                      "facing": None}))
     walks = [(s, e) for n, s, e in script.segments if n == "walk" and e - s >= FPS]
     if walks:
         s, e = walks[0]
@@ -102,7 +114,8 @@ def skill_clips(script, spec, joints: np.ndarray) -> list[dict]:
     return sorted(clips, key=lambda c: c["start"])
 
 
-def make_skill_session(root: Path, seed: int = 0, seconds: float = 24.0, skills_json: bool = True) -> dict:
+def make_skill_session(root: Path, seed: int = 0, seconds: float = 24.0, skills_json: bool = True,
+                       interactions: tuple[str, ...] = ("chair", "box", "table")) -> dict:
     """Write the session into ``root``; returns the furniture spec and the script."""
     import torch
 
@@ -110,7 +123,7 @@ def make_skill_session(root: Path, seed: int = 0, seconds: float = 24.0, skills_
     built = build_scene("indoor", np.random.default_rng(seed))
     betas = np.zeros(10)
     script = script_motion(built.spec, body, betas, seconds, FPS, np.random.default_rng(seed),
-                           MotionScriptConfig(idle_s=0.5, hold_s=1.0, interactions=("chair", "box", "table")))
+                           MotionScriptConfig(idle_s=0.5, hold_s=1.0, interactions=interactions))
     root = Path(root)
     lay = SessionLayout(root)
     for d in ("captures/scene0", "captures/v1", "captures/v2"):

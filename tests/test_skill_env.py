@@ -107,3 +107,30 @@ def test_missing_skills_json_names_the_command(skill_session, tmp_path):
         gym.make("EmbodMocap/Skill-sit-v0", session=str(copy))
     with pytest.raises(InputError, match="skills.json"):
         load_skill_clips(copy, "sit")
+
+
+@pytest.fixture(scope="module")
+def lie_prone_session(tmp_path_factory):
+    """A room with a bed where the studio scripts lying on the back and on the front."""
+    from embodmocap.synth import motion
+    from skill_session import make_skill_session
+
+    if "lie" not in getattr(motion, "INTERACTIONS", ()):
+        pytest.skip("the studio on this branch scripts no lie / prone (the clip half of issue 17 adds them)")
+    root = tmp_path_factory.mktemp("lie") / "session"
+    make_skill_session(root, seed=1, seconds=30.0, interactions=("lie", "prone"))
+    return root
+
+
+@pytest.mark.parametrize("skill", ["lie", "prone"])
+def test_lie_and_prone_reference_end_frames_succeed(lie_prone_session, skill):
+    from gymnasium.utils.env_checker import check_env
+
+    u = gym.make(f"EmbodMocap/Skill-{skill}-v0", session=str(lie_prone_session)).unwrapped
+    assert not any(c.id.endswith("standin") for c in u.clips)
+    check_env(u, skip_render_check=True)
+    for c in range(len(u.clips)):
+        ok, err = u.reference_result(c)
+        assert ok and err < 0.3, (skill, u.clips[c].id, err)
+        ok0, err0 = u.reference_result(c, 0)
+        assert not ok0 and err0 > err
