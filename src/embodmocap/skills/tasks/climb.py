@@ -10,7 +10,7 @@
 
 from __future__ import annotations
 
-from embodmocap.skills.tasks.common import far_speed_reward, norm, ops, sqnorm
+from embodmocap.skills.tasks.common import far_speed_reward, heading_frame, norm, ops, sqnorm
 from embodmocap.skills.tasks.objects import local_points
 
 OBS_SIZE = 27
@@ -23,8 +23,9 @@ K_NEAR, K_FAR, K_FOOT, FAR_SPEED = 10.0, 2.0, 50.0, 1.5
 
 def observation(root_pos, root_rot, target, box_corners):
     """(N, 27) task observation."""
-    return ops(root_pos).cat([local_points(target[:, None], root_pos, root_rot),
-                              local_points(box_corners, root_pos, root_rot)], -1)
+    H = heading_frame(root_rot)
+    return ops(root_pos).cat([local_points(target[:, None], root_pos, root_rot, H),
+                              local_points(box_corners, root_pos, root_rot, H)], -1)
 
 
 def reward(root_pos, root_vel, target, box_center, foot_pos):

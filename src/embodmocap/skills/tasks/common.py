@@ -137,19 +137,20 @@ def heading_frame(root_rot):
     return o.stack([x, y, z], -1)
 
 
-def to_heading(vectors, root_rot):
-    """World vectors (N, ..., 3) into the heading frame (rotation only)."""
-    H = heading_frame(root_rot)
+def to_heading(vectors, root_rot, H=None):
+    """World vectors (N, ..., 3) into the heading frame (rotation only); ``H`` the heading frame
+    (:func:`heading_frame`) when already at hand."""
+    H = heading_frame(root_rot) if H is None else H
     shape = vectors.shape
     v = vectors.reshape(shape[0], -1, 3)
     return (v @ H).reshape(shape)
 
 
-def points_to_heading(points, root_pos, root_rot):
+def points_to_heading(points, root_pos, root_rot, H=None):
     """World points (N, ..., 3) into the heading frame (relative to the root, then rotated)."""
     shape = points.shape
     p = points.reshape(shape[0], -1, 3) - root_pos[:, None, :]
-    return to_heading(p, root_rot).reshape(shape)
+    return to_heading(p, root_rot, H).reshape(shape)
 
 
 def facing_2d(root_rot):

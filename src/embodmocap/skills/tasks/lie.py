@@ -21,7 +21,7 @@ surface (the supplement's "Lie Skill").
 
 from __future__ import annotations
 
-from embodmocap.skills.tasks.common import far_speed_reward, facing_2d, norm, ops, sqnorm, unit
+from embodmocap.skills.tasks.common import facing_2d, far_speed_reward, heading_frame, norm, ops, sqnorm, unit
 from embodmocap.skills.tasks.objects import local_facing, local_points, local_rotation6d
 
 OBS_SIZE = 38
@@ -35,10 +35,11 @@ K_WALK, K_VEL, K_FACING, K_STAND, K_POS, K_HEAD, K_ALIGN, SPEED = 0.5, 2.0, 2.0,
 
 def observation(root_pos, root_rot, target, stand_point, box_rot, box_corners):
     """(N, 38) task observation."""
+    H = heading_frame(root_rot)
     o = ops(root_pos)
-    return o.cat([local_points(target[:, None], root_pos, root_rot), local_points(stand_point[:, None], root_pos, root_rot),
-                  local_rotation6d(box_rot, root_rot), local_facing(box_rot, root_rot),
-                  local_points(box_corners, root_pos, root_rot)], -1)
+    return o.cat([local_points(target[:, None], root_pos, root_rot, H), local_points(stand_point[:, None], root_pos, root_rot, H),
+                  local_rotation6d(box_rot, root_rot, H), local_facing(box_rot, root_rot, H),
+                  local_points(box_corners, root_pos, root_rot, H)], -1)
 
 
 def approach_reward(root_pos, root_rot, root_vel, goal):

@@ -17,7 +17,7 @@
 
 from __future__ import annotations
 
-from embodmocap.skills.tasks.common import norm, ops, sqnorm
+from embodmocap.skills.tasks.common import heading_frame, norm, ops, sqnorm
 from embodmocap.skills.tasks.lie import alignment_reward, approach_reward
 from embodmocap.skills.tasks.objects import local_facing, local_points, local_rotation6d
 
@@ -31,9 +31,10 @@ K_POS, K_DOWN = 10.0, 2.0
 
 def observation(root_pos, root_rot, target, box_rot, box_corners):
     """(N, 35) task observation."""
+    H = heading_frame(root_rot)
     o = ops(root_pos)
-    return o.cat([local_points(target[:, None], root_pos, root_rot), local_rotation6d(box_rot, root_rot),
-                  local_facing(box_rot, root_rot), local_points(box_corners, root_pos, root_rot)], -1)
+    return o.cat([local_points(target[:, None], root_pos, root_rot, H), local_rotation6d(box_rot, root_rot, H),
+                  local_facing(box_rot, root_rot, H), local_points(box_corners, root_pos, root_rot, H)], -1)
 
 
 def reward(root_pos, root_rot, root_vel, target, stand_z, long_axis):

@@ -13,7 +13,7 @@
 
 from __future__ import annotations
 
-from embodmocap.skills.tasks.common import far_speed_reward, norm, ops, sqnorm
+from embodmocap.skills.tasks.common import far_speed_reward, heading_frame, norm, ops, sqnorm
 from embodmocap.skills.tasks.objects import local_facing, local_points, local_rotation6d
 
 OBS_SIZE = 38
@@ -26,10 +26,11 @@ K_NEAR, K_FAR, FAR_SPEED = 10.0, 2.0, 1.5
 
 def observation(root_pos, root_rot, target, box_center, box_rot, box_corners):
     """(N, 38) task observation; ``target``/``box_center`` (N, 3), ``box_rot`` (N, 3, 3), ``box_corners`` (N, 8, 3)."""
+    H = heading_frame(root_rot)
     o = ops(root_pos)
-    return o.cat([local_points(target[:, None], root_pos, root_rot), local_points(box_center[:, None], root_pos, root_rot),
-                  local_rotation6d(box_rot, root_rot), local_facing(box_rot, root_rot),
-                  local_points(box_corners, root_pos, root_rot)], -1)
+    return o.cat([local_points(target[:, None], root_pos, root_rot, H), local_points(box_center[:, None], root_pos, root_rot, H),
+                  local_rotation6d(box_rot, root_rot, H), local_facing(box_rot, root_rot, H),
+                  local_points(box_corners, root_pos, root_rot, H)], -1)
 
 
 def reward(root_pos, root_vel, target, box_center):

@@ -17,7 +17,7 @@ supplement's "Support Skill").
 
 from __future__ import annotations
 
-from embodmocap.skills.tasks.common import far_speed_reward, norm, ops, sqnorm
+from embodmocap.skills.tasks.common import far_speed_reward, heading_frame, norm, ops, sqnorm
 from embodmocap.skills.tasks.objects import local_points
 
 OBS_SIZE = 27
@@ -30,8 +30,9 @@ W_H, W_G, W_T, W_O, W_Z = 0.3, 0.2, 0.15, 0.2, 0.15
 
 def observation(root_pos, root_rot, target, box_corners):
     """(N, 27) task observation."""
-    return ops(root_pos).cat([local_points(target[:, None], root_pos, root_rot),
-                              local_points(box_corners, root_pos, root_rot)], -1)
+    H = heading_frame(root_rot)
+    return ops(root_pos).cat([local_points(target[:, None], root_pos, root_rot, H),
+                              local_points(box_corners, root_pos, root_rot, H)], -1)
 
 
 def reward(root_pos, root_rot, root_vel, hand_pos, foot_pos, target, ground_z):
