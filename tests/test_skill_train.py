@@ -67,6 +67,12 @@ def test_smoke_training_runs_and_writes_a_checkpoint(skill_session, tmp_path):
     assert sum(prog["episodes_ended"]) > 0 and all(np.isfinite(prog["disc_loss"]))
     # The discriminator, trained alongside, scores the clip's transitions above the policy's.
     assert np.mean(prog["d_real"][-3:]) > np.mean(prog["d_fake"][-3:])
+    # `sim eval` on a skill policy: the paper's skill table (success rate, contact error, APD).
+    assert main(["sim", "eval", str(run / "policy.zip"), "--episodes", "3"]) == 0
+    ev = json.loads((run / "eval.json").read_text())
+    assert ev["kind"] == "skill" and ev["episodes"] == 3 and len(ev["success"]) == len(ev["error_m"]) == 3
+    assert 0.0 <= ev["success_rate"] <= 100.0 and ev["error_cm_mean"] == pytest.approx(100 * np.mean(ev["error_m"]))
+    assert ev["apd"] > 0 and ev["apd_steps"] >= 1  # sampled actions: the three motions differ
     policy = PPO.load(run / "policy.zip", device="cpu")
     env = SkillEnv(session=skill_session, skill="sit")
     obs, _ = env.reset(seed=0)

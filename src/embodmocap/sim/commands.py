@@ -3,6 +3,7 @@ like every other command; :mod:`embodmocap.cli` lists them. Their work is import
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -80,6 +81,13 @@ class SimEval:
     def run(self) -> int:
         from embodmocap.sim.train import evaluate
 
+        run_json = next((f / "run.json" for f in (self.checkpoint.parent, self.checkpoint.parent.parent)
+                         if (f / "run.json").is_file()), None)
+        if run_json is not None and json.loads(run_json.read_text()).get("kind") == "skill":  # `sim train --skill`
+            from embodmocap.sim.skill_train import evaluate_skill
+
+            print(f"wrote {evaluate_skill(self.checkpoint, episodes=self.episodes, device=self.device)}")
+            return 0
         path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
         print(f"wrote {path}")
         return 0

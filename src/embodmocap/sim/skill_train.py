@@ -165,3 +165,65 @@ def train_skill(sessions: list[str | Path], out: str | Path, cfg: TrainConfig, *
     venv.close()
     log.info("wrote %s", out / "policy.zip")
     return out / "policy.zip"
+
+
+def evaluate_skill(checkpoint: str | Path, *, episodes: int = 32, device: str = "cpu", seed: int = 10_000,
+                   deterministic: bool = False) -> Path:
+    """The paper's skill table for a policy of ``sim train --skill``: success rate (%), contact
+    error (cm, mean over the episodes' ends) and APD of the generated motions; writes
+    ``eval.json`` in the run folder.
+
+    Episodes start as in training (a random clip); actions are sampled from the policy
+    (``deterministic=False``): the diversity APD measures comes from the policy's sampling and the
+    clips, as for the paper's generated samples. APD is over the episodes' first ``T`` steps
+    (``T`` = the shortest episode): body positions relative to the first frame's root (24 x 3)
+    and hinge angles (69) per step.
+    """
+    sb3 = require("stable_baselines3", "sim")
+    import json
+
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from embodmocap.errors import InputError
+    from embodmocap.sim.skill_env import SkillEnv, load_skill_clips
+    from embodmocap.skills.apd import apd
+
+    checkpoint = Path(checkpoint)
+    run = next((f for f in (checkpoint.parent, checkpoint.parent.parent) if (f / "run.json").is_file()), None)
+    if not checkpoint.is_file() or run is None:
+        raise InputError(checkpoint, "not a policy of a skill run (no run.json next to it or one folder up)",
+                         "give RUN/policy.zip written by `embodmocap sim train --skill NAME`")
+    info = json.loads((run / "run.json").read_text())
+    scfg = SkillConfig(**{**info["config"]["skill_task"], "disc_hidden": tuple(info["config"]["skill_task"]["disc_hidden"])})
+    clips = load_skill_clips([Path(s) for s in info["sessions"]], info["skill"], info.get("seq"), scfg.control_hz)
+    env = SkillEnv(clips=clips, skill=info["skill"], config=scfg)
+    policy = sb3.PPO.load(checkpoint, device=device)
+    stats = run / "vecnormalize.pkl"
+    norm = None
+    if checkpoint.name == "policy.zip" and stats.is_file():
+        norm = VecNormalize.load(str(stats), DummyVecEnv([lambda: SkillEnv(clips=clips, skill=info["skill"], config=scfg)]))
+        norm.training = False
+    ends, motions = [], []
+    for e in range(episodes):
+        obs, _ = env.reset(seed=seed + e)
+        root0 = env.data.xpos[1].copy()
+        frames, done, last = [], False, {}
+        while not done:
+            o = norm.normalize_obs(obs[None]) if norm is not None else obs[None]
+            action, _ = policy.predict(o, deterministic=deterministic)
+            obs, _, term, trunc, last = env.step(action[0])
+            done = term or trunc
+            frames.append(np.concatenate([(env.data.xpos[1:] - root0).ravel(), env.data.qpos[7:]]))
+        ends.append((bool(last["success"]), float(last["error_m"])))
+        motions.append(np.asarray(frames))
+    T = min(len(m) for m in motions)
+    feats = np.stack([m[:T] for m in motions])
+    doc = {"version": 1, "kind": "skill", "skill": info["skill"], "checkpoint": str(checkpoint), "episodes": episodes,
+           "deterministic": deterministic, "success_rate": 100.0 * float(np.mean([s for s, _ in ends])),
+           "error_cm_mean": 100.0 * float(np.mean([x for _, x in ends])),
+           "apd": apd(feats[..., :72].reshape(episodes, T, 24, 3), feats[..., 72:].reshape(episodes, T, 23, 3)),
+           "apd_steps": int(T), "success": [s for s, _ in ends], "error_m": [x for _, x in ends]}
+    write_json(run / "eval.json", doc)
+    log.info("eval %s: success %.1f %%, error %.1f cm, APD %.2f over %d episodes", info["skill"], doc["success_rate"],
+             doc["error_cm_mean"], doc["apd"], episodes)
+    return run / "eval.json"
