@@ -22,7 +22,7 @@ from embodmocap.skills.tasks.objects import local_points
 
 OBS_SIZE = 27
 SUCCESS_M = 0.1
-FEET_TOGETHER_M = 0.35
+FEET_TOGETHER_M = 0.4  # the clip finder's "feet together" (skills.config feet_together_m): one definition
 FAR_RADIUS_M = 1.5
 W_F, W_S = 0.4, 0.6
 W_H, W_G, W_T, W_O, W_Z = 0.3, 0.2, 0.15, 0.2, 0.15
