@@ -142,7 +142,7 @@ class Discriminator:
                 self.opt.step()
                 stats["disc_loss"] += float(loss.detach())
                 stats["d_real"] += float(dr.detach().mean())
-                stats["d_fake"] += float(df.mean())
+                stats["d_fake"] += float(df.detach().mean())
                 steps += 1
         return {k: v / max(steps, 1) for k, v in stats.items()}
 
