@@ -134,3 +134,17 @@ def test_lie_and_prone_reference_end_frames_succeed(lie_prone_session, skill):
         assert ok and err < 0.3, (skill, u.clips[c].id, err)
         ok0, err0 = u.reference_result(c, 0)
         assert not ok0 and err0 > err
+
+
+def test_the_feet_are_the_soles(envs):
+    # The feet's height is the sole's (the foot boxes' lowest corner): on the floor standing at the
+    # sit clip's start, on the box top (climb target - 0.94 m) standing on it at the climb's end.
+    u = envs["sit"].unwrapped
+    ref = u.clips[0].ref
+    u.set_state(ref.qpos[0], ref.qvel[0])
+    assert np.allclose(u.character_state().foot_pos[0, :, 2], u.clips[0].floor_z, atol=0.01)
+    u = envs["climb"].unwrapped
+    ref = u.clips[0].ref
+    u.set_state(ref.qpos[-1], ref.qvel[-1])
+    top = u.clips[0].goal.target[0, 2] - 0.94
+    assert np.allclose(u.character_state().foot_pos[0, :, 2], top, atol=0.01)
