@@ -6,6 +6,9 @@
   the residual root force of the fitted motion (:mod:`.check`).
 - :class:`TrackingEnv` (Gymnasium id ``EmbodMocap/SceneTracking-v0``, registered on import):
   the paper's scene-aware tracking task (:mod:`.env`); PPO training and evaluation in :mod:`.train`.
+- :class:`SkillEnv` (Gymnasium ids ``EmbodMocap/Skill-<name>-v0``, :data:`SKILL_ENV_IDS`, registered
+  on import): the six interaction skills (:mod:`.skill_env`, AMP input :mod:`.amp`); PPO + AMP
+  training and evaluation in :mod:`.skill_train` (``sim train --skill NAME``).
 
 Importing this package needs only numpy; MuJoCo, Gymnasium and stable-baselines3 are imported when
 used, with one clear error naming the extra when missing.
