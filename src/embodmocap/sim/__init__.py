@@ -6,6 +6,9 @@
   the residual root force of the fitted motion (:mod:`.check`).
 - :class:`TrackingEnv` (Gymnasium id ``EmbodMocap/SceneTracking-v0``, registered on import):
   the paper's scene-aware tracking task (:mod:`.env`); PPO training and evaluation in :mod:`.train`.
+- :class:`SkillEnv` (Gymnasium ids ``EmbodMocap/Skill-<name>-v0``, :data:`SKILL_ENV_IDS`, registered
+  on import): the six interaction skills (:mod:`.skill_env`, AMP input :mod:`.amp`); PPO + AMP
+  training and evaluation in :mod:`.skill_train` (``sim train --skill NAME``).
 
 Importing this package needs only numpy; MuJoCo, Gymnasium and stable-baselines3 are imported when
 used, with one clear error naming the extra when missing.
@@ -35,6 +38,22 @@ def _register() -> None:
 
 _register()
 
+#: The interaction skills' environments, ``EmbodMocap/Skill-<name>-v0`` (:mod:`.skill_env`).
+SKILL_ENV_IDS = {name: f"EmbodMocap/Skill-{name}-v0" for name in ("follow", "sit", "climb", "lie", "prone", "support")}
+
+
+def _register_skills() -> None:
+    try:
+        import gymnasium
+    except ImportError:
+        return
+    for name, env_id in SKILL_ENV_IDS.items():
+        if env_id not in gymnasium.registry:
+            gymnasium.register(env_id, entry_point="embodmocap.sim.skill_env:SkillEnv", kwargs={"skill": name})
+
+
+_register_skills()
+
 
 def __getattr__(name: str):
     if name == "TrackingEnv":
@@ -45,6 +64,10 @@ def __getattr__(name: str):
         from embodmocap.sim.env import tracking_success
 
         return tracking_success
+    if name == "SkillEnv":
+        from embodmocap.sim.skill_env import SkillEnv
+
+        return SkillEnv
     if name == "export_mjcf":
         from embodmocap.sim.session import export_mjcf
 

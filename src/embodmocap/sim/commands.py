@@ -3,6 +3,7 @@ like every other command; :mod:`embodmocap.cli` lists them. Their work is import
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -53,6 +54,12 @@ class SimTrain:
     def run(self) -> int:
         from embodmocap.sim.train import train
 
+        if self.config.skill is not None:  # an interaction skill: task + AMP style (sim/skill_train.py)
+            from embodmocap.sim.skill_train import train_skill
+
+            out = Path(f"sim_runs/skill_{self.config.skill}") if self.out == Path("sim_runs/tracking") else self.out
+            print(f"wrote {train_skill(list(self.sessions), out, self.config, seq=self.seq)}")
+            return 0
         path = train(list(self.sessions), self.out, self.config, seq=self.seq)
         print(f"wrote {path}")
         return 0
@@ -74,6 +81,13 @@ class SimEval:
     def run(self) -> int:
         from embodmocap.sim.train import evaluate
 
+        run_json = next((f / "run.json" for f in (self.checkpoint.parent, self.checkpoint.parent.parent)
+                         if (f / "run.json").is_file()), None)
+        if run_json is not None and json.loads(run_json.read_text()).get("kind") == "skill":  # `sim train --skill`
+            from embodmocap.sim.skill_train import evaluate_skill
+
+            print(f"wrote {evaluate_skill(self.checkpoint, episodes=self.episodes, device=self.device)}")
+            return 0
         path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
         print(f"wrote {path}")
         return 0

@@ -142,3 +142,35 @@ class TrainConfig:
     """Save a checkpoint every this many environment steps."""
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     """The task."""
+    skill: Literal["follow", "sit", "climb", "lie", "prone", "support"] | None = None
+    """Train this interaction skill (``EmbodMocap/Skill-<name>-v0``: task + AMP style reward, clips
+    from sequences/SEQ/skills/skills.json) instead of the tracking task."""
+    skill_task: SkillConfig = field(default_factory=lambda: SkillConfig())
+    """The skill task and its style reward (with ``skill``)."""
+
+
+@dataclass(frozen=True)
+class SkillConfig:
+    """An interaction skill task (:class:`embodmocap.sim.skill_env.SkillEnv`) and its AMP style reward."""
+
+    episode_s: float = 10.0
+    """Episode length, seconds (the supplement's follow task: 10 s; the same for every skill)."""
+    control_hz: float = 30.0
+    """Policy rate, Hz."""
+    random_start: bool = False
+    """Start each episode at a random frame of the clip's approach (before its contact) instead of
+    its first frame (AMP's reference state initialisation)."""
+    fall_head_m: float = 0.25
+    """End the episode (a fall) when the head is lower than this above the scene's floor, metres."""
+    w_task: float = 0.5
+    """Weight of the task reward in the training reward (TokenHSI / AMP: 0.5)."""
+    w_style: float = 0.5
+    """Weight of the style (discriminator) reward in the training reward (0.5)."""
+    disc_hidden: tuple[int, ...] = (256, 128)
+    """Hidden layer widths of the discriminator MLP."""
+    disc_lr: float = 1e-4
+    """Adam learning rate of the discriminator."""
+    disc_grad_penalty: float = 5.0
+    """Weight of the discriminator's gradient penalty on real transitions (AMP)."""
+    disc_epochs: int = 2
+    """Passes over each rollout's transitions per discriminator update."""
