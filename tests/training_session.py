@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
@@ -61,3 +62,16 @@ def add_stage2_frames(root: Path) -> None:
             write_json(vl.frame_map, {"version": FRAME_MAP_VERSION, "fps": fps, "event_frame": int(raw[0]),
                                       "event_time_s": 0.0, "num_frames": T, "seq_times_s": (np.arange(T) / fps).tolist(),
                                       "raw_frames": raw.tolist(), "dt_s": [0.0] * T, "dropped": [False] * T})
+
+
+@pytest.fixture(scope="session")
+def training_export(tmp_path_factory) -> dict:
+    """A tiny finished session (1 s at 10 fps, 320x240) and its training export, made once per
+    test process: ``session``, ``out`` (the export folder), ``info`` (:func:`make_training_session`).
+    Read only: tests that change something work on a copy."""
+    from embodmocap.export.training import export_training
+
+    session = tmp_path_factory.mktemp("training") / "session"
+    info = make_training_session(session)
+    out = export_training(session, out=session.parent / "export")
+    return {"session": session, "out": out, "info": info}

@@ -1,0 +1,135 @@
+"""Issue 15, item 6: FrameDataset random-access read rate at 640x480 (target >= 200 frames/s on 2
+DataLoader workers), and the training export's own time per frame.
+
+The session is a studio session (640x480 RGB, 256x192 LiDAR depth, 30 fps) whose Stage II-IV
+outputs are written from the studio's truth (``tests/training_session.py``: the read rate does not
+depend on how good the fit is), made once under ``--work`` and reused. Every frame is read in a
+random order (``shuffle=True``) for ``--epochs`` epochs; the first batch of each run (worker start)
+is left out of the rate. Rows: 0 workers (one process), 2 workers, 2 workers in clip mode (8
+consecutive frames per item), and 2 workers without RGB (depth, masks, labels only).
+
+The machine is shared (other jobs run on its 2 cores), so each row also gives the CPU seconds the
+main process and the workers spent and the rate they imply on 2 free cores (``frames_per_s_on_2_free_cores``:
+frames / max(worker CPU / 2, main CPU), worker start-up included).
+
+    OMP_NUM_THREADS=1 PYTHONPATH=src nice .venv/bin/python benchmarks/bench_frame_dataset.py \
+        --work /work/bench/15t --seconds 6 --epochs 3 --repeat 2 --json /work/bench/15t/bench_frame_dataset.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+# The session helper lives with the tests (it writes Stages II-IV from the studio's truth).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+
+def ensure_export(work: Path, seconds: float) -> tuple[Path, dict]:
+    """The training export of a 640x480 studio session under ``work`` (made once); export timing."""
+    from embodmocap.export.training import export_training
+    from embodmocap.synth.config import SynthConfig
+    from training_session import make_training_session
+
+    session = work / f"s640_{seconds:g}s"
+    out = session / "training"
+    timing: dict = {}
+    if not (session / "sequences").is_dir():
+        if session.exists():
+            shutil.rmtree(session)
+        make_training_session(session, SynthConfig(seed=0, seconds=seconds, scene_seconds=2.0))
+    if not (out / "manifest.json").is_file():
+        t0 = time.perf_counter()
+        export_training(session, out=out)
+        timing["export_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    export_training(session, out=out)  # a rerun: every view is up to date
+    timing["rerun_s"] = time.perf_counter() - t0
+    return out, timing
+
+
+def _cpu_s(who: int) -> float:
+    import resource
+
+    r = resource.getrusage(who)
+    return r.ru_utime + r.ru_stime
+
+
+def read_rate(root: Path, workers: int, epochs: int, batch: int, **kw) -> dict:
+    """Frames per second reading every item of the dataset in random order, wall clock, and the
+    CPU seconds the main process and the workers spent (workers: from the OS once they have exited)."""
+    import resource
+
+    import torch
+
+    from embodmocap.data import FrameDataset
+
+    ds = FrameDataset(root, **kw)
+    per_item = kw.get("clip") or 1
+    size = tuple(ds[0]["rgb"].shape[-2:]) if kw.get("load_rgb", True) else None
+    cpu0 = (_cpu_s(resource.RUSAGE_SELF), _cpu_s(resource.RUSAGE_CHILDREN))
+    loader = torch.utils.data.DataLoader(ds, batch_size=batch, shuffle=True, num_workers=workers,
+                                         persistent_workers=workers > 0,
+                                         generator=torch.Generator().manual_seed(0))
+    frames, frames_all, t_start = 0, 0, None
+    t0 = time.perf_counter()
+    for _ in range(epochs):
+        for b in loader:
+            frames_all += len(b["frame"]) * per_item
+            if t_start is None:  # the first batch pays the workers' start: leave it out of the wall rate
+                t_start = time.perf_counter()
+                continue
+            frames += len(b["frame"]) * per_item
+    seconds = time.perf_counter() - t_start
+    seconds_all = time.perf_counter() - t0
+    del loader  # shuts the persistent workers down, so their CPU time is counted
+    import gc
+
+    gc.collect()
+    main_cpu = _cpu_s(resource.RUSAGE_SELF) - cpu0[0]
+    worker_cpu = _cpu_s(resource.RUSAGE_CHILDREN) - cpu0[1]
+    # Were the workers alone on 2 free cores: the slower of the workers (sharing 2 cores) and the
+    # main process (collecting batches) sets the rate. Startup is included, so this is a floor.
+    busy = max(worker_cpu / 2.0, main_cpu) if workers else main_cpu
+    return {"workers": workers, "items": len(ds), "frames_read": frames, "seconds": round(seconds, 3),
+            "frames_per_s": round(frames / seconds, 1), "cpu_main_s": round(main_cpu, 2),
+            "cpu_workers_s": round(worker_cpu, 2), "wall_all_s": round(seconds_all, 2),
+            "frames_per_cpu_s": round(frames_all / max(main_cpu + worker_cpu, 1e-9), 1),
+            "frames_per_s_on_2_free_cores": round(frames_all / max(busy, 1e-9), 1),
+            "rgb_hw": size, **{k: v for k, v in kw.items()}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/work/bench/15t"))
+    ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--epochs", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--repeat", type=int, default=2, help="runs of the four rows, interleaved")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    root, timing = ensure_export(args.work, args.seconds)
+    index = json.loads((root / "manifest.json").read_text())
+    rows = []
+    for _ in range(args.repeat):  # interleaved, so that a change of the machine's load hits every row
+        rows += [read_rate(root, 0, args.epochs, args.batch),
+                 read_rate(root, 2, args.epochs, args.batch),
+                 read_rate(root, 2, args.epochs, max(1, args.batch // 8), clip=8),
+                 read_rate(root, 2, args.epochs, args.batch, load_rgb=False)]
+    result = {"export": root.as_posix(), "frames": index["frames"], "valid_frames": index["valid_frames"],
+              "views": len(index["views"]), **{k: round(v, 2) for k, v in timing.items()},
+              "export_ms_per_frame": round(1e3 * timing["export_s"] / index["frames"], 2) if "export_s" in timing else None,
+              "rows": rows}
+    print(json.dumps(result, indent=1))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
