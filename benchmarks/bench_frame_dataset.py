@@ -13,7 +13,7 @@ main process and the workers spent and the rate they imply on 2 free cores (``fr
 frames / max(worker CPU / 2, main CPU), worker start-up included).
 
     OMP_NUM_THREADS=1 PYTHONPATH=src nice .venv/bin/python benchmarks/bench_frame_dataset.py \
-        --work /work/bench/15t --seconds 6 --epochs 3 --repeat 2 --json /work/bench/15t/bench_frame_dataset.json
+        --work /work/bench/15t --seconds 6 --epochs 6 --repeat 2 --json /work/bench/15t/bench_frame_dataset.json
 """
 
 from __future__ import annotations
@@ -107,7 +107,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("/work/bench/15t"))
     ap.add_argument("--seconds", type=float, default=6.0)
-    ap.add_argument("--epochs", type=int, default=3)
+    ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=2, help="runs of the four rows, interleaved")
     ap.add_argument("--json", type=Path, default=None)

@@ -175,7 +175,9 @@ class FrameDataset(Dataset):
             item[k] = torch.from_numpy(np.repeat(lab[k][None].astype(np.float32), n, axis=0))
         item["betas"] = torch.from_numpy(np.repeat(lab["betas"][None].astype(np.float32), n, axis=0))
         if self.load_rgb:
-            item["rgb"] = torch.from_numpy(np.stack([self._rgb(v, int(t)) for t in rows]))
+            imgs = [self._rgb(v, int(t)) for t in rows]
+            # One frame: a view with a leading axis, not a copy (the collate copies once anyway).
+            item["rgb"] = torch.from_numpy(imgs[0][None] if len(imgs) == 1 else np.stack(imgs))
         if self.load_depth:
             # One slice of the memory map; rows are consecutive in clip mode.
             d = np.asarray(self._stack(v, "depth.npy")[rows[0]:rows[-1] + 1] if _consecutive(rows)
