@@ -13,7 +13,8 @@ main process and the workers spent and the rate they imply on 2 free cores (``fr
 frames / max(worker CPU / 2, main CPU), worker start-up included).
 
     OMP_NUM_THREADS=1 PYTHONPATH=src nice .venv/bin/python benchmarks/bench_frame_dataset.py \
-        --work /work/bench/15t --seconds 6 --epochs 6 --repeat 2 --json /work/bench/15t/bench_frame_dataset.json
+        --work /work/bench/15t --seconds 6 --epochs 6 --repeat 2 --reexport \
+        --json /work/bench/15t/bench_frame_dataset.json
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
-def ensure_export(work: Path, seconds: float) -> tuple[Path, dict]:
-    """The training export of a 640x480 studio session under ``work`` (made once); export timing."""
+def ensure_export(work: Path, seconds: float, reexport: bool) -> tuple[Path, dict]:
+    """The training export of a 640x480 studio session under ``work`` (session made once; the
+    export again with ``reexport``); export timing."""
     from embodmocap.export.training import export_training
     from embodmocap.synth.config import SynthConfig
     from training_session import make_training_session
@@ -42,6 +44,8 @@ def ensure_export(work: Path, seconds: float) -> tuple[Path, dict]:
         if session.exists():
             shutil.rmtree(session)
         make_training_session(session, SynthConfig(seed=0, seconds=seconds, scene_seconds=2.0))
+    if reexport and out.exists():
+        shutil.rmtree(out)
     if not (out / "manifest.json").is_file():
         t0 = time.perf_counter()
         export_training(session, out=out)
@@ -110,10 +114,11 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=2, help="runs of the four rows, interleaved")
+    ap.add_argument("--reexport", action="store_true", help="time the export again (removes the old one)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
-    root, timing = ensure_export(args.work, args.seconds)
+    root, timing = ensure_export(args.work, args.seconds, args.reexport)
     index = json.loads((root / "manifest.json").read_text())
     rows = []
     for _ in range(args.repeat):  # interleaved, so that a change of the machine's load hits every row

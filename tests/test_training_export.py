@@ -378,3 +378,36 @@ def test_short_stage2_stack_is_one_clear_error(training_export, tmp_path):
     with pytest.raises(InputError) as err:
         export_training(session, out=tmp_path / "export")
     assert "masks.npy" in str(err.value) and "frames" in str(err.value)
+
+
+def test_smaller_rgb_width_scales_images_masks_and_every_pixel_quantity(training_export, tmp_path):
+    """--training-rgb-width 160 on the 320x240 session: K, the fitted keypoints (against the
+    studio's true 2D keypoints scaled), the detections, masks and JPEGs follow; depth does not."""
+    from embodmocap.export.config import ExportConfig
+
+    session, info = training_export["session"], training_export["info"]
+    out = export_training(session, out=tmp_path / "small", config=ExportConfig(training_rgb_width=160))
+    full = training_export["out"]
+    gt = _gt(session)
+    m = np.arange(info["motion"], info["motion"] + info["T"])
+    for v in VIEWS:
+        lab, ref = _labels(out, v), _labels(full, v)
+        assert (int(lab["width"]), int(lab["height"])) == (160, 120)
+        assert np.allclose(lab["K"], SYNTH.intrinsics().scaled(160, 120).K)
+        assert np.array_equal(lab["K_depth"], ref["K_depth"]) and np.array_equal(lab["transl"], ref["transl"])
+        raw = m - info["start"][v]
+        vis = gt[f"{v}_visibility"][raw] > 0
+        true_px = (gt[f"{v}_keypoints2d_gt"][raw][..., :2] + 0.5) * 0.5 - 0.5
+        assert np.linalg.norm(lab["keypoints_fit"] - true_px, axis=-1)[vis].max() < 1e-3
+        assert np.allclose(lab["keypoints"][..., :2], (ref["keypoints"][..., :2] + 0.5) * 0.5 - 0.5)
+        assert np.array_equal(lab["keypoints"][..., 2], ref["keypoints"][..., 2])
+        img = cv2.imread(str(out / "seq0" / v / "rgb" / "000003.jpg"))
+        assert img.shape == (120, 160, 3)
+        masks = np.load(out / "seq0" / v / "masks.npy")
+        assert masks.shape == (info["T"], 120, 20)
+        small = np.unpackbits(masks[3], axis=-1, count=160).astype(bool)
+        big = np.unpackbits(np.load(full / "seq0" / v / "masks.npy")[3], axis=-1, count=320).astype(bool)
+        assert small.any() and abs(small.mean() - big.mean()) < 0.01
+        assert np.array_equal(np.load(out / "seq0" / v / "depth.npy"), np.load(full / "seq0" / v / "depth.npy"))
+    with pytest.raises(InputError, match="larger than"):
+        export_training(session, out=tmp_path / "big", config=ExportConfig(training_rgb_width=640))

@@ -253,8 +253,9 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
 
     from embodmocap.geometry.transforms import invert_T
     from embodmocap.io.captures import open_capture
-    from embodmocap.io.frame_stack import write_stack
+    from embodmocap.io.frame_stack import pack_mask, write_stack
     from embodmocap.io.stage_files import read_cameras, read_keypoints2d
+    from embodmocap.types import Intrinsics
 
     fix = _motion_fix(layout.root, inp.seq)
     cams = read_cameras(inp.cameras_final, "cameras_final")
@@ -292,29 +293,42 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
         for s in range(0, N, 256):
             out = model.forward(betas, go_c[s:s + 256], poses_v[s:s + 256, 3:], tr_c[s:s + 256], dtype=torch.float64)
             joints_c[s:s + 256], coco_c[s:s + 256] = out.joints.numpy(), out.coco17.numpy()
+    K_depth = _depth_intrinsics(stage2, K, W, H, depth.shape[1:])
+    # The stored RGB size: the capture's, or --training-rgb-width (every pixel quantity follows it).
+    W2, H2 = _stored_size(W, H, config.training_rgb_width)
+    sx, sy = W2 / W, H2 / H
+    K2 = Intrinsics.from_K(K, W, H).scaled(W2, H2).K if (W2, H2) != (W, H) else K
     z = np.where(np.abs(coco_c[..., 2:]) > 1e-9, coco_c[..., 2:], 1e-9)
-    kp_fit = np.einsum("ij,tkj->tki", K, coco_c / z)[..., :2]
+    kp_fit = np.einsum("ij,tkj->tki", K2, coco_c / z)[..., :2]
+    keypoints = np.asarray(kp.keypoints[:N], np.float64).copy()
+    keypoints[..., 0], keypoints[..., 1] = (keypoints[..., 0] + 0.5) * sx - 0.5, (keypoints[..., 1] + 0.5) * sy - 0.5
+    boxes = np.asarray(kp.boxes[:N], np.float64).copy()
+    boxes[:, 0::2], boxes[:, 1::2] = (boxes[:, 0::2] + 0.5) * sx - 0.5, (boxes[:, 1::2] + 0.5) * sy - 0.5
 
     depth_present = np.array([bool(np.any(depth[t])) for t in range(N)])
     in_sync = inside & ~_dropped(inp.frame_map, N)
     valid = in_sync & has_smpl & depth_present
-    K_depth = _depth_intrinsics(stage2, K, W, H, depth.shape[1:])
 
     labels = dict(
         version=np.int64(LABELS_VERSION), fps=np.float64(fps), frames=np.arange(N, dtype=np.int64),
-        raw_frames=np.asarray(cams.raw_frames, np.int64), K=K, width=np.int64(W), height=np.int64(H),
+        raw_frames=np.asarray(cams.raw_frames, np.int64), K=K2, width=np.int64(W2), height=np.int64(H2),
         K_depth=K_depth, depth_width=np.int64(depth.shape[2]), depth_height=np.int64(depth.shape[1]),
         T_world_cam=T_world_cam, global_orient=go_c, body_pose=poses_v[:, 3:], transl=tr_c, betas=betas,
         gender=np.array(params.gender), joints_cam=joints_c, keypoints_fit=kp_fit,
-        keypoints=np.asarray(kp.keypoints[:N], np.float64), boxes=np.asarray(kp.boxes[:N], np.float64),
+        keypoints=keypoints, boxes=boxes,
         seen=np.asarray(kp.seen[:N], bool), valid=valid, smpl_valid=has_smpl, in_sync=in_sync,
         depth_present=depth_present, body_time_s=body_t, body_rows=np.stack([i0, i1], axis=1), body_weight=w)
     write_npz(out_dir / "labels.npz", **labels)
     with write_stack(out_dir / "depth.npy", (N,) + depth.shape[1:], np.uint16) as stack:
         stack[:] = depth[:N]
     if masks is not None:
-        with write_stack(out_dir / "masks.npy", (N,) + masks.shape[1:], np.uint8) as stack:
-            stack[:] = masks[:N]
+        with write_stack(out_dir / "masks.npy", (N, H2, (W2 + 7) // 8), np.uint8) as stack:
+            if (W2, H2) == (W, H):
+                stack[:] = masks[:N]
+            else:
+                for t in range(N):
+                    m = np.unpackbits(masks[t], axis=-1, count=W).astype(np.uint8)
+                    stack[t] = pack_mask(cv2.resize(m, (W2, H2), interpolation=cv2.INTER_NEAREST))
 
     # RGB: the raw video decoded forward once (sequence frames map to increasing raw frames).
     rgb_dir = out_dir / "rgb"
@@ -327,6 +341,8 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
             if rgb.shape != (H, W, 3):
                 raise InputError(inp.capture, f"raw frame {int(cams.raw_frames[t])} is {rgb.shape[1]}x{rgb.shape[0]}, "
                                  f"cameras_final.npz says {W}x{H}", fix)
+            if (W2, H2) != (W, H):
+                rgb = cv2.resize(rgb, (W2, H2), interpolation=cv2.INTER_AREA)
             ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), quality)
             if not ok:
                 raise OSError(f"JPEG encoding of frame {t} failed")
@@ -337,6 +353,17 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
             close()
     log.info("training export %s/%s: %d frames, %d valid", inp.seq, inp.view, N, int(valid.sum()))
     return {"frames": int(N), "valid_frames": int(valid.sum())}
+
+
+def _stored_size(width: int, height: int, want_width: int) -> tuple[int, int]:
+    """RGB size written: the capture's (``want_width`` 0 or the same), else ``want_width`` wide with
+    the aspect kept (height rounded to an even number of pixels, as video sizes are)."""
+    if want_width <= 0 or want_width == width:
+        return width, height
+    if want_width > width:
+        raise InputError(None, f"training_rgb_width {want_width} is larger than the capture's {width} pixels",
+                         "choose a smaller width (or 0 for the capture's size)")
+    return int(want_width), max(2, 2 * round(height * want_width / width / 2))
 
 
 def _view_entry(out: Path, seq: str, view: str) -> dict:
@@ -385,7 +412,7 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
     out = Path(out) if out is not None else layout.training_dir
     out.mkdir(parents=True, exist_ok=True)
     model_fp = path_fingerprint(manifest.body_model) if manifest.body_model is not None else "test-model"
-    cfg = {"training_jpeg_quality": config.training_jpeg_quality}
+    cfg = {"training_jpeg_quality": config.training_jpeg_quality, "training_rgb_width": config.training_rgb_width}
     sm = StageManifest(out / "export_manifest.json", "training", cfg, root=out)
     model = load_body_model(manifest.body_model)
 
