@@ -273,7 +273,8 @@ class Export:
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
     out: Path | None = None
-    """Output file (folder for mimickit and mjcf); default SESSION/sequences/SEQ/export/."""
+    """Output file (folder for mimickit, mjcf and training); default SESSION/sequences/SEQ/export/
+    (training: SESSION/training/)."""
     config: Annotated[ExportConfig, tyro.conf.arg(name="")] = ExportConfig()
     """Export settings."""
 

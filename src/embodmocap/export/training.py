@@ -398,6 +398,9 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
     from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid
     from embodmocap.io.stage_manifest import require_sequence_stages
 
+    if not 1 <= int(config.training_jpeg_quality) <= 100:
+        raise InputError(None, f"training_jpeg_quality {config.training_jpeg_quality} is outside 1..100",
+                         "give a JPEG quality from 1 to 100 (95 by default)")
     layout = SessionLayout(Path(session))
     manifest = load_manifest(layout.manifest)
     if seq is not None:
