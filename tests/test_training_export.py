@@ -252,6 +252,24 @@ def test_validity_flags_follow_stage4_sync_and_depth(training_export, tmp_path):
     assert np.flatnonzero(~_labels(out, "v2")["valid"]).tolist() == [3]
 
 
+def test_a_gap_in_the_fit_is_not_filled(training_export, tmp_path):
+    """A sequence frame without a row in smpl_world.npz (a gap) is flagged, not interpolated over."""
+    import dataclasses
+
+    session = _copy(training_export, tmp_path)
+    sl = SessionLayout(session).sequence("seq0")
+    params, frames = read_smpl_npz(sl.smpl_world)
+    keep = frames != 6
+    cut = dataclasses.replace(params, global_orient=params.global_orient[keep], body_pose=params.body_pose[keep],
+                              transl=params.transl[keep])
+    write_smpl_npz(sl.smpl_world, cut, frames[keep])
+    out = export_training(session, out=tmp_path / "export")
+    for v in VIEWS:
+        lab = _labels(out, v)
+        assert np.flatnonzero(~lab["smpl_valid"]).tolist() == [6]
+        assert np.flatnonzero(~lab["valid"]).tolist() == [6]
+
+
 @pytest.mark.parametrize("frames_late", [1.0, 0.5])
 def test_view2_body_is_taken_at_its_own_frame_times(training_export, tmp_path, frames_late):
     """With view 2 a whole frame behind view 1 (sync.json's residual), its frame k shows the body of

@@ -282,7 +282,8 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
         raise InputError(inp.smpl_world, "its frames do not increase in time", fix)
     poses = np.concatenate([params.global_orient, params.body_pose], axis=1)
     poses_v, transl_v, i0, i1, w, inside = resample_motion(poses, params.transl, fit_t, body_t)
-    has_smpl = inside & smpl_valid[i0] & smpl_valid[i1]
+    # Between two rows that are not neighbouring sequence frames (a gap in the fit) nothing was fitted.
+    has_smpl = inside & smpl_valid[i0] & smpl_valid[i1] & (frames[i1] - frames[i0] <= 1)
     T_world_cam = np.asarray(cams.T_world_cam, np.float64)
     T_cam_world = invert_T(T_world_cam)
     betas = np.asarray(params.betas, np.float64)
