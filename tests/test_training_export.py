@@ -96,6 +96,7 @@ def test_params_in_camera_rotates_about_the_pelvis(training_export):
     T = 6
     betas = rng.normal(0, 1, 10)
     go = Rotation.random(T, random_state=4).as_rotvec()
+    go.setflags(write=False)  # as SmplParams hold them
     pose = rng.normal(0, 0.3, (T, 69))
     transl = rng.normal(0, 2, (T, 3))
     T_cw = np.tile(np.eye(4), (T, 1, 1))

@@ -94,7 +94,8 @@ def params_in_camera(global_orient: NDArray, transl: NDArray, betas: NDArray, T_
     T = np.asarray(T_cam_world, dtype=np.float64)
     R, t = T[:, :3, :3], T[:, :3, 3]
     p = model.pelvis_offset(betas)
-    go = (Rotation.from_matrix(R) * Rotation.from_rotvec(np.asarray(global_orient, np.float64))).as_rotvec()
+    # np.array copies: scipy refuses read-only arrays (SmplParams' are).
+    go = (Rotation.from_matrix(R) * Rotation.from_rotvec(np.array(global_orient, np.float64))).as_rotvec()
     tr = np.einsum("tij,tj->ti", R, np.asarray(transl, np.float64) + p) + t - p
     return go, tr
 
@@ -120,7 +121,7 @@ def resample_motion(poses: NDArray, transl: NDArray, times_s: NDArray, query_s: 
 
     from embodmocap.geometry.interpolate import TIME_EPS_S, bracket, slerp_quat
 
-    poses = np.asarray(poses, np.float64)
+    poses = np.array(poses, np.float64)  # a writable copy: scipy refuses read-only arrays
     transl = np.asarray(transl, np.float64)
     times_s = np.asarray(times_s, np.float64)
     query_s = np.asarray(query_s, np.float64)
