@@ -15,6 +15,9 @@ frames / max(worker CPU / 2, main CPU), worker start-up included).
     OMP_NUM_THREADS=1 PYTHONPATH=src nice .venv/bin/python benchmarks/bench_frame_dataset.py \
         --work /work/bench/15t --seconds 6 --epochs 6 --repeat 2 --reexport \
         --json /work/bench/15t/bench_frame_dataset.json
+    # the fit check alone, on a session the real pipeline processed:
+    OMP_NUM_THREADS=1 PYTHONPATH=src nice .venv/bin/python benchmarks/bench_frame_dataset.py \
+        --work /work/bench/15t --only-fit-check --fit-session /work/bench/12b/normal_0
 """
 
 from __future__ import annotations
@@ -107,6 +110,60 @@ def read_rate(root: Path, workers: int, epochs: int, batch: int, **kw) -> dict:
             "rgb_hw": size, **{k: v for k, v in kw.items()}}
 
 
+def fit_check(session: Path, work: Path) -> dict:
+    """On a session processed by the real pipeline (read only; exported under ``work``): the
+    camera-space body's round trip to the world fit (view 1: max error, mm), and view 2's detected
+    keypoints against the projected fit (median px) with the body taken at view 2's own instants (as
+    exported), at view 1's rows unchanged, and with the sub-frame offset's sign flipped."""
+    import numpy as np
+    import torch
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.export.training import export_training, params_in_camera, resample_motion
+    from embodmocap.geometry.transforms import invert_T
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.io.smpl_file import read_smpl_npz
+    from embodmocap.io.stage_files import read_world_joints
+
+    out = export_training(session, out=work / f"fit_check_{session.name}")
+    model = load_body_model(load_manifest(session / "session.toml").body_model)
+    seq = json.loads((out / "manifest.json").read_text())["views"][0]["sequence"]
+    sl = session / "sequences" / seq
+    params, frames = read_smpl_npz(sl / "smpl_world.npz")
+    lab = {v: dict(np.load(out / seq / v / "labels.npz")) for v in ("v1", "v2")}
+
+    def pose(go, body_pose, tr):
+        with torch.no_grad():
+            o = model.forward(params.betas, go, body_pose, tr, dtype=torch.float64)
+        return o.joints.numpy(), o.coco17.numpy()
+
+    j1, _ = pose(lab["v1"]["global_orient"], lab["v1"]["body_pose"], lab["v1"]["transl"])
+    T = lab["v1"]["T_world_cam"]
+    world = np.asarray(read_world_joints(sl / "joints_world.npz").joints)
+    n1 = min(len(j1), len(world))
+    back = np.einsum("tij,tkj->tki", T[:n1, :3, :3], j1[:n1]) + T[:n1, None, :3, 3]
+    z = lab["v2"]
+    n = min(len(z["frames"]), len(frames))
+    T_cw = invert_T(z["T_world_cam"][:n])
+
+    def px(go, body_pose, tr) -> float:
+        c = pose(go, body_pose, tr)[1]
+        p = np.einsum("ij,tkj->tki", z["K"], c / c[..., 2:])[..., :2]
+        kp = z["keypoints"][:n]
+        seen = (kp[..., 2] > 0.3) & z["valid"][:n, None]
+        return float(np.median(np.linalg.norm(kp[..., :2] - p, axis=-1)[seen]))
+
+    go, tr = params_in_camera(params.global_orient[:n], params.transl[:n], params.betas, T_cw, model)
+    t1 = np.arange(len(frames)) / params.fps  # view 1's rows (a fit without gaps)
+    flipped_t = 2 * t1[:n] - z["body_time_s"][:n]
+    pf, trf, *_ = resample_motion(np.concatenate([params.global_orient, params.body_pose], 1), params.transl, t1, flipped_t)
+    gof, trcf = params_in_camera(pf[:, :3], trf, params.betas, T_cw, model)
+    return {"session": session.as_posix(), "v1_round_trip_max_mm": float(1e3 * np.abs(back - world[:n1]).max()),
+            "v2_offset_frames": float(np.median((z["body_time_s"][:n] - t1[:n]) * params.fps)),
+            "v2_px_at_own_instants": px(z["global_orient"][:n], z["body_pose"][:n], z["transl"][:n]),
+            "v2_px_view1_rows": px(go, params.body_pose[:n], tr), "v2_px_offset_flipped": px(gof, pf[:, 3:], trcf)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("/work/bench/15t"))
@@ -115,9 +172,15 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--repeat", type=int, default=2, help="runs of the four rows, interleaved")
     ap.add_argument("--reexport", action="store_true", help="time the export again (removes the old one)")
+    ap.add_argument("--fit-session", type=Path, default=None,
+                    help="also check a session processed by the real pipeline (read only)")
+    ap.add_argument("--only-fit-check", action="store_true", help="only the --fit-session check")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
 
+    if args.only_fit_check:
+        print(json.dumps(fit_check(args.fit_session, args.work), indent=1))
+        return
     root, timing = ensure_export(args.work, args.seconds, args.reexport)
     index = json.loads((root / "manifest.json").read_text())
     rows = []
@@ -130,6 +193,8 @@ def main() -> None:
               "views": len(index["views"]), **{k: round(v, 2) for k, v in timing.items()},
               "export_ms_per_frame": round(1e3 * timing["export_s"] / index["frames"], 2) if "export_s" in timing else None,
               "rows": rows}
+    if args.fit_session is not None:
+        result["fit_check"] = fit_check(args.fit_session, args.work)
     print(json.dumps(result, indent=1))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
