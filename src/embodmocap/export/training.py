@@ -248,7 +248,7 @@ def _depth_intrinsics(cams_stage2, K: NDArray, width: int, height: int, shape: t
 
 def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: NDArray, smpl_valid: NDArray,
                 out_dir: Path, config: ExportConfig) -> dict:
-    """Write one view's folder (into ``out_dir``, a temporary folder); returns its manifest entry."""
+    """Write one view's folder (into ``out_dir``, a temporary folder); returns its frame counts."""
     import cv2
     import torch
 
