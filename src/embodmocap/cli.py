@@ -268,19 +268,21 @@ class Export:
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf"]
-    """Format to write."""
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training"]
+    """Format to write (training: every sequence unless --seq; docs/training.md)."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
     out: Path | None = None
-    """Output file (folder for mimickit and mjcf); default SESSION/sequences/SEQ/export/."""
+    """Output file (folder for mimickit, mjcf and training); default SESSION/sequences/SEQ/export/
+    (training: SESSION/training/)."""
     config: Annotated[ExportConfig, tyro.conf.arg(name="")] = ExportConfig()
     """Export settings."""
 
     def run(self) -> int:
         from embodmocap.export import export_sequence
 
-        path = export_sequence(self.session, _sequence_name(self.session, self.seq), self.to, self.out, config=self.config)
+        seq = self.seq if self.to == "training" else _sequence_name(self.session, self.seq)
+        path = export_sequence(self.session, seq, self.to, self.out, config=self.config)
         print(f"wrote {path}")
         return 0
 
@@ -475,10 +477,12 @@ def _preflight(cmd) -> None:
         prepare_session(cmd.session)
     if isinstance(cmd, Mono):
         prepare_session(cmd.session)
-    if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file():
+    # The training export checks each sequence it exports itself (all of them without --seq).
+    if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file() \
+            and not (isinstance(cmd, Export) and cmd.to == "training"):
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:
-        folder = cmd.out if cmd.to in ("mimickit", "robot", "mjcf") else cmd.out.parent
+        folder = cmd.out if cmd.to in ("mimickit", "robot", "mjcf", "training") else cmd.out.parent
         while not folder.exists() and folder != folder.parent:
             folder = folder.parent  # the export creates the missing folders
         check_writable(folder, "export folder")

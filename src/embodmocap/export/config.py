@@ -24,3 +24,10 @@ class ExportConfig:
     """Robot (``--to robot``): a built-in robot name (g1)."""
     robot_config: Path | None = None
     """Robot (``--to robot``): a robot config TOML (docs/robot.md) instead of a built-in robot."""
+    training_jpeg_quality: int = 95
+    """Training (``--to training``): JPEG quality of the RGB frames (1-100; 95 keeps the images
+    close to the video's own quality at about 90 KB a 640x480 frame)."""
+    training_rgb_width: int = 0
+    """Training (``--to training``): width of the stored RGB frames and masks in pixels, the aspect
+    kept (0 = the capture's own size; e.g. 640 for 1920x1440 iPhone video). K, keypoints and boxes
+    follow; depth keeps its own size."""

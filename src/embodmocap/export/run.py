@@ -17,6 +17,9 @@ robot      ``../robot/<robot>/``       robot motion: BeyondMimic CSV + npz, GMR 
                                        MJCF, report (:mod:`embodmocap.robot`, extra ``robot``)
 mjcf       ``mjcf/`` (a folder)        MuJoCo performer + scene heightfield + keyframes
                                        (:func:`embodmocap.sim.session.export_mjcf`, extra ``sim``)
+training   ``SESSION/training/``       per-frame RGB, depth, cameras, camera-space SMPL, masks,
+                                       keypoints, validity of every sequence and view
+                                       (:mod:`.training`, ``docs/training.md``)
 =========  ==========================  ===================================================
 """
 
@@ -40,7 +43,7 @@ from embodmocap.io.stage_files import read_world_joints
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
-FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf")
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training")
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
@@ -86,6 +89,8 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
         raise InputError(None, f"unknown export format {to!r}", f"choose one of {', '.join(FORMATS)}")
     if to == "robot":
         return _export_robot(session, seq, out, config)
+    if to == "training":
+        return _export_training(session, seq, out, config)
     layout = SessionLayout(Path(session))
     seq_layout = layout.sequence(seq)
     params, frames = read_amass(_need(seq_layout.smpl_world, seq, layout.root, "motion"))
@@ -126,3 +131,11 @@ def _export_robot(session: str | Path, seq: str, out: str | Path | None, config:
     from embodmocap.robot.stage import retarget_sequence
 
     return retarget_sequence(session, seq, robot=config.robot, robot_config_path=config.robot_config, out=out)
+
+
+def _export_training(session: str | Path, seq: str | None, out: str | Path | None, config: ExportConfig) -> Path:
+    """``--to training``: per-frame training data of the session's sequences (all of them when
+    ``seq`` is None) in ``out`` (default ``SESSION/training/``; :mod:`embodmocap.export.training`)."""
+    from embodmocap.export.training import export_training
+
+    return export_training(session, seq, out, config=config)

@@ -319,6 +319,11 @@ class SessionLayout:
         return self.root / "evaluation.json"
 
     @property
+    def training_dir(self) -> Path:
+        """``embodmocap export SESSION --to training`` writes here unless ``--out`` is given."""
+        return self.root / "training"
+
+    @property
     def report_html(self) -> Path:
         return self.root / "report.html"
 
