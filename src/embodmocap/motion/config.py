@@ -70,6 +70,14 @@ class SmplifyConfig:
     a weight of 300 or more freezes real movement at the start (worse)."""
     edge_frames: int = 10
     """Frames at each edge of a run of placeable frames covered by ``w_edge_vel``."""
+    edge_min_2d_joints: int = 8
+    """A frame that cannot be placed (one view sees nobody) but where the other view still sees
+    this many keypoints does not make an edge for ``w_edge_vel``: that view's 2D keypoints and the
+    acceleration term carry the limbs through it, so nothing there is extrapolated, and holding
+    the articulation still next to it freezes real movement. Measured on the hard outdoor studio
+    session (its view 1 blind for the first 32 frames, the performer walking; view 2 sees 14-17
+    keypoints there): the legs were held 80-110 mm off at the first placeable frames, and
+    W-MPJPE went 65 -> 26 mm with this. 0 = every unplaceable frame makes an edge."""
     w_pose_prior: float = 0.01
     """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
     used only when a prior pose is given."""
@@ -214,6 +222,11 @@ class MotionConfig:
     of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
     (a left/right confusion in one view triangulates at the wrong depth with no reprojection
     error); 0 = keep every point."""
+    torso_tol_m: float = 0.1
+    """Triangulated shoulders and hips that break the torso's shape (a distance between two of
+    them more than this many metres off the body's; :func:`embodmocap.motion.ik.implausible_torso`)
+    are dropped from the start and the 3D term like the limb points of ``bone_tol``; 0 = keep them.
+    Only with ``bone_tol`` > 0 (the same step)."""
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""

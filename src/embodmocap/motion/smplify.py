@@ -284,7 +284,8 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
         ok = np.isfinite(prior).all(-1) & (np.abs(np.nan_to_num(prior)).sum(-1) > 0)  # all-zero row = missing
         prior_t, prior_c = tt(np.where(ok[:, None], np.nan_to_num(prior), 0.0)), tt(ok.astype(np.float64))
     on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # (T,) edge weights, sliced with the windows
-    edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)) if on else None
+    seen = (c2 > 0).sum(-1).max(1, initial=0) >= cfg.edge_min_2d_joints if cfg.edge_min_2d_joints > 0 else None
+    edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames, seen)) if on else None
     return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 

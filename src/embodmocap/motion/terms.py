@@ -117,21 +117,25 @@ def velocity_term(x: torch.Tensor) -> torch.Tensor:
     return ((x[1:] - x[:-1]) ** 2).sum(-1).mean()
 
 
-def edge_weights(valid: NDArray, n: int) -> NDArray:
+def edge_weights(valid: NDArray, n: int, seen: NDArray | None = None) -> NDArray:
     """(T,) 1.0 where the edge velocity term applies, else 0.0: the ``n`` frames of each run of
     placeable frames next to an unplaceable frame (``valid`` False) or to an end of the sequence
     (the frames that have well-seen neighbours on one side only). Unplaceable frames get 0: they
-    are not scored, and holding them still would pin their neighbours to a guess.
+    are not scored, and holding them still would pin their neighbours to a guess. With ``seen``,
+    only the unplaceable frames that are not ``seen`` either (no view sees the body) bound a
+    run: an unplaceable frame that one view sees still carries the limbs (its 2D keypoints).
 
     Args:
-        valid: (T,) bool; n: frames covered at each edge of a run (0 = none).
+        valid: (T,) bool; n: frames covered at each edge of a run (0 = none);
+        seen: (T,) bool frames one view sees well enough, or None (= ``valid``).
     """
     valid = np.asarray(valid, dtype=bool)
     T = len(valid)
     if n <= 0 or T == 0:
         return np.zeros(T)
-    # Distance (frames) from each frame to the nearest unplaceable frame or beyond either end.
-    blocked = np.concatenate([[-1], np.flatnonzero(~valid), [T]])
+    open_ = valid if seen is None else valid | np.asarray(seen, dtype=bool)
+    # Distance (frames) from each frame to the nearest frame that bounds a run, or beyond either end.
+    blocked = np.concatenate([[-1], np.flatnonzero(~open_), [T]])
     t = np.arange(T)
     right = blocked[np.searchsorted(blocked, t, side="left")] - t
     left = t - blocked[np.searchsorted(blocked, t, side="right") - 1]
