@@ -67,17 +67,17 @@ class SmplifyConfig:
     pelvis) moves freely. 0 = off. Measured on the ten hard studio sessions without a prior
     (BENCHMARKS.md, issue 11, fourth pass): the first frames of a sequence (the ones W-MPJPE's
     alignment uses) had an arm or leg 100-350 mm off, turning the whole chunk by 4-17 degrees;
-    a weight of 300 or more freezes real movement at the start (worse)."""
+    a weight of 300 or more freezes real movement at the start (worse). Per joint and frame it
+    holds only what no detection pins (:func:`embodmocap.motion.terms.edge_hold_weights`): a
+    joint no view sees entirely, one a single view sees along that view's ray, one both views see
+    not at all (fifth pass: holding everything froze the walking legs of the hard outdoor session
+    at its first placeable frames, after 32 frames in which only view 2 saw the body: W-MPJPE 65
+    mm, 26 without the term)."""
+    edge_hold: str = "unseen"
+    """What ``w_edge_vel`` holds still: ``unseen`` (per joint and frame, what no detection pins:
+    see above) or ``all`` (every joint's whole articulation: the fourth pass)."""
     edge_frames: int = 10
     """Frames at each edge of a run of placeable frames covered by ``w_edge_vel``."""
-    edge_min_2d_joints: int = 8
-    """A frame that cannot be placed (one view sees nobody) but where the other view still sees
-    this many keypoints does not make an edge for ``w_edge_vel``: that view's 2D keypoints and the
-    acceleration term carry the limbs through it, so nothing there is extrapolated, and holding
-    the articulation still next to it freezes real movement. Measured on the hard outdoor studio
-    session (its view 1 blind for the first 32 frames, the performer walking; view 2 sees 14-17
-    keypoints there): the legs were held 80-110 mm off at the first placeable frames, and
-    W-MPJPE went 65 -> 26 mm with this. 0 = every unplaceable frame makes an edge."""
     w_pose_prior: float = 0.01
     """Weight of the pull towards the prior body pose (per rad^2 summed over the 69 angles);
     used only when a prior pose is given."""
