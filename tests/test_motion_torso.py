@@ -122,6 +122,9 @@ def test_edge_hold_weights_hold_what_no_detection_pins():
     assert w[2, knee].tolist() == [0.0, 0.0, 0.0]  # not an edge frame
     assert w[0, ankle].tolist() == w[0, foot].tolist() == [0.0, 0.0, 0.0]  # two views: free
     assert w[1, wrist].tolist() == [1.0, 0.0, 0.0]  # no view: all of it
+    assert TM.edge_hold_weights(np.array([1.0, 1.0, 0.0]), seen, "all").tolist() == [1.0, 1.0, 0.0]
+    with pytest.raises(ValueError, match="edge_hold"):
+        TM.edge_hold_weights(np.ones(T), seen, "some")
 
 
 def test_edge_velocity_along_a_ray_costs_only_the_depth():

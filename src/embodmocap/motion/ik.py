@@ -247,8 +247,9 @@ def implausible_torso(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArr
     studio session: one shoulder 48 cm off turned the start 100 degrees, and the frames around it,
     interpolated towards it, by 20-65). Per frame, while a pair of seen torso points is more than
     ``tol_m`` metres longer or shorter than the rest body's, the point of a failing pair whose
-    pairs deviate most in all is marked (a wrong point bends every distance it is in). Frames with fewer than three seen torso points are
-    left alone (nothing to check them against). 0 = off.
+    pairs deviate most in all is marked (a wrong point bends every distance it is in). Frames
+    with fewer than three seen torso points are left alone (nothing to check them against).
+    0 = off.
     """
     bad = np.zeros(seen.shape, dtype=bool)
     if tol_m <= 0:

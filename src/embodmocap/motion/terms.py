@@ -144,9 +144,10 @@ def edge_weights(valid: NDArray, n: int) -> NDArray:
 SMPL_EDGE_KEYPOINT: tuple[int, ...] = (0, 11, 12, 11, 13, 14, 5, 15, 16, 6, 15, 16, 0, 5, 6, 0, 5, 6, 7, 8, 9, 10, 9, 10)
 
 
-def edge_hold_weights(frame_w: NDArray, seen: NDArray) -> NDArray:
+def edge_hold_weights(frame_w: NDArray, seen: NDArray, mode: str = "unseen") -> NDArray:
     """(T, 24, 1 + V) weights of :func:`edge_velocity_term` per frame and SMPL joint: column 0
-    holds the joint's whole articulation still, column 1 + v only its motion along view v's ray.
+    holds the joint's whole articulation still, column 1 + v only its motion along view v's ray
+    (``mode`` ``unseen``); with ``mode`` ``all``, ``frame_w`` itself (every joint held entirely).
 
     The term is there for what no keypoint pins. A joint that no view sees in the frame is held
     entirely; one that a single view sees is pinned across that view's ray by its detection, so
@@ -155,8 +156,16 @@ def edge_hold_weights(frame_w: NDArray, seen: NDArray) -> NDArray:
     e.g., the legs of a walking body at the first frames after one view was blind).
 
     Args:
-        frame_w: (T,) :func:`edge_weights`; seen: (T, V, 17) bool detections used by the fit.
+        frame_w: (T,) :func:`edge_weights`; seen: (T, V, 17) bool detections used by the fit;
+        mode: ``unseen`` or ``all`` (:attr:`SmplifyConfig.edge_hold`).
+
+    Raises:
+        ValueError: another ``mode``.
     """
+    if mode == "all":
+        return np.asarray(frame_w, dtype=np.float64)
+    if mode != "unseen":
+        raise ValueError(f"SmplifyConfig.edge_hold must be 'unseen' or 'all', got {mode!r}")
     seen = np.asarray(seen, dtype=bool)[:, :, list(SMPL_EDGE_KEYPOINT)]  # (T, V, 24)
     n = seen.sum(1)
     w = np.asarray(frame_w, dtype=np.float64)[:, None]
