@@ -160,6 +160,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", required=True)
     ap.add_argument("--priors", nargs="+", default=["none", "realistic"], choices=("none", "realistic", "poor"))
     ap.add_argument("--old-src", type=Path, default=None, help="another source tree's src/ to compare with")
+    ap.add_argument("--old-priors", nargs="+", default=None, choices=("none", "realistic", "poor"),
+                    help="prior settings the old code runs with (default: all of --priors)")
     ap.add_argument("--work", type=Path, required=True, help="work folder (copies of the sessions)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -176,6 +178,8 @@ def main() -> None:
                 how = write_poor_prior(dst, seed)
                 (dst / ".poor_prior").write_text(f"body priors redrawn with POOR_PRIOR_NOISE: {how}\n")
             for code in codes:
+                if code == "old" and args.old_priors is not None and prior not in args.old_priors:
+                    continue
                 wall, errs = stage4(dst, prior, args.old_src if code == "old" else new_src)
                 row[f"{code}_{prior}"] = {"s": round(wall, 2), **{k: errs.get(k) for k in KEYS}}
                 print(json.dumps({"seed": seed, "variant": f"{code}_{prior}", **row[f"{code}_{prior}"]}), flush=True)

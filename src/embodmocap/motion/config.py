@@ -67,7 +67,15 @@ class SmplifyConfig:
     pelvis) moves freely. 0 = off. Measured on the ten hard studio sessions without a prior
     (BENCHMARKS.md, issue 11, fourth pass): the first frames of a sequence (the ones W-MPJPE's
     alignment uses) had an arm or leg 100-350 mm off, turning the whole chunk by 4-17 degrees;
-    a weight of 300 or more freezes real movement at the start (worse)."""
+    a weight of 300 or more freezes real movement at the start (worse). Per joint and frame it
+    holds only what no detection pins (:func:`embodmocap.motion.terms.edge_hold_weights`): a
+    joint no view sees entirely, one a single view sees along that view's ray, one both views see
+    not at all (fifth pass: holding everything froze the walking legs of the hard outdoor session
+    at its first placeable frames, after 32 frames in which only view 2 saw the body: W-MPJPE 65
+    mm, 26 without the term)."""
+    edge_hold: str = "unseen"
+    """What ``w_edge_vel`` holds still: ``unseen`` (per joint and frame, what no detection pins:
+    see above) or ``all`` (every joint's whole articulation: the fourth pass)."""
     edge_frames: int = 10
     """Frames at each edge of a run of placeable frames covered by ``w_edge_vel``."""
     w_pose_prior: float = 0.01
@@ -214,6 +222,11 @@ class MotionConfig:
     of the body's (shape from the median bone lengths) are dropped from the start and the 3D term
     (a left/right confusion in one view triangulates at the wrong depth with no reprojection
     error); 0 = keep every point."""
+    torso_tol_m: float = 0.1
+    """Triangulated shoulders and hips that break the torso's shape (a distance between two of
+    them more than this many metres off the body's; :func:`embodmocap.motion.ik.implausible_torso`)
+    are dropped from the start and the 3D term like the limb points of ``bone_tol``; 0 = keep them.
+    Only with ``bone_tol`` > 0 (the same step)."""
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""

@@ -230,6 +230,61 @@ def implausible_points(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDAr
     return bad
 
 
+#: The six pairs of torso points (shoulders, hips) whose distances :func:`implausible_torso` checks.
+_TORSO_PAIRS: tuple[tuple[int, int], ...] = ((_LSHO, _RSHO), (_LHIP, _RHIP), (_LSHO, _LHIP), (_RSHO, _RHIP),
+                                             (_LSHO, _RHIP), (_RSHO, _LHIP))
+
+
+def implausible_torso(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.bool_],
+                      tol_m: float = 0.1) -> NDArray[np.bool_]:
+    """(T, 17) shoulders and hips that do not fit the body's torso (shape ``b``).
+
+    The trunk bends and twists, but the distances between its four keypoints change little when
+    it does (the hips lie near the axes of the spine's bends; a 20 degree side bend changes a
+    shoulder-hip distance by about 5 cm of its 50). A point triangulated from a wrong detection
+    (an occluded hip guessed in one view, a shoulder of the wrong side) breaks them, and the
+    rigid torso fit of the keypoint start then turns the whole body (measured on the hard outdoor
+    studio session: one shoulder 48 cm off turned the start 100 degrees, and the frames around it,
+    interpolated towards it, by 20-65). Per frame, while a pair of seen torso points is more than
+    ``tol_m`` metres longer or shorter than the rest body's, the point of a failing pair whose
+    pairs deviate most in all is marked (a wrong point bends every distance it is in). Frames
+    with fewer than three seen torso points are left alone (nothing to check them against).
+    0 = off.
+    """
+    bad = np.zeros(seen.shape, dtype=bool)
+    if tol_m <= 0:
+        return bad
+    P = sk.keypoints(b)
+    idx = list(_TORSO)
+    pos = {k: i for i, k in enumerate(idx)}
+    L = np.array([np.linalg.norm(P[a] - P[c]) for a, c in _TORSO_PAIRS])
+    ok = seen[:, idx].copy()  # (T, 4)
+    with np.errstate(invalid="ignore"):
+        d = np.stack([np.linalg.norm(points[:, a] - points[:, c], axis=-1) for a, c in _TORSO_PAIRS], 1)
+    dev = np.nan_to_num(np.abs(d - L), nan=0.0)  # (T, 6)
+    check = ok.sum(1) >= 3
+    for _ in range(2):  # at most two of four points go (then fewer than three are left)
+        live = np.stack([ok[:, pos[a]] & ok[:, pos[c]] for a, c in _TORSO_PAIRS], 1) & check[:, None]
+        e = np.where(live, dev, 0.0)
+        fails = e > tol_m
+        # Among the points of a failing pair, the one whose pairs deviate most in all: a wrong
+        # point bends every distance it is in, most of them below the tolerance.
+        score, suspect = np.zeros(ok.shape), np.zeros(ok.shape, dtype=bool)
+        for k, (a, c) in enumerate(_TORSO_PAIRS):
+            for q in (pos[a], pos[c]):
+                score[:, q] += e[:, k]
+                suspect[:, q] |= fails[:, k]
+        score = np.where(suspect, score, -1.0)
+        drop = fails.any(1) & (ok.sum(1) >= 3)
+        if not drop.any():
+            break
+        worst = np.argmax(score, axis=1)
+        rows = np.flatnonzero(drop)
+        ok[rows, worst[rows]] = False
+        bad[rows, np.asarray(idx)[worst[rows]]] = True
+    return bad
+
+
 def torso_anchors(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.bool_]) -> NDArray:
     """(T, 17, 3) the shoulders and hips of the rest body (shape ``b``) placed on the triangulated
     torso (:func:`place_torso`, with the spine), NaN elsewhere and in frames with fewer than three

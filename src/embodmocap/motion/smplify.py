@@ -229,7 +229,7 @@ class _Data:
     conf2d: torch.Tensor  # (T, V, 17)
     prior: torch.Tensor | None  # (T, 69)
     prior_conf: torch.Tensor | None  # (T,)
-    edge: torch.Tensor | None = None  # (T,) weight of the edge velocity term (1 near the sequence's ends)
+    edge: torch.Tensor | None = None  # (T, 24, 1 + V) or (T,) edge velocity weights (TM.edge_hold_weights)
 
     def slice(self, idx: slice | torch.Tensor) -> "_Data":
         cut = lambda x: None if x is None else x[idx]  # noqa: E731
@@ -283,8 +283,9 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
         prior = np.asarray(prior, dtype=np.float64)
         ok = np.isfinite(prior).all(-1) & (np.abs(np.nan_to_num(prior)).sum(-1) > 0)  # all-zero row = missing
         prior_t, prior_c = tt(np.where(ok[:, None], np.nan_to_num(prior), 0.0)), tt(ok.astype(np.float64))
-    on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # (T,) edge weights, sliced with the windows
-    edge = tt(TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)) if on else None
+    on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # edge weights per frame (and joint), sliced with the windows
+    edge = TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)
+    edge = tt(TM.edge_hold_weights(edge, c2 > 0, cfg.edge_hold)) if on else None
     return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 
@@ -321,7 +322,7 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
         if d.edge is not None:
-            out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge)
+            out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
     if phase <= 1.25:
         return out

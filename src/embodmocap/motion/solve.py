@@ -134,16 +134,19 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         weakest = np.where(used, c2, np.inf).min(axis=1)
         conf3 = np.where(np.isfinite(weakest), np.minimum(conf3, weakest), conf3)
     if cfg.bone_tol > 0:
-        from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, observed_bone_lengths,
-                                          rest_skeleton, torso_anchors)
+        from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, implausible_torso,
+                                          observed_bone_lengths, rest_skeleton, torso_anchors)
 
         sk = rest_skeleton(model, layout)
         seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
         b_bones = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
+        # Torso points that break the torso's shape first: the limbs are judged from the torso.
+        torso_bad = implausible_torso(sk, b_bones, points, seen, cfg.torso_tol_m)
+        seen = seen & ~torso_bad
         # An elbow (knee) whose shoulder (hip) was not triangulated is judged against the
         # shoulder of the torso placed on the other torso points.
         anchors = torso_anchors(sk, b_bones, points, seen) if cfg.bone_anchor_torso else None
-        gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors)
+        gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors) | torso_bad
         conf3 = np.where(gated, 0.0, conf3)
     else:
         gated = np.zeros(points.shape[:2], dtype=bool)

@@ -138,13 +138,51 @@ def edge_weights(valid: NDArray, n: int) -> NDArray:
     return (valid & (np.minimum(left, right) <= n)).astype(np.float64)
 
 
-def edge_velocity_term(joints: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+#: The COCO-17 keypoint whose detections tell whether each SMPL joint is seen (the joint's own
+#: keypoint, or the nearest one: spine and collars the shoulders, neck and head the nose, feet
+#: the ankles, hands the wrists; the pelvis has no articulation speed).
+SMPL_EDGE_KEYPOINT: tuple[int, ...] = (0, 11, 12, 11, 13, 14, 5, 15, 16, 6, 15, 16, 0, 5, 6, 0, 5, 6, 7, 8, 9, 10, 9, 10)
+
+
+def edge_hold_weights(frame_w: NDArray, seen: NDArray, mode: str = "unseen") -> NDArray:
+    """(T, 24, 1 + V) weights of :func:`edge_velocity_term` per frame and SMPL joint: column 0
+    holds the joint's whole articulation still, column 1 + v only its motion along view v's ray
+    (``mode`` ``unseen``); with ``mode`` ``all``, ``frame_w`` itself (every joint held entirely).
+
+    The term is there for what no keypoint pins. A joint that no view sees in the frame is held
+    entirely; one that a single view sees is pinned across that view's ray by its detection, so
+    only its depth along the ray (which a straight-line drift moves freely) is held; one that two
+    views see is not held (both views' detections follow a real movement; holding it freezes,
+    e.g., the legs of a walking body at the first frames after one view was blind).
+
+    Args:
+        frame_w: (T,) :func:`edge_weights`; seen: (T, V, 17) bool detections used by the fit;
+        mode: ``unseen`` or ``all`` (:attr:`SmplifyConfig.edge_hold`).
+
+    Raises:
+        ValueError: another ``mode``.
+    """
+    if mode == "all":
+        return np.asarray(frame_w, dtype=np.float64)
+    if mode != "unseen":
+        raise ValueError(f"SmplifyConfig.edge_hold must be 'unseen' or 'all', got {mode!r}")
+    seen = np.asarray(seen, dtype=bool)[:, :, list(SMPL_EDGE_KEYPOINT)]  # (T, V, 24)
+    n = seen.sum(1)
+    w = np.asarray(frame_w, dtype=np.float64)[:, None]
+    cols = [w * (n == 0)] + [w * ((n == 1) & seen[:, v]) for v in range(seen.shape[1])]
+    return np.stack(cols, -1)
+
+
+def edge_velocity_term(joints: torch.Tensor, weight: torch.Tensor, centres: torch.Tensor | None = None) -> torch.Tensor:
     """Weighted mean squared norm of the first frame difference of the joints relative to the
     root (joint 0): the articulation's speed, not the body's.
 
     Args:
-        joints: (T, J, 3) metres; weight: (T,) per frame in [0, 1]; a difference ``t -> t+1``
-            counts with the larger of its two frames' weights.
+        joints: (T, J, 3) metres; weight: (T,) per frame in [0, 1], or (T, J, 1 + V) per joint
+            (:func:`edge_hold_weights`: the whole difference, then its component along the ray
+            from view v's camera centre to the joint); a difference ``t -> t+1`` counts with the
+            larger of its two frames' weights; centres: (T, V, 3) camera centres (with per-view
+            columns).
     Returns:
         m^2 per frame^2: mean over joints and over all ``T - 1`` differences (those without
         weight count 0), so that each covered frame weighs the same in any sequence, like a
@@ -153,9 +191,16 @@ def edge_velocity_term(joints: torch.Tensor, weight: torch.Tensor) -> torch.Tens
     if joints.shape[0] < 2:
         return joints.sum() * 0.0
     rel = joints - joints[:, :1]
+    d = rel[1:] - rel[:-1]  # (T-1, J, 3)
     w = torch.maximum(weight[1:], weight[:-1])
-    d2 = ((rel[1:] - rel[:-1]) ** 2).sum(-1).mean(-1)
-    return (w * d2).mean()
+    if w.dim() == 1:
+        return (w * (d ** 2).sum(-1).mean(-1)).mean()
+    cost = w[..., 0] * (d ** 2).sum(-1)
+    for v in range(w.shape[-1] - 1):
+        ray = (joints[:-1] - centres[:-1, v, None]).detach()
+        ray = ray / ray.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        cost = cost + w[..., 1 + v] * ((d * ray).sum(-1) ** 2)
+    return cost.mean()
 
 
 def acceleration_term(x: torch.Tensor) -> torch.Tensor:
