@@ -30,6 +30,7 @@ the body faces ``(cos yaw, sin yaw, 0)``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -37,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _joint_angles
+from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _head_top, _joint_angles
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
 
@@ -56,7 +57,22 @@ CHANNELS: tuple[str, ...] = (
     # ankle targets (forward, height above the floor) of each foot and the hip height, all in
     # metres along the heading relative to the piece's start.
     "ik", "al_x", "al_z", "ar_x", "ar_z", "hip_x", "hip_z",
+    # Lying down: the whole body (legs included) pitches about the pelvis, radians: negative
+    # onto the back, positive onto the front (the hips do not compensate it, unlike the tilt).
+    "body_tilt",
 )
+
+#: Interaction names :attr:`MotionScriptConfig.interactions` accepts. ``chair``/``sit``,
+#: ``sofa``, ``box``/``climb`` and ``table``/``support`` are the original four under their
+#: furniture and skill names; ``lie`` and ``prone`` use the bed (skipped in a room with a sofa);
+#: ``follow`` walks a smooth curved path through the walk area without stopping.
+INTERACTIONS: tuple[str, ...] = ("chair", "sit", "sofa", "box", "climb", "table", "support", "lie", "prone", "follow")
+
+#: Pieces that are part of walking along a path (:attr:`MotionScript.clips` ``follow``).
+_WALKING: tuple[str, ...] = ("walk", "turn", "follow")
+
+#: Thickness of the bed's headboard (:func:`embodmocap.synth.scene._piece_parts`), metres.
+_HEADBOARD_M = 0.08
 
 #: Furniture whose top the body rests on (a support); the table is only touched by the hands.
 SUPPORTS: tuple[str, ...] = ("box", "chair", "sofa", "bed")
@@ -100,9 +116,42 @@ class MotionScriptConfig:
     """Peak extra knee flexion in the swing phase at cruising speed, degrees."""
     interactions: tuple[str, ...] = ("chair", "box", "table", "sofa")
     """Interactions to perform, as many as fit: the nearest first, then the others in a random
-    order; ``"sofa"`` means whichever of sofa / bed the scene has."""
+    order; ``"sofa"`` means whichever of sofa / bed the scene has. Any of :data:`INTERACTIONS`:
+    ``"sit"`` = ``"chair"``, ``"climb"`` = ``"box"``, ``"support"`` = ``"table"`` (both hands on
+    the table top, feet together), ``"lie"`` / ``"prone"`` (on the bed, back / front down; a room
+    with a sofa has no bed and skips them), ``"follow"`` (a curved walk along a path); ``()`` walks
+    only."""
+    lie_transition_s: float = 2.0
+    """Time to lie down on the bed (from standing beside it) and to get up again, seconds."""
+    follow_waypoints: int = 4
+    """Control points of the curved path a ``"follow"`` interaction walks (besides the start)."""
     chunk_frames: int = 128
     """Frames skinned at once (bounds memory: the skinning holds per-vertex transforms)."""
+
+
+@dataclass(frozen=True)
+class ScriptedClip:
+    """One scripted interaction as a skill clip, frames end exclusive (the truth for the clip finder).
+
+    Attributes:
+        skill: ``follow``, ``sit``, ``climb``, ``lie``, ``prone`` or ``support``.
+        start, end: the clip: sit / lie / prone from the start of sitting (lying) down to the end
+            of standing up; climb from the lead foot's lift-off to the trailing foot's touch-down
+            back on the floor; support from the start of leaning in to the end of leaning out;
+            follow: a run of walking pieces (``walk``, ``follow``, turns between them), from the
+            first step to the last.
+        contact_start, contact_end: the hold (seated, lying, standing on the box, leaning);
+            None for follow.
+        furniture: the piece of furniture used (a :class:`~embodmocap.synth.spec.SceneSpec`
+            furniture key), None for follow.
+    """
+
+    skill: str
+    start: int
+    end: int
+    contact_start: int | None = None
+    contact_end: int | None = None
+    furniture: str | None = None
 
 
 @dataclass(frozen=True)
@@ -113,10 +162,13 @@ class MotionScript:
         params: SMPL parameters in the scene frame (Z up), one row per frame.
         segments: ``(name, start_frame, end_frame)`` of each planned piece, end exclusive,
             covering ``0..len(params)`` in order.
+        clips: the skill clips the script holds (:class:`ScriptedClip`), in time order.
     """
 
     params: SmplParams
     segments: list[tuple[str, int, int]] = field(default_factory=list)
+    clips: list[ScriptedClip] = field(default_factory=list)
+    """The interactions as skill clips (labels and frames the clip finder must recover)."""
 
     def frames_of(self, *names: str) -> NDArray[np.int64]:
         """Frame indices inside the segments with any of ``names``."""
@@ -151,10 +203,11 @@ def script_motion(
     """
     n_frames = max(int(round(seconds * fps)), 1)
     betas = np.asarray(betas, dtype=np.float64)
-    calib = _calibrate(body, betas, spec)
+    calib = dataclasses.replace(_calibrate(body, betas, spec), head_top=_head_top(body, betas))
     plan = _Planner(spec, cfg, calib, fps, rng)
     plan.build(n_frames)
     xy, yaw, ch, lock, on_furniture, segments = plan.arrays(n_frames)
+    clips = plan.clips(n_frames)
 
     tilt, euler = _joint_angles(ch, calib, cfg)
     body_pose = Rotation.from_euler("XYZ", euler.reshape(-1, 3)).as_rotvec().reshape(n_frames, 69)
@@ -163,7 +216,7 @@ def script_motion(
     transl = _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec, cfg.chunk_frames)
     params = SmplParams(betas, go, body_pose, transl, fps=fps)
     log.info("scripted %d frames: %s", n_frames, ", ".join(f"{n}[{s}:{e}]" for n, s, e in segments))
-    return MotionScript(params, segments)
+    return MotionScript(params, segments, clips)
 
 
 def support_height(spec: SceneSpec, points: NDArray) -> NDArray[np.float64]:
@@ -266,6 +319,9 @@ class _Planner:
         self.yaw = float(rng.uniform(-np.pi, np.pi))
         self.phase = 0.0
         self.on_furniture = False
+        # Scripted skill clips: (skill, furniture, (first piece, fraction into it), (last piece,
+        # fraction), (first, last) hold piece) -- frames are known only once the pieces are cut.
+        self.marks: list[tuple] = []
 
     # -- bookkeeping ----------------------------------------------------------------------
 
@@ -365,9 +421,11 @@ class _Planner:
         self.on_furniture = True
         T = cfg.sit_transition_s
         hip, knee = (lambda u: np.full_like(u, st.hip)), (lambda u: np.full_like(u, st.knee))
+        i = len(self.pieces)
         self.channel_piece("sit_down", T, True, sit=_ease, sit_hip=hip, sit_knee=knee)
         self.channel_piece("sit", hold, True, sit=np.ones_like, sit_hip=hip, sit_knee=knee)
         self.channel_piece("stand_up", T, True, sit=lambda u: 1.0 - _ease(u), sit_hip=hip, sit_knee=knee)
+        self.marks.append(("sit", seat.name, (i, 0.0), (i + 2, 1.0), (i + 1, i + 1)))
         self.on_furniture = False
         # Walk straight away from the seat first, so that no later turn swings a heel over it.
         self.walk_to(self.xy + fwd * 0.5)
@@ -386,6 +444,7 @@ class _Planner:
         self.on_furniture = True
         on = gap + 0.12 + 0.5 * max(half - 0.12, 0.0)  # where the feet land, ahead of the start
         up = self._step_curves(0.0, on, 0.0, top, lead="r")
+        i = len(self.pieces)
         self.channel_piece("step_up", cfg.step_s, False, **up)
         self.idle(max(hold * 0.5, 0.2), "stand_on_box")
         self.turn_to(box.yaw)
@@ -393,6 +452,9 @@ class _Planner:
         edge = float(np.dot(centre + fwd * half - self.xy, fwd))
         down = self._step_curves(0.0, edge + 0.3, top, 0.0, lead="r")
         self.channel_piece("step_down", cfg.step_s, False, **down)
+        # The clip: the lead foot leaves the floor at 10 % of step_up (see _step_curves), the
+        # trailing foot is back on it at 88 % of step_down.
+        self.marks.append(("climb", box.name, (i, 0.1), (len(self.pieces) - 1, 0.88), (i + 1, len(self.pieces) - 2)))
         self.on_furniture = False
 
     def _step_curves(self, x0: float, x1: float, z0: float, z1: float, lead: str) -> dict:
@@ -432,20 +494,114 @@ class _Planner:
         self._approach(stand)
         self.turn_to(table.yaw + np.pi)
         T = cfg.lean_transition_s
+        self.marks.append(("support", table.name, (len(self.pieces), 0.0), (len(self.pieces) + 2, 1.0),
+                           (len(self.pieces) + 1, len(self.pieces) + 1)))
         self.channel_piece("lean_in", T, True, lean=_ease)
         self.channel_piece("lean_table", hold, True, lean=np.ones_like)
         self.channel_piece("lean_out", T, True, lean=lambda u: 1.0 - _ease(u))
 
+    def lie(self, bed: Furniture, hold: float, prone: bool) -> None:
+        """Lie down on the bed along its length, head toward the headboard (local -y): on the back
+        from standing with the back to the bed's front edge, on the front from standing facing it.
+
+        One eased piece goes from standing to lying: a crouch (the bed's seated hip/knee angles,
+        peaking half way), the whole body pitching by 90 degrees about the pelvis, the heading
+        turning by 90 degrees to lie along the bed and the pelvis moving onto its middle. The
+        furniture support then rests the lowest vertices on the top, so nothing sinks into it;
+        getting up replays the piece backwards."""
+        c, cfg = self.calib, self.cfg
+        fwd = _heading(bed)
+        side = np.array([-fwd[1], fwd[0]])  # the bed's local +y: from the headboard to the foot end
+        centre = np.asarray(bed.centre_xy, dtype=np.float64)
+        # Pelvis along the bed: the top of the head 12 cm clear of the headboard.
+        along = -bed.size[1] / 2 + _HEADBOARD_M + 0.12 + c.head_top
+        lie_xy = centre + side * along
+        stand = centre + fwd * (bed.size[0] / 2 + 0.25) + side * along
+        yaw0 = bed.yaw + (np.pi if prone else 0.0)       # facing the bed / facing away from it
+        turn = np.pi / 2                                  # supine: feet to +y; prone: head to -y
+        tilt = np.pi / 2 if prone else -np.pi / 2
+        st = c.seats.get(bed.name)
+        hip, knee = (st.hip, st.knee) if st is not None else (np.deg2rad(90.0), np.deg2rad(90.0))
+        self._approach(stand + fwd * 0.15)
+        self.turn_to(float(yaw0), stand)
+        start = self.xy.copy()
+
+        def pose(u: NDArray) -> tuple[NDArray, NDArray, dict]:
+            p = _ease((u - 0.2) / 0.8)
+            crouch = 0.8 * np.sin(np.pi * np.clip(u, 0.0, 1.0)) ** 2
+            ch = {"sit": crouch, "sit_hip": np.full_like(u, hip), "sit_knee": np.full_like(u, knee), "body_tilt": tilt * p}
+            return start + p[:, None] * (lie_xy - start), yaw0 + turn * p, ch
+
+        name = "prone" if prone else "lie"
+        self.on_furniture = True
+        i = len(self.pieces)
+        u = self._u(cfg.lie_transition_s)
+        xy, yaw, ch = pose(u)
+        self._add(f"{name}_down", xy, yaw, **ch)
+        n = self._n(hold)
+        xy, yaw, ch = pose(np.ones(n))
+        self._add(name, xy, yaw, **ch)
+        xy, yaw, ch = pose(1.0 - u)
+        self._add("get_up", xy, yaw, **ch)
+        self.marks.append((name, bed.name, (i, 0.0), (i + 2, 1.0), (i + 1, i + 1)))
+        self.on_furniture = False
+        self.walk_to(self.xy + fwd * 0.5)
+
+    def follow_path(self) -> None:
+        """Walk without stopping along a smooth curve through the walk area: a clamped quadratic
+        B-spline whose control points are the current position and ``follow_waypoints`` random
+        points of the walk area (the curve stays inside their convex hull, so inside the area)."""
+        from scipy.interpolate import BSpline
+
+        cfg, rng = self.cfg, self.rng
+        pts = [np.clip(self.xy, self.lo, self.hi)]
+        for _ in range(max(cfg.follow_waypoints, 2)):
+            for _ in range(20):  # a point worth walking to: not right next to the last one
+                q = self.lo + rng.uniform(0.1, 0.9, size=2) * (self.hi - self.lo)
+                if np.linalg.norm(q - pts[-1]) > 0.8:
+                    break
+            pts.append(q)
+        if np.linalg.norm(pts[0] - self.xy) > 0.1:
+            self.walk_to(pts[0])
+        P = np.asarray(pts)
+        k, m = 2, len(P)
+        knots = np.concatenate([np.zeros(k), np.linspace(0.0, 1.0, m - k + 1), np.ones(k)])
+        curve = BSpline(knots, P, k)
+        dense = curve(np.linspace(0.0, 1.0, 2000))
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
+        L = float(arc[-1])
+        tang = np.diff(dense, axis=0)
+        head = np.unwrap(np.arctan2(tang[:, 1], tang[:, 0]))
+        head = np.concatenate([head[:1], head])
+        self.turn_to(float(head[0]))
+        head = head - head[0] + self.yaw  # continuous with the current heading
+        v, b = cfg.walk_speed_mps, cfg.ease_s
+        D = max(L / v + b, 2 * b)
+        t = np.arange(self._n(D) + 1) / self.fps
+        D = t[-1]
+        speed = np.minimum(_ease(t / b), _ease((D - t) / b))
+        s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]))])
+        s = s / s[-1] * L
+        amp = np.clip(np.gradient(s, t) / v, 0.0, 1.0)[1:]
+        phase = self.phase + np.pi * s[1:] / (v / cfg.cadence_steps_per_s)
+        xy = np.stack([np.interp(s[1:], arc, dense[:, 0]), np.interp(s[1:], arc, dense[:, 1])], axis=1)
+        self._add("follow", xy, np.interp(s[1:], arc, head), gait_amp=amp, gait_phase=phase)
+        self.phase = float(phase[-1])
+
     def interaction(self, name: str, hold: float) -> bool:
         f = self.spec.furniture
-        if name == "chair" and "chair" in f:
+        if name in ("chair", "sit") and "chair" in f:
             self.sit(f["chair"], hold)
         elif name == "sofa" and ("sofa" in f or "bed" in f):
             self.sit(f.get("sofa", f.get("bed")), hold)
-        elif name == "box" and "box" in f:
+        elif name in ("box", "climb") and "box" in f:
             self.step_on_box(f["box"], hold)
-        elif name == "table" and "table" in f:
+        elif name in ("table", "support") and "table" in f:
             self.lean_on_table(f["table"], hold)
+        elif name in ("lie", "prone") and "bed" in f:
+            self.lie(f["bed"], hold, prone=name == "prone")
+        elif name == "follow":
+            self.follow_path()
         else:
             return False
         return True
@@ -461,7 +617,7 @@ class _Planner:
     def build(self, n_frames: int) -> None:
         cfg = self.cfg
         self.idle(cfg.idle_s)
-        todo = [n for n in cfg.interactions if n in ("chair", "box", "table", "sofa")]
+        todo = [n for n in cfg.interactions if n in INTERACTIONS]
         # The nearest interaction first (so even a short clip has one), the rest in random order.
         if todo:
             dists = [self._distance_to(n) for n in todo]
@@ -471,17 +627,18 @@ class _Planner:
         for name in todo:
             if self.frames >= n_frames:
                 break
-            saved = (list(self.pieces), self.xy.copy(), self.yaw, self.phase)
+            saved = (list(self.pieces), self.xy.copy(), self.yaw, self.phase, list(self.marks))
             if not self.interaction(name, cfg.hold_s):
                 continue
             if self.frames > n_frames and done > 0:
                 # Does not fit: undo it and spend the time walking instead.
-                self.pieces, self.xy, self.yaw, self.phase = saved
+                self.pieces, self.xy, self.yaw, self.phase, self.marks = saved
                 break
             if self.frames > n_frames:
                 # The first interaction must fit: redo it with a short hold if that is enough.
                 over = (self.frames - n_frames) / self.fps
-                self.pieces, self.xy, self.yaw, self.phase = saved
+                self.pieces, self.xy, self.yaw, self.phase, self.marks = saved
+                self.marks = list(self.marks)
                 self.interaction(name, max(cfg.hold_s - over, 0.2))
             done += 1
             if self.frames < n_frames:
@@ -494,7 +651,10 @@ class _Planner:
 
     def _distance_to(self, name: str) -> float:
         f = self.spec.furniture
-        key = {"sofa": "sofa" if "sofa" in f else "bed"}.get(name, name)
+        if name == "follow":
+            return 0.0
+        key = {"sofa": "sofa" if "sofa" in f else "bed", "sit": "chair", "climb": "box", "support": "table",
+               "lie": "bed", "prone": "bed"}.get(name, name)
         if key not in f:
             return np.inf
         return float(np.linalg.norm(np.asarray(f[key].centre_xy) - self.xy))
@@ -521,6 +681,32 @@ class _Planner:
             if self.pieces[i].lock and self.pieces[i - 1].lock:
                 lock[lock == i] = _first_locked(self.pieces, i)
         return xy, yaw, ch, lock, on_furniture, segments
+
+
+    def clips(self, n_frames: int) -> list[ScriptedClip]:
+        """The scripted skill clips inside the first ``n_frames`` frames, in time order."""
+        starts = np.cumsum([0] + [len(p.yaw) for p in self.pieces])
+        at = lambda i, frac: int(starts[i] + round(frac * (starts[i + 1] - starts[i])))  # noqa: E731
+        out = []
+        for skill, furniture, (i, a), (j, b), (ci, cj) in self.marks:
+            s, e = at(i, a), at(j, b)
+            if e <= n_frames:
+                out.append(ScriptedClip(skill, s, e, int(starts[ci]), int(starts[cj + 1]), furniture))
+        # Follow: each run of walking pieces, from the first piece that moves to the last.
+        k = 0
+        while k < len(self.pieces):
+            if self.pieces[k].name not in _WALKING:
+                k += 1
+                continue
+            run = []
+            while k < len(self.pieces) and self.pieces[k].name in _WALKING:
+                run.append(k)
+                k += 1
+            moving = [r for r in run if self.pieces[r].name != "turn"
+                      or np.linalg.norm(self.pieces[r].xy[-1] - self.pieces[r].xy[0]) > 0.05]
+            if moving and starts[moving[0]] < n_frames:
+                out.append(ScriptedClip("follow", int(starts[moving[0]]), int(min(starts[moving[-1] + 1], n_frames))))
+        return sorted(out, key=lambda c: c.start)
 
 
 def _first_locked(pieces: list[_Piece], i: int) -> int:

@@ -40,6 +40,7 @@ class _Calib:
     ankle_h: float          # ankle above the sole
     hip_h: float            # hip joint above the sole, standing
     toe_ahead: float        # toes ahead of the ankle
+    head_top: float = 0.75  # top of the head above the pelvis joint, standing (set by the script)
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,8 @@ def _joint_angles(ch: dict, c: _Calib, cfg: MotionScriptConfig) -> tuple[NDArray
     e[:, _HEAD - 1, 0] += deg(3.0) * np.sin(2 * np.pi * t / 130.0 + 2.0) - deg(5.0) * lean
     # Torso counter-rotation against the pelvis while walking.
     e[:, _SPINE3 - 1, 1] += -a * deg(4.0) * np.sin(ph)
-    return tilt, e
+    # Lying down pitches the whole body, legs included: added after the hips compensated the tilt.
+    return tilt + ch.get("body_tilt", 0.0), e
 
 
 def _leg_ik(fwd: NDArray, down: NDArray, thigh: float, shin: float) -> tuple[NDArray, NDArray]:
@@ -203,6 +205,12 @@ def _leg_ik(fwd: NDArray, down: NDArray, thigh: float, shin: float) -> tuple[NDA
     knee = np.pi - np.arccos(np.clip((thigh**2 + shin**2 - r**2) / (2 * thigh * shin), -1.0, 1.0))
     hip = np.arctan2(fwd, down) + np.arccos(np.clip((thigh**2 + r**2 - shin**2) / (2 * thigh * r), -1.0, 1.0))
     return hip, knee
+
+
+def _head_top(body, betas: NDArray) -> float:
+    """Top of the head above the pelvis joint in the rest pose, metres."""
+    j, v = _pose_batch(body, betas, np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+    return float(v[0, :, 2].max() - j[0, 0, 2])
 
 
 def _global_orient(yaw: NDArray, tilt: NDArray, ch: dict) -> NDArray:
