@@ -60,6 +60,9 @@ CHANNELS: tuple[str, ...] = (
     # Lying down: the whole body (legs included) pitches about the pelvis, radians: negative
     # onto the back, positive onto the front (the hips do not compensate it, unlike the tilt).
     "body_tilt",
+    # Lying on the front: the feet pointed (ankle plantar flexion) and the head turned to the
+    # side (about the neck's own vertical axis), radians, so that the body rests on its front.
+    "point_toes", "head_turn",
 )
 
 #: Interaction names :attr:`MotionScriptConfig.interactions` accepts. ``chair``/``sit``,
@@ -516,12 +519,14 @@ class _Planner:
         # Pelvis along the bed: the top of the head 12 cm clear of the headboard.
         along = -bed.size[1] / 2 + _HEADBOARD_M + 0.12 + c.head_top
         lie_xy = centre + side * along
-        stand = centre + fwd * (bed.size[0] / 2 + 0.25) + side * along
+        st = c.seats.get(bed.name)
+        hip, knee = (st.hip, st.knee) if st is not None else (np.deg2rad(90.0), np.deg2rad(90.0))
+        # Facing the bed (prone), the crouch brings the feet forward: start that much further out.
+        gap = 0.25 + (max(st.feet_ahead, 0.0) + c.toe_ahead if prone and st is not None else 0.0)
+        stand = centre + fwd * (bed.size[0] / 2 + gap) + side * along
         yaw0 = bed.yaw + (np.pi if prone else 0.0)       # facing the bed / facing away from it
         turn = np.pi / 2                                  # supine: feet to +y; prone: head to -y
         tilt = np.pi / 2 if prone else -np.pi / 2
-        st = c.seats.get(bed.name)
-        hip, knee = (st.hip, st.knee) if st is not None else (np.deg2rad(90.0), np.deg2rad(90.0))
         self._approach(stand + fwd * 0.15)
         self.turn_to(float(yaw0), stand)
         start = self.xy.copy()
@@ -529,7 +534,8 @@ class _Planner:
         def pose(u: NDArray) -> tuple[NDArray, NDArray, dict]:
             p = _ease((u - 0.2) / 0.8)
             crouch = 0.8 * np.sin(np.pi * np.clip(u, 0.0, 1.0)) ** 2
-            ch = {"sit": crouch, "sit_hip": np.full_like(u, hip), "sit_knee": np.full_like(u, knee), "body_tilt": tilt * p}
+            ch = {"sit": crouch, "sit_hip": np.full_like(u, hip), "sit_knee": np.full_like(u, knee), "body_tilt": tilt * p,
+                  "point_toes": (1.2 if prone else 0.3) * p, "head_turn": (1.3 if prone else 0.0) * p}
             return start + p[:, None] * (lie_xy - start), yaw0 + turn * p, ch
 
         name = "prone" if prone else "lie"

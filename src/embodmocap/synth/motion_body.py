@@ -185,6 +185,9 @@ def _joint_angles(ch: dict, c: _Calib, cfg: MotionScriptConfig) -> tuple[NDArray
     e[:, _HEAD - 1, 0] += deg(3.0) * np.sin(2 * np.pi * t / 130.0 + 2.0) - deg(5.0) * lean
     # Torso counter-rotation against the pelvis while walking.
     e[:, _SPINE3 - 1, 1] += -a * deg(4.0) * np.sin(ph)
+    e[:, _L_ANKLE - 1, 0] += ch.get("point_toes", 0.0)
+    e[:, _R_ANKLE - 1, 0] += ch.get("point_toes", 0.0)
+    e[:, _NECK - 1, 1] += ch.get("head_turn", 0.0)
     # Lying down pitches the whole body, legs included: added after the hips compensated the tilt.
     return tilt + ch.get("body_tilt", 0.0), e
 
