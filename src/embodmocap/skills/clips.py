@@ -45,6 +45,25 @@ def bridge(mask: NDArray, gap: int) -> NDArray[np.bool_]:
     return out
 
 
+def _speed(x: NDArray, fps: float, win: int) -> NDArray:
+    """(T,) speed of points x (T, D) averaged over ``win`` frames first, units per second."""
+    from scipy.ndimage import uniform_filter1d
+
+    if len(x) < 2:
+        return np.zeros(len(x))
+    xs = uniform_filter1d(np.asarray(x, dtype=np.float64), win, axis=0, mode="nearest")
+    return np.linalg.norm(np.gradient(xs, axis=0), axis=-1) * fps
+
+
+def _moving(speed: NDArray, floor_mps: float, factor: float) -> NDArray[np.bool_]:
+    """Frames whose speed is above ``floor_mps`` and ``factor`` x the noise floor (the median of
+    the quietest quarter of frames)."""
+    if len(speed) == 0:
+        return np.zeros(0, dtype=bool)
+    quiet = np.sort(speed)[: max(len(speed) // 4, 1)]
+    return speed > max(floor_mps, factor * float(np.median(quiet)))
+
+
 def _pitch_deg(c: Contacts) -> NDArray:
     axis = c.neck - c.pelvis
     return np.degrees(np.arccos(np.clip(axis[:, 2] / np.maximum(np.linalg.norm(axis, axis=1), 1e-9), -1, 1)))
@@ -87,16 +106,17 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
 
     found: list[tuple[str, int, int, int, int, int, float]] = []  # skill, s, e, cs, ce, surface, score
     taken = np.zeros(T, dtype=bool)
-    moving = c.posture_speed(fps) > cfg.posture_speed_mps
+    moving = _moving(c.posture_speed(fps, cfg.smooth_s), cfg.posture_speed_mps, cfg.noise_factor)
 
     xy = c.pelvis[:, :2]
-    speed = np.linalg.norm(np.gradient(xy, axis=0), axis=1) * fps if T > 1 else np.zeros(T)
+    win = max(int(round(cfg.smooth_s * fps)), 1)
+    speed = _speed(xy, fps, win)
     lowered = hp < h_stand - cfg.lowered_m
     # Walking off (upright, pelvis at standing height, pelvis and a foot moving over the ground)
     # ends a clip; the pelvis alone moves over the ground while sitting down with the feet planted.
-    feet_speed = (np.linalg.norm(np.gradient(c.ankles[..., :2], axis=0), axis=-1).max(axis=1) * fps
-                  if T > 1 else np.zeros(T))
-    walking_off = (feet_speed > cfg.follow_speed_mps) & (speed > cfg.follow_speed_mps) & upright & ~lowered
+    feet_speed = np.maximum(_speed(c.ankles[:, 0, :2], fps, win), _speed(c.ankles[:, 1, :2], fps, win))
+    walking_off = (_moving(feet_speed, cfg.follow_speed_mps, cfg.noise_factor)
+                   & _moving(speed, cfg.follow_speed_mps, cfg.noise_factor) & upright & ~lowered)
 
     def widen(a: int, b: int, inside: NDArray) -> tuple[int, int]:
         """The hold [a, b) grown outward over the frames still ``inside`` the interaction or
@@ -148,7 +168,7 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
         taken[a:b] = True
 
     # follow: walking runs outside the other clips.
-    walking = (speed > cfg.follow_speed_mps) & ~taken
+    walking = _moving(speed, cfg.follow_speed_mps, cfg.noise_factor) & ~taken
     joined = bridge(walking, int(round(cfg.follow_gap_s * fps))) & ~taken
     for s, e in runs(joined):
         if (e - s) / fps < cfg.follow_min_s:

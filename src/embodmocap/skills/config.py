@@ -43,7 +43,13 @@ class SkillsConfig:
     posture_speed_mps: float = 0.02
     """Sit, lie, prone and support clips extend outward (from the lowered pelvis, from the hands'
     hold) while the posture keeps changing: the mean speed of the joints relative to the pelvis
-    in the heading frame above this, m/s."""
+    in the heading frame above this, m/s, or above ``noise_factor`` times the motion's own
+    noise floor (the median speed of its quietest quarter of frames) when that is higher."""
+    noise_factor: float = 2.0
+    """How far above the motion's noise floor a speed must be to count as moving (a fit's jitter
+    moves the joints of a still body)."""
+    smooth_s: float = 0.3
+    """Joint positions are averaged over this window before any speed is taken, seconds."""
     min_hold_s: float = 0.3
     """Shortest contact hold of an interaction clip, seconds."""
     gap_s: float = 0.2

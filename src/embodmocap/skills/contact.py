@@ -175,12 +175,16 @@ class Contacts:
     hips: NDArray[np.float64]
     posture: NDArray[np.float64]
 
-    def posture_speed(self, fps: float) -> NDArray[np.float64]:
-        """(T,) mean speed of the joints in :attr:`posture`, m/s (central differences)."""
+    def posture_speed(self, fps: float, smooth_s: float = 0.0) -> NDArray[np.float64]:
+        """(T,) mean speed of the joints in :attr:`posture`, m/s (central differences of the
+        positions averaged over ``smooth_s`` seconds)."""
+        from scipy.ndimage import uniform_filter1d
+
         if len(self.posture) < 2:
             return np.zeros(len(self.posture))
-        d = np.gradient(self.posture, axis=0)
-        return np.linalg.norm(d, axis=-1).mean(axis=1) * fps
+        win = max(int(round(smooth_s * fps)), 1)
+        p = uniform_filter1d(self.posture, win, axis=0, mode="nearest") if win > 1 else self.posture
+        return np.linalg.norm(np.gradient(p, axis=0), axis=-1).mean(axis=1) * fps
 
 
 def body_contacts(params, body, surfaces: Surfaces, part_ids: dict[str, NDArray], cfg: SkillsConfig = SkillsConfig()) -> Contacts:

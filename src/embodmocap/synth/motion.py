@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _head_top, _joint_angles
-from embodmocap.synth.motion_skills import ScriptedClip, follow_path, lie_on_bed, scripted_clips, step_curves
+from embodmocap.synth.motion_skills import ScriptedClip, follow_path, lie_on_bed, lift_envelope, scripted_clips, step_curves
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
 
@@ -187,6 +187,7 @@ def script_motion(
     go = _global_orient(yaw, tilt, ch)
     J0 = np.asarray(body.pelvis_offset(betas), dtype=np.float64).reshape(3)
     transl = _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec, cfg.chunk_frames)
+    transl[:, 2] = lift_envelope(transl[:, 2], ch["body_tilt"] != 0.0, fps)
     params = SmplParams(betas, go, body_pose, transl, fps=fps)
     log.info("scripted %d frames: %s", n_frames, ", ".join(f"{n}[{s}:{e}]" for n, s, e in segments))
     return MotionScript(params, segments, clips)

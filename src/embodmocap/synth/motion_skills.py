@@ -99,18 +99,34 @@ def lie_on_bed(pl, bed: Furniture, hold: float, prone: bool) -> None:
 def follow_path(pl) -> None:
     """Walk without stopping along a smooth curve through the walk area: a clamped quadratic
     B-spline whose control points are the current position and ``follow_waypoints`` random
-    points of the walk area (the curve stays inside their convex hull, so inside the area)."""
+    points of the walk area (the curve stays inside their convex hull, so inside the area), each
+    turning the control polygon by at most 90 degrees."""
     from embodmocap.synth.motion import _ease
     from scipy.interpolate import BSpline
 
     cfg, rng = pl.cfg, pl.rng
     pts = [np.clip(pl.xy, pl.lo, pl.hi)]
     for _ in range(max(cfg.follow_waypoints, 2)):
-        for _ in range(20):  # a point worth walking to: not right next to the last one
+        # A point worth walking to (not right next to the last one) that turns the path by at
+        # most 90 degrees: the curve's sharpest bend, so the heading's turning speed, stays mild.
+        best, best_turn = None, np.inf
+        for _ in range(50):
             q = pl.lo + rng.uniform(0.1, 0.9, size=2) * (pl.hi - pl.lo)
-            if np.linalg.norm(q - pts[-1]) > 0.8:
+            if np.linalg.norm(q - pts[-1]) < 0.8:
+                continue
+            turn = 0.0
+            if len(pts) > 1:
+                a, b = pts[-1] - pts[-2], q - pts[-1]
+                turn = float(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0)))
+            if turn < best_turn:
+                best, best_turn = q, turn
+            if turn <= np.pi / 2:
                 break
-        pts.append(q)
+        if best is not None:
+            pts.append(best)
+    if len(pts) < 3:  # a walk area too small for a path: a plain walk
+        pl.walk_to(pts[-1])
+        return
     if np.linalg.norm(pts[0] - pl.xy) > 0.1:
         pl.walk_to(pts[0])
     P = np.asarray(pts)
@@ -137,6 +153,29 @@ def follow_path(pl) -> None:
     xy = np.stack([np.interp(s[1:], arc, dense[:, 0]), np.interp(s[1:], arc, dense[:, 1])], axis=1)
     pl._add("follow", xy, np.interp(s[1:], arc, head), gait_amp=amp, gait_phase=phase)
     pl.phase = float(phase[-1])
+
+
+def lift_envelope(z: NDArray, lying: NDArray, fps: float, max_speed_mps: float = 1.5) -> NDArray:
+    """(T,) heights ``z`` raised to the smallest curve that is nowhere below them at the ``lying``
+    frames and changes no faster than ``max_speed_mps`` from there on: ``max(z(t), max over lying
+    s of z(s) - max_speed * |t - s|)``.
+
+    While lying down the furniture lifts the body as soon as a vertex below its top comes over its
+    footprint (a knee or a foot swinging over the edge): a jump of tens of centimetres in one
+    frame. The envelope starts rising before such a jump and comes down after it at a bounded
+    speed; it never lowers the body, so nothing sinks into the furniture. Frames away from lying
+    (every frame of the original four interactions) keep their heights exactly."""
+    z0 = np.asarray(z, dtype=np.float64)
+    z = z0.copy()
+    src = np.nonzero(lying)[0]
+    if len(src) == 0:
+        return z
+    t = np.arange(len(z))
+    step = max_speed_mps / fps
+    for a in range(0, len(src), 256):  # chunks bound the (T, chunk) array
+        s = src[a:a + 256]
+        z = np.maximum(z, (z0[s][None, :] - step * np.abs(t[:, None] - s[None, :])).max(axis=1))
+    return z
 
 
 def scripted_clips(pl, n_frames: int) -> list[ScriptedClip]:
