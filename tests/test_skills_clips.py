@@ -198,3 +198,70 @@ def test_reader_rejects_a_broken_file(tmp_path, session):
     bad.write_text(json.dumps(d))
     with pytest.raises(InputError, match="format"):
         read_skills(bad)
+
+
+# --------------------------------------------------------------------------------------------
+# report and viewer
+
+
+def test_report_section_lists_the_clips(session, tmp_path):
+    from embodmocap.cli import main
+    from embodmocap.evaluate.report import _Page, _skills_section
+
+    root, _ = session
+    path = root / "sequences" / "seq" / "skills" / "skills.json"
+    if not path.is_file():
+        assert main(["skills", str(root)]) == 0
+    sf = read_skills(path)
+    page = _Page(tmp_path, [], [])
+    _skills_section(page, path, "seq")
+    html = "".join(page.html_parts)
+    assert "Skill clips" in html and html.count("data:image/png;base64,") == 1
+    for c in sf.clips:
+        assert f">{c.id}<" in html
+    assert (tmp_path / "seq_skills.png").is_file()
+
+
+def test_viewer_draws_the_clip_boxes_and_lists_the_clips(tmp_path_factory, body):
+    """The viewer on the tiny Stage IV session with a skills.json found on its own scene mesh: one
+    box per clip object (12 edges in the skill's colour), the targets, a clip list that moves the
+    timeline to the chosen clip."""
+    pytest.importorskip("viser")
+    import socket
+
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.mesh_file import read_mesh_ply
+    from embodmocap.skills.contact import find_surfaces
+    from embodmocap.skills.files import SkillClip, SkillObject, SkillsFile, SkillTarget, write_skills
+    from embodmocap.viz.skills_layer import SKILL_RGB
+    from embodmocap.viz.viewer import ViewerConfig, serve
+    from stage4_session import SYNTH, make_stage4_session
+
+    root = tmp_path_factory.mktemp("skills_viewer") / "session"
+    make_stage4_session(root)
+    lay = SessionLayout(root)
+    v, f, _ = read_mesh_ply(lay.scene(SYNTH.scene_name).mesh_raw)
+    boxes = find_surfaces(v, f, 0.0).boxes[:2]
+    clips = [SkillClip(f"sit_{i:02d}", "sit", 2 * i, 2 * i + 4, 2 * i + 1, 2 * i + 3, SkillObject.of_box(b, None),
+                       SkillTarget([float(b.center[0]), float(b.center[1]), b.top_z + 0.1], None, [1.0, 0.0]), ["pelvis"])
+             for i, b in enumerate(boxes)]
+    write_skills(lay.sequence(SYNTH.sequence_name).root / "skills" / "skills.json",
+                 SkillsFile(root.name, SYNTH.sequence_name, SYNTH.fps, 10, clips))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    handle = serve(root, SYNTH.sequence_name, ViewerConfig(port=port, max_image_side=0))
+    try:
+        lines = handle.nodes["skills"]["/skills/boxes"]
+        assert lines.points.shape == (12 * len(clips), 2, 3)
+        np.testing.assert_allclose(lines.points[:12].reshape(-1, 3).min(0), np.min(clips[0].object.corners, 0), atol=1e-5)
+        assert tuple(np.asarray(lines.colors)[0, 0]) == SKILL_RGB["sit"]
+        assert len(handle.nodes["skills"]["/skills/targets"].points) == len(clips)
+        dd = handle._gui["clips"]
+        dd.value = dd.options[-1]
+        deadline = __import__("time").monotonic() + 5
+        while handle.frame != clips[-1].start and __import__("time").monotonic() < deadline:
+            __import__("time").sleep(0.05)
+        assert handle.frame == clips[-1].start
+    finally:
+        handle.stop()
