@@ -112,20 +112,34 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     win = max(int(round(cfg.smooth_s * fps)), 1)
     speed = _speed(xy, fps, win)
     lowered = hp < h_stand - cfg.lowered_m
-    # Walking off (upright, pelvis at standing height, pelvis and a foot moving over the ground)
-    # ends a clip; the pelvis alone moves over the ground while sitting down with the feet planted.
-    feet_speed = np.maximum(_speed(c.ankles[:, 0, :2], fps, win), _speed(c.ankles[:, 1, :2], fps, win))
-    walking_off = (_moving(feet_speed, cfg.follow_speed_mps, cfg.noise_factor)
-                   & _moving(speed, cfg.follow_speed_mps, cfg.noise_factor) & upright & ~lowered)
+    # Walking off ends a clip: upright, the pelvis at standing height and moving over the ground
+    # with a gait (one foot planted while the other swings, double support bridged). Sitting down
+    # moves the pelvis with both feet planted; sliding onto a bed moves both feet with it.
+    foot_speed = np.stack([_speed(c.ankles[:, k, :2], fps, 3) for k in (0, 1)], axis=1)
+    gait = ((foot_speed.min(axis=1) < 0.5 * speed) & (foot_speed.max(axis=1) > 1.2 * speed)
+            & _moving(speed, cfg.follow_speed_mps, cfg.noise_factor))
+    walking_off = bridge(gait, 2 * gap) & upright & ~lowered
+
+    posture_speed = c.posture_speed(fps, cfg.smooth_s)
+    settle = max(int(round(0.5 * fps)), 1)
 
     def widen(a: int, b: int, inside: NDArray) -> tuple[int, int]:
         """The hold [a, b) grown outward over the frames still ``inside`` the interaction or
-        changing posture, never into another clip nor into walking off."""
+        changing posture, never into another clip nor into walking off. Where walking off stops
+        it, the boundary moves to the quietest posture frame of the half second before the walk
+        (the body pauses, if briefly, between getting up and walking away)."""
         grow = (inside | moving) & ~walking_off & ~taken
+        a0, b0 = a, b
         while a > 0 and grow[a - 1]:
             a -= 1
+        if a > 0 and walking_off[a - 1]:
+            lo = min(a + settle, a0)
+            a = a + int(np.argmin(posture_speed[a:lo])) if lo > a else a
         while b < T and grow[b]:
             b += 1
+        if b < T and walking_off[b]:
+            hi = max(b - settle, b0)
+            b = hi + int(np.argmin(posture_speed[hi:b])) + 1 if b > hi else b
         return a, b
 
     # prone / lie / sit: a contact hold, grown over the lowered pelvis and the posture change.
@@ -158,7 +172,7 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     # support: both hands bearing on one surface, feet together on the floor.
     hands = _same_surface([p["left_hand"], p["right_hand"]])
     together = np.linalg.norm(c.ankles[:, 0, :2] - c.ankles[:, 1, :2], axis=1) <= cfg.feet_together_m
-    sup = (hands >= 0) & feet_floor & together & (seat < 0) & upright
+    sup = (hands >= 0) & feet_floor & together & (seat < 0)  # a deep lean may pitch the torso past upright
     for s, e in runs(bridge(sup, gap)):
         if e - s < hold_n or taken[s:e].any():
             continue

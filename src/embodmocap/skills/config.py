@@ -33,7 +33,8 @@ class SkillsConfig:
     lying_pitch_deg: float = 60.0
     """Lying (on the back or the front): the pelvis-to-neck axis at least this far from vertical, degrees."""
     upright_pitch_deg: float = 45.0
-    """Sitting, climbing, support: the pelvis-to-neck axis at most this far from vertical, degrees."""
+    """Sitting, climbing: the pelvis-to-neck axis at most this far from vertical, degrees (support has no
+    such limit: leaning on a table may bend the torso further)."""
     long_surface_m: float = 1.2
     """Lying needs a surface at least this long (its longer side), metres."""
     climb_min_height_m: float = 0.1
