@@ -197,10 +197,10 @@ def scripted_clips(pl, n_frames: int) -> list[ScriptedClip]:
         while k < len(pl.pieces) and pl.pieces[k].name in _WALKING:
             run.append(k)
             k += 1
-        # A turn that steps aside moves; a walk shorter than 30 cm is a shuffle (peak speed
-        # about 0.2 m/s, not walking along a path).
+        # A turn that steps aside moves; a walk shorter than 15 cm is a shuffle (its peak speed,
+        # under 0.3 m/s, barely walking), not part of the path.
         moving = [r for r in run if np.linalg.norm(pl.pieces[r].xy[-1] - pl.pieces[r].xy[0])
-                  > (0.05 if pl.pieces[r].name == "turn" else 0.3)]
+                  > (0.05 if pl.pieces[r].name == "turn" else 0.15)]
         if moving and starts[moving[0]] < n_frames:
             out.append(ScriptedClip("follow", int(starts[moving[0]]), int(min(starts[moving[-1] + 1], n_frames))))
     return sorted(out, key=lambda c: c.start)
