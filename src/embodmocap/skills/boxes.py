@@ -70,9 +70,9 @@ def surface_box(cells_xy: NDArray, cell_m: float, top_z: float, floor_z: float) 
     """The box of a horizontal surface given by its height-map cell centres (N, 2): the footprint's
     minimal rectangle, from the floor up to the top.
 
-    A cell holds the surface when any of its sub-samples hits it, so the outermost cell centres lie
-    on average a sixth of a cell inside the true edge... outside it, the half-cell inside it: the
-    two cancel to ``cell_m / 3`` added to each extent (measured on the studio's furniture)."""
+    A cell holds the surface when any of its 3 x 3 sub-samples hits it, so the outermost cell
+    centres lie on average a sixth of a cell inside the true edge: ``cell_m / 3`` is added to each
+    extent."""
     centre, size, yaw = min_area_rectangle(cells_xy)
     size = size + cell_m / 3.0
     c, s = np.cos(yaw), np.sin(yaw)

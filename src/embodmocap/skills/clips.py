@@ -106,11 +106,19 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
 
     found: list[tuple[str, int, int, int, int, int, float]] = []  # skill, s, e, cs, ce, surface, score
     taken = np.zeros(T, dtype=bool)
-    moving = _moving(c.posture_speed(fps, cfg.smooth_s), cfg.posture_speed_mps, cfg.noise_factor)
-
     xy = c.pelvis[:, :2]
     win = max(int(round(cfg.smooth_s * fps)), 1)
     speed = _speed(xy, fps, win)
+    # The posture is changing (speed), or away from the standing posture (the median posture of
+    # the frames standing still: a fit's jitter moves the joints fast but not far).
+    moving = _moving(c.posture_speed(fps, cfg.smooth_s), cfg.posture_speed_mps, cfg.noise_factor)
+    still = standing & (speed < cfg.follow_speed_mps)
+    if still.sum() >= hold_n:
+        from scipy.ndimage import uniform_filter1d
+
+        post = uniform_filter1d(c.posture, win, axis=0, mode="nearest")
+        away = np.linalg.norm(post - np.median(post[still], axis=0), axis=-1).mean(axis=1)
+        moving |= away > max(cfg.posture_away_m, cfg.noise_factor * float(np.median(away[still])))
     lowered = hp < h_stand - cfg.lowered_m
     # Walking off ends a clip: upright, the pelvis at standing height and moving over the ground
     # with a gait (one foot planted while the other swings, double support bridged). Sitting down
@@ -118,7 +126,11 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     foot_speed = np.stack([_speed(c.ankles[:, k, :2], fps, 3) for k in (0, 1)], axis=1)
     gait = ((foot_speed.min(axis=1) < 0.5 * speed) & (foot_speed.max(axis=1) > 1.2 * speed)
             & _moving(speed, cfg.follow_speed_mps, cfg.noise_factor))
-    walking_off = bridge(gait, 2 * gap) & upright & ~lowered
+    gait = bridge(gait, 2 * gap)
+    for s_, e_ in runs(gait):  # a step at least: shorter runs are jitter, not walking
+        if e_ - s_ < int(round(0.5 * fps)):
+            gait[s_:e_] = False
+    walking_off = gait & upright & ~lowered
 
     posture_speed = c.posture_speed(fps, cfg.smooth_s)
     settle = max(int(round(0.5 * fps)), 1)

@@ -46,6 +46,10 @@ class SkillsConfig:
     hold) while the posture keeps changing: the mean speed of the joints relative to the pelvis
     in the heading frame above this, m/s, or above ``noise_factor`` times the motion's own
     noise floor (the median speed of its quietest quarter of frames) when that is higher."""
+    posture_away_m: float = 0.03
+    """... or while the joints (relative to the pelvis, heading frame) are on average this far
+    from the standing posture (the median over the frames standing still), metres, or
+    ``noise_factor`` times their distance on those frames when that is higher."""
     noise_factor: float = 2.0
     """How far above the motion's noise floor a speed must be to count as moving (a fit's jitter
     moves the joints of a still body)."""
