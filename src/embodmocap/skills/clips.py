@@ -127,8 +127,8 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     gait = ((foot_speed.min(axis=1) < 0.5 * speed) & (foot_speed.max(axis=1) > 1.2 * speed)
             & _moving(speed, cfg.follow_speed_mps, cfg.noise_factor))
     gait = bridge(gait, 2 * gap)
-    for s_, e_ in runs(gait):  # a step at least: shorter runs are jitter, not walking
-        if e_ - s_ < int(round(0.5 * fps)):
+    for s_, e_ in runs(gait):  # about a step at least: shorter runs are jitter, not walking
+        if e_ - s_ < int(round(0.3 * fps)):
             gait[s_:e_] = False
     walking_off = gait & upright & ~lowered
 
