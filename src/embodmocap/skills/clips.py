@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.skills.config import SkillsConfig
-from embodmocap.skills.contact import FLOOR, NONE, Contacts, Surfaces
+from embodmocap.skills.contact import NONE, Contacts, Surfaces
 from embodmocap.skills.files import SkillClip, SkillObject, SkillTarget
 
 
@@ -89,6 +89,8 @@ def _same_surface(labels: list[NDArray]) -> NDArray:
 def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = SkillsConfig()) -> list[SkillClip]:
     """The skill clips of one sequence, in time order (ids numbered per skill)."""
     T = len(c.pelvis)
+    if T < 2:
+        return []
     gap, hold_n = max(int(round(cfg.gap_s * fps)), 1), max(int(round(cfg.min_hold_s * fps)), 1)
     p = c.part
     pitch = _pitch_deg(c)
@@ -101,7 +103,7 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     lying = pitch > cfg.lying_pitch_deg
     standing = feet_floor & upright & free & hands_free
     h_stand = float(np.median(hp[standing])) if standing.sum() >= hold_n else float(np.percentile(hp, 90))
-    top = np.array([b.top_z for b in surfaces.boxes] + [floor])  # by label; FLOOR (-1) -> floor
+    top = np.array([b.top_z for b in surfaces.boxes] + [floor])  # by label; the floor label (-1) -> floor
     long_side = np.array([b.size[0] for b in surfaces.boxes] + [0.0])
 
     found: list[tuple[str, int, int, int, int, int, float]] = []  # skill, s, e, cs, ce, surface, score
@@ -222,4 +224,4 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
     return out
 
 
-__all__ = ["find_clips", "runs", "bridge", "FLOOR"]
+__all__ = ["find_clips", "runs", "bridge"]
