@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _head_top, _joint_angles
+from embodmocap.synth.motion_place import _place
 from embodmocap.synth.motion_skills import ScriptedClip, follow_path, lie_on_bed, lift_envelope, scripted_clips, step_curves
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
@@ -568,42 +569,3 @@ def _first_locked(pieces: list[_Piece], i: int) -> int:
     while i > 0 and pieces[i - 1].lock:
         i -= 1
     return i
-
-
-# --------------------------------------------------------------------------------------------
-# skinning and placement
-# --------------------------------------------------------------------------------------------
-
-
-def _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec: SceneSpec, chunk: int) -> NDArray:
-    """SMPL ``transl`` (T, 3): pelvis at the planned xy (feet kept still in locked pieces),
-    lifted onto the supports (see the module docstring). Furniture holds the body up only in
-    interaction frames (``on_furniture``): elsewhere a heel brushing a sofa's front while walking
-    away must not lift the performer onto it."""
-    T = len(go)
-    transl = np.zeros((T, 3))
-    anchors: dict[int, NDArray] = {}
-    supports = [(f.top_z, f, SLAB_DEPTH.get(f.name, np.inf)) for f in _supports(spec)]
-    for s in range(0, T, chunk):
-        sl = slice(s, min(s + chunk, T))
-        base = np.concatenate([xy[sl] - J0[:2], np.full((sl.stop - sl.start, 1), -J0[2])], axis=1)
-        out = body.forward(betas, go[sl], body_pose[sl], base)
-        v = out.vertices.detach().cpu().numpy().astype(np.float64)
-        j = out.joints.detach().cpu().numpy().astype(np.float64)
-        feet = 0.5 * (j[:, _L_ANKLE, :2] + j[:, _R_ANKLE, :2])
-        shift = np.zeros((len(v), 2))
-        for k, seg in enumerate(lock[sl]):
-            if seg < 0:
-                continue
-            anchors.setdefault(int(seg), feet[k])  # first frame of the locked run
-            shift[k] = anchors[int(seg)] - feet[k]
-        v[..., :2] += shift[:, None]
-        lift = -v[..., 2].min(axis=1)  # floor
-        z_floor = v[..., 2] + lift[:, None]
-        for top, f, slab in supports:
-            over = _in_footprint(f, v[..., :2]) & (z_floor > top - slab)
-            low = np.where(over, v[..., 2], np.inf).min(axis=1)
-            active = on_furniture[sl] & np.isfinite(low)
-            lift = np.maximum(lift, np.where(active, top - low, -np.inf))
-        transl[sl] = base + np.concatenate([shift, lift[:, None]], axis=1)
-    return transl

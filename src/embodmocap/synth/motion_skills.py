@@ -12,8 +12,9 @@ from numpy.typing import NDArray
 
 from embodmocap.synth.spec import Furniture
 
-#: Pieces that are part of walking along a path (:attr:`MotionScript.clips` ``follow``).
-_WALKING: tuple[str, ...] = ("walk", "turn", "follow")
+#: Pieces that are part of walking along a path (:attr:`MotionScript.clips` ``follow``): the
+#: step back from the table moves over the ground like a walk (a shuffle of 30 cm).
+_WALKING: tuple[str, ...] = ("walk", "turn", "follow", "step_back")
 
 #: Thickness of the bed's headboard (:func:`embodmocap.synth.scene._piece_parts`), metres.
 _HEADBOARD_M = 0.08
@@ -199,7 +200,9 @@ def scripted_clips(pl, n_frames: int) -> list[ScriptedClip]:
             k += 1
         # A turn that steps aside moves; a walk shorter than 15 cm is a shuffle (its peak speed,
         # under 0.3 m/s, barely walking), not part of the path.
-        moving = [r for r in run if np.linalg.norm(pl.pieces[r].xy[-1] - pl.pieces[r].xy[0])
+        # Only the part inside the motion counts (the last piece may be cut short).
+        inside = [pl.pieces[r].xy[:max(n_frames - int(starts[r]), 0)] for r in run]
+        moving = [r for r, xy in zip(run, inside) if len(xy) > 1 and np.linalg.norm(xy[-1] - xy[0])
                   > (0.05 if pl.pieces[r].name == "turn" else 0.15)]
         if moving and starts[moving[0]] < n_frames:
             out.append(ScriptedClip("follow", int(starts[moving[0]]), int(min(starts[moving[-1] + 1], n_frames))))
