@@ -28,8 +28,9 @@ class ScriptedClip:
         start, end: the clip: sit / lie / prone from the start of sitting (lying) down to the end
             of standing up; climb from the lead foot's lift-off to the trailing foot's touch-down
             back on the floor; support from the start of leaning in to the end of leaning out;
-            follow: a run of walking pieces (``walk``, ``follow``, turns between them), from the
-            first step to the last.
+            follow: a run of walking pieces (``walk``, ``follow``, ``step_back``, turns between
+            them), from the first piece that moves (a walk of 15 cm or more, a turn stepping 5 cm
+            or more) to the last.
         contact_start, contact_end: the hold (seated, lying, standing on the box, leaning);
             None for follow.
         furniture: the piece of furniture used (a :class:`~embodmocap.synth.spec.SceneSpec`
