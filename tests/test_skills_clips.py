@@ -27,8 +27,8 @@ def body():
 
 @pytest.fixture(scope="module")
 def six(body):
-    """70 s in a room with a bed: all six interactions scripted, and the clips found."""
-    built, script = scripted(body, bed_seeds(1)[0])
+    """80 s in a room with a bed: all six interactions scripted (75 s just fit them), and the clips found."""
+    built, script = scripted(body, bed_seeds(1)[0], seconds=80.0)
     clips, surfaces = clips_of_motion(script.params, body, built.vertices, built.faces, CFG)
     return built, script, clips, surfaces
 
