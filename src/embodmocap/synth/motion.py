@@ -456,8 +456,6 @@ class _Planner:
         self.turn_to(table.yaw + np.pi)
         self.walk_to(stand)
         T = cfg.lean_transition_s
-        self.marks.append(("support", table.name, (len(self.pieces), 0.0), (len(self.pieces) + 2, 1.0),
-                           (len(self.pieces) + 1, len(self.pieces) + 1)))
         # The arms swing forward over the top first, elbows bent to carry the hands over the
         # edge; then the torso tilts and lowers the straightened arms onto the top (the hands
         # only go down while over it). Straightening up is the same backwards.
@@ -479,7 +477,11 @@ class _Planner:
         elif name in ("box", "climb") and "box" in f:
             self.step_on_box(f["box"], hold)
         elif name in ("table", "support") and "table" in f:
+            i = len(self.pieces)
             self.lean_on_table(f["table"], hold)
+            # The support clip: from leaning in to the end of leaning out, the hold in between.
+            k = i + [p.name for p in self.pieces[i:]].index("lean_in")
+            self.marks.append(("support", "table", (k, 0.0), (k + 2, 1.0), (k + 1, k + 1)))
         elif name in ("lie", "prone") and "bed" in f:
             lie_on_bed(self, f["bed"], hold, prone=name == "prone")
         elif name == "follow":
