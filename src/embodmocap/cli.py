@@ -30,6 +30,7 @@ from embodmocap.mono.commands import Mono
 from embodmocap.pipeline import PipelineConfig
 from embodmocap.robot.commands import RobotRetarget
 from embodmocap.sequence.config import SequenceConfig
+from embodmocap.skills.commands import Skills
 from embodmocap.sim.commands import SimCheck, SimEval, SimTrain
 from embodmocap.synth.config import SynthConfig
 from embodmocap.viz.config import RenderConfig, ViewerConfig
@@ -466,6 +467,7 @@ Commands = Union[
     Annotated[SimCheck, tyro.conf.subcommand("sim:check")],
     Annotated[SimTrain, tyro.conf.subcommand("sim:train")],
     Annotated[SimEval, tyro.conf.subcommand("sim:eval")],
+    Annotated[Skills, tyro.conf.subcommand("skills")],
 ]
 
 
@@ -476,6 +478,8 @@ def _preflight(cmd) -> None:
     if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget, SimCheck)):
         prepare_session(cmd.session)
     if isinstance(cmd, Mono):
+        prepare_session(cmd.session)
+    if isinstance(cmd, Skills):
         prepare_session(cmd.session)
     # The training export checks each sequence it exports itself (all of them without --seq).
     if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file() \

@@ -123,6 +123,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
             page.image(f"{name}_overlay_{v}.png", _overlays(lay, entry, name, v, manifest.body_model, cfg),
                        f"{v}: fitted body over the RGB frames")
         _robot_tables(page, sl.root / "robot")
+        _skills_section(page, sl.root / "skills" / "skills.json", name)
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>EmbodMocap report: {html.escape(lay.root.name)}"
            f"</title><style>{_STYLE}</style></head><body>{''.join(page.html_parts)}</body></html>")
     write_text(lay.report_html, doc)
@@ -308,3 +309,53 @@ def _sim_check_section(page: _Page, path: Path) -> None:
             "residual_force_n_per_kg_mean", "residual_torque_nm_per_kg_mean", "mass_kg")
     page.table(["figure", "value"], [[k, s[k]] for k in keys if k in s])
     page.table(["body part", "contact fraction"], [[k, v] for k, v in s.get("contact_fraction", {}).items()])
+
+
+#: Colours of the six skills in the report's clip timeline.
+_SKILL_COLOURS = {"follow": "tab:blue", "sit": "tab:green", "climb": "tab:orange", "lie": "tab:purple",
+                  "prone": "tab:brown", "support": "tab:red"}
+
+
+def _skills_section(page: _Page, path: Path, seq: str) -> None:
+    """The skill clips (``embodmocap skills``), when found: a timeline and one row per clip."""
+    if not path.is_file():
+        return
+    from embodmocap.errors import InputError
+    from embodmocap.skills.files import read_skills
+
+    try:
+        sf = read_skills(path)
+    except InputError as e:
+        page.para(f"Skill clips: {e}")
+        return
+    page.heading("Skill clips", 3)
+    counts = {k: len(sf.of_skill(k)) for k in _SKILL_COLOURS}
+    page.para(f"{len(sf.clips)} clips in {sf.n_frames} frames at {sf.fps:g} fps: "
+              + ", ".join(f"{k} {n}" for k, n in counts.items()) + ".")
+    if not sf.clips:
+        return
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 2.2))
+    rows = list(_SKILL_COLOURS)
+    for c in sf.clips:
+        y = rows.index(c.skill)
+        ax.barh(y, (c.end - c.start) / sf.fps, left=c.start / sf.fps, color=_SKILL_COLOURS[c.skill], alpha=0.5)
+        if c.contact_start is not None:
+            ax.barh(y, (c.contact_end - c.contact_start) / sf.fps, left=c.contact_start / sf.fps,
+                    color=_SKILL_COLOURS[c.skill])
+    ax.set_yticks(range(len(rows)), rows)
+    ax.set_xlim(0, sf.n_frames / sf.fps)
+    ax.set_xlabel("time (s)")
+    ax.set_title(f"{seq}: skill clips (dark: the contact hold)")
+    page.image(f"{seq}_skills.png", _png(fig), "Skill clips over time")
+    table = []
+    for c in sf.clips:
+        size = "" if c.object is None else " x ".join(f"{x:.2f}" for x in c.object.size)
+        tgt = c.target.position if c.target.position is not None else (f"path of {len(c.target.path)} waypoints"
+                                                                      if c.target.path else "")
+        if isinstance(tgt, list):
+            tgt = "(" + ", ".join(f"{x:.2f}" for x in tgt) + ")"
+        hold = "" if c.contact_start is None else f"{c.contact_start}-{c.contact_end}"
+        table.append([c.id, c.skill, f"{c.start}-{c.end}", f"{(c.end - c.start) / sf.fps:.1f}", hold,
+                      ", ".join(c.parts), size, tgt, c.score])
+    page.table(["clip", "skill", "frames", "seconds", "hold", "parts in contact", "object box (m)", "target", "score"], table)

@@ -4,7 +4,7 @@ How a motion is made (read :func:`script_motion` top to bottom):
 
 1. **Plan.** A list of pieces, each a few seconds long with a name (``idle``, ``turn``, ``walk``,
    ``sit_down``, ``sit``, ``stand_up``, ``step_up``, ``stand_on_box``, ``step_down``,
-   ``lean_in``, ``lean_table``, ``lean_out``). Each piece gives, per frame, the planned pelvis
+   ``lean_in``, ``lean_table``, ``lean_out``, ``step_back``). Each piece gives, per frame, the planned pelvis
    position on the floor (x, y), the heading (yaw about +Z) and a few scalar *channels* in
    [0, 1] (gait amplitude and phase, how far seated, how far leaning, how far each leg is lifted
    ...). Every piece starts where the previous one ended and eases in and out (quintic
@@ -13,7 +13,8 @@ How a motion is made (read :func:`script_motion` top to bottom):
 2. **Pose.** Joint angles are sums of per-channel contributions (hip flexion, knee flexion, arm
    swing ...), turned into SMPL axis-angle ``body_pose`` in one vectorised call. Angles that
    depend on the body (seat posture, table lean, step height) are calibrated once by posing the
-   actual body model on a small grid of candidate angles.
+   actual body model on a small grid of candidate angles (the table lean's arm angle is then
+   solved continuously so that the hands' lowest vertices rest on the table top).
 3. **Skin and place.** The body is skinned in chunks of frames. While seated or leaning the feet
    stay where they were when the piece began (the pelvis moves instead, as it does in life).
    Then each frame is lifted so that no vertex is below a support (floor z = 0; the box, chair
@@ -30,6 +31,7 @@ the body faces ``(cos yaw, sin yaw, 0)``.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -37,7 +39,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _joint_angles
+from embodmocap.synth.motion_body import _Calib, _calibrate, _global_orient, _head_top, _joint_angles
+from embodmocap.synth.motion_place import _place
+from embodmocap.synth.motion_skills import ScriptedClip, follow_path, lie_on_bed, lift_envelope, scripted_clips, step_curves
 from embodmocap.synth.spec import Furniture, SceneSpec
 from embodmocap.types import SmplParams
 
@@ -50,13 +54,29 @@ _NECK, _HEAD, _L_SHOULDER, _R_SHOULDER, _L_ELBOW, _R_ELBOW = 12, 15, 16, 17, 18,
 #: Channels a plan piece may set; missing ones are 0.
 CHANNELS: tuple[str, ...] = (
     "gait_amp", "gait_phase", "lean",
+    # Leaning: the arms' part (0 hanging .. 1 on the table), ahead of the torso's ``lean``.
+    "lean_arm",
+    # Leaning: extra elbow bend (0 .. 1 = 45 degrees) while the hands pass over the table's edge.
+    "lean_lift",
     # Seated: how far (0 standing .. 1 seated) and the seated hip/knee angles of this seat.
     "sit", "sit_hip", "sit_knee",
     # Stepping onto / off the box places the feet by inverse kinematics: weight of the IK legs,
     # ankle targets (forward, height above the floor) of each foot and the hip height, all in
     # metres along the heading relative to the piece's start.
     "ik", "al_x", "al_z", "ar_x", "ar_z", "hip_x", "hip_z",
+    # Lying down: the whole body (legs included) pitches about the pelvis, radians: negative
+    # onto the back, positive onto the front (the hips do not compensate it, unlike the tilt).
+    "body_tilt",
+    # Lying on the front: the feet pointed (ankle plantar flexion) and the head turned to the
+    # side (about the neck's own vertical axis), radians, so that the body rests on its front.
+    "point_toes", "head_turn",
 )
+
+#: Interaction names :attr:`MotionScriptConfig.interactions` accepts. ``chair``/``sit``,
+#: ``sofa``, ``box``/``climb`` and ``table``/``support`` are the original four under their
+#: furniture and skill names; ``lie`` and ``prone`` use the bed (skipped in a room with a sofa);
+#: ``follow`` walks a smooth curved path through the walk area without stopping.
+INTERACTIONS: tuple[str, ...] = ("chair", "sit", "sofa", "box", "climb", "table", "support", "lie", "prone", "follow")
 
 #: Furniture whose top the body rests on (a support); the table is only touched by the hands.
 SUPPORTS: tuple[str, ...] = ("box", "chair", "sofa", "bed")
@@ -100,7 +120,15 @@ class MotionScriptConfig:
     """Peak extra knee flexion in the swing phase at cruising speed, degrees."""
     interactions: tuple[str, ...] = ("chair", "box", "table", "sofa")
     """Interactions to perform, as many as fit: the nearest first, then the others in a random
-    order; ``"sofa"`` means whichever of sofa / bed the scene has."""
+    order; ``"sofa"`` means whichever of sofa / bed the scene has. Any of :data:`INTERACTIONS`:
+    ``"sit"`` = ``"chair"``, ``"climb"`` = ``"box"``, ``"support"`` = ``"table"`` (both hands on
+    the table top, feet together), ``"lie"`` / ``"prone"`` (on the bed, back / front down; a room
+    with a sofa has no bed and skips them), ``"follow"`` (a curved walk along a path); ``()`` walks
+    only."""
+    lie_transition_s: float = 2.0
+    """Time to lie down on the bed (from standing beside it) and to get up again, seconds."""
+    follow_waypoints: int = 4
+    """Control points of the curved path a ``"follow"`` interaction walks (besides the start)."""
     chunk_frames: int = 128
     """Frames skinned at once (bounds memory: the skinning holds per-vertex transforms)."""
 
@@ -113,10 +141,13 @@ class MotionScript:
         params: SMPL parameters in the scene frame (Z up), one row per frame.
         segments: ``(name, start_frame, end_frame)`` of each planned piece, end exclusive,
             covering ``0..len(params)`` in order.
+        clips: the skill clips the script holds (:class:`ScriptedClip`), in time order.
     """
 
     params: SmplParams
     segments: list[tuple[str, int, int]] = field(default_factory=list)
+    clips: list[ScriptedClip] = field(default_factory=list)
+    """The interactions as skill clips (labels and frames the clip finder must recover)."""
 
     def frames_of(self, *names: str) -> NDArray[np.int64]:
         """Frame indices inside the segments with any of ``names``."""
@@ -151,19 +182,21 @@ def script_motion(
     """
     n_frames = max(int(round(seconds * fps)), 1)
     betas = np.asarray(betas, dtype=np.float64)
-    calib = _calibrate(body, betas, spec)
+    calib = dataclasses.replace(_calibrate(body, betas, spec), head_top=_head_top(body, betas))
     plan = _Planner(spec, cfg, calib, fps, rng)
     plan.build(n_frames)
     xy, yaw, ch, lock, on_furniture, segments = plan.arrays(n_frames)
+    clips = scripted_clips(plan, n_frames)
 
     tilt, euler = _joint_angles(ch, calib, cfg)
     body_pose = Rotation.from_euler("XYZ", euler.reshape(-1, 3)).as_rotvec().reshape(n_frames, 69)
     go = _global_orient(yaw, tilt, ch)
     J0 = np.asarray(body.pelvis_offset(betas), dtype=np.float64).reshape(3)
     transl = _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec, cfg.chunk_frames)
+    transl[:, 2] = lift_envelope(transl[:, 2], ch["body_tilt"] != 0.0, fps)
     params = SmplParams(betas, go, body_pose, transl, fps=fps)
     log.info("scripted %d frames: %s", n_frames, ", ".join(f"{n}[{s}:{e}]" for n, s, e in segments))
-    return MotionScript(params, segments)
+    return MotionScript(params, segments, clips)
 
 
 def support_height(spec: SceneSpec, points: NDArray) -> NDArray[np.float64]:
@@ -266,6 +299,9 @@ class _Planner:
         self.yaw = float(rng.uniform(-np.pi, np.pi))
         self.phase = 0.0
         self.on_furniture = False
+        # Scripted skill clips: (skill, furniture, (first piece, fraction into it), (last piece,
+        # fraction), (first, last) hold piece) -- frames are known only once the pieces are cut.
+        self.marks: list[tuple] = []
 
     # -- bookkeeping ----------------------------------------------------------------------
 
@@ -299,6 +335,13 @@ class _Planner:
         end = self.xy if end_xy is None else np.asarray(end_xy, dtype=np.float64)
         xy = self.xy + _ease(u)[:, None] * (end - self.xy)
         self._add("turn", xy, self.yaw + d * _ease(u))
+
+    def shuffle_to(self, end_xy: NDArray, seconds: float) -> None:
+        """Move the pelvis to ``end_xy`` keeping the heading, with an ease over ``seconds`` (small
+        steps, no gait: for a few tens of centimetres, e.g. backwards)."""
+        u = self._u(seconds)
+        xy = self.xy + _ease(u)[:, None] * (np.asarray(end_xy, dtype=np.float64) - self.xy)
+        self._add("step_back", xy, np.full(len(u), self.yaw))
 
     def walk_to(self, target: NDArray) -> None:
         """Turn toward ``target``, then walk there in a straight line (ease in and out)."""
@@ -365,9 +408,11 @@ class _Planner:
         self.on_furniture = True
         T = cfg.sit_transition_s
         hip, knee = (lambda u: np.full_like(u, st.hip)), (lambda u: np.full_like(u, st.knee))
+        i = len(self.pieces)
         self.channel_piece("sit_down", T, True, sit=_ease, sit_hip=hip, sit_knee=knee)
         self.channel_piece("sit", hold, True, sit=np.ones_like, sit_hip=hip, sit_knee=knee)
         self.channel_piece("stand_up", T, True, sit=lambda u: 1.0 - _ease(u), sit_hip=hip, sit_knee=knee)
+        self.marks.append(("sit", seat.name, (i, 0.0), (i + 2, 1.0), (i + 1, i + 1)))
         self.on_furniture = False
         # Walk straight away from the seat first, so that no later turn swings a heel over it.
         self.walk_to(self.xy + fwd * 0.5)
@@ -385,67 +430,62 @@ class _Planner:
         self.turn_to(box.yaw + np.pi)
         self.on_furniture = True
         on = gap + 0.12 + 0.5 * max(half - 0.12, 0.0)  # where the feet land, ahead of the start
-        up = self._step_curves(0.0, on, 0.0, top, lead="r")
+        up = step_curves(self.calib, 0.0, on, 0.0, top, lead="r")
+        i = len(self.pieces)
         self.channel_piece("step_up", cfg.step_s, False, **up)
         self.idle(max(hold * 0.5, 0.2), "stand_on_box")
         self.turn_to(box.yaw)
         # Now facing the front face; the feet are `edge` behind it.
         edge = float(np.dot(centre + fwd * half - self.xy, fwd))
-        down = self._step_curves(0.0, edge + 0.3, top, 0.0, lead="r")
+        down = step_curves(self.calib, 0.0, edge + 0.3, top, 0.0, lead="r")
         self.channel_piece("step_down", cfg.step_s, False, **down)
+        # The clip: the lead foot leaves the floor at 10 % of step_up (see step_curves), the
+        # trailing foot is back on it at 88 % of step_down.
+        self.marks.append(("climb", box.name, (i, 0.1), (len(self.pieces) - 1, 0.88), (i + 1, len(self.pieces) - 2)))
         self.on_furniture = False
-
-    def _step_curves(self, x0: float, x1: float, z0: float, z1: float, lead: str) -> dict:
-        """IK channel curves u -> value for a two-footed step from (x0, support z0) to (x1, z1):
-        the leading foot moves in the first half, the pelvis shifts over in the middle, the other
-        foot follows. Each foot rises 8 cm above the higher support before moving forward and
-        comes down only after it has arrived."""
-        c = self.calib
-        clear = max(z0, z1) + 0.08
-
-        def foot(a: float, b: float):
-            # up over the first 35 % of [a, b], across over 25-75 %, down over the last 35 %.
-            w = b - a
-            def x(u):
-                return x0 + (x1 - x0) * _ease((u - a - 0.25 * w) / (0.5 * w))
-            def z(u):
-                rise = _ease((u - a) / (0.35 * w)) * (clear - z0) + z0
-                fall = clear + (z1 - clear) * _ease((u - b + 0.35 * w) / (0.35 * w))
-                return c.ankle_h + np.where(u < a + 0.5 * w, rise, fall)
-            return x, z
-
-        lx, lz = foot(0.1, 0.5)
-        tx, tz = foot(0.5, 0.88)
-        hip_x = lambda u: x0 + (x1 - x0) * _ease((u - 0.25) / 0.55)  # noqa: E731
-        hip_z = lambda u: c.hip_h + z0 + (z1 - z0) * _ease((u - 0.3) / 0.45)  # noqa: E731
-        lead_x, lead_z, trail_x, trail_z = ("ar_x", "ar_z", "al_x", "al_z") if lead == "r" else ("al_x", "al_z", "ar_x", "ar_z")
-        # The IK legs blend in and out over the first and last 10 % (the IK knee is never quite
-        # straight, the standing pose around the piece is).
-        ik = lambda u: np.minimum(_ease(u / 0.1), _ease((1.0 - u) / 0.1))  # noqa: E731
-        return {"ik": ik, lead_x: lx, lead_z: lz, trail_x: tx, trail_z: tz, "hip_x": hip_x, "hip_z": hip_z}
 
     def lean_on_table(self, table: Furniture, hold: float) -> None:
         c, cfg = self.calib, self.cfg
         fwd = _heading(table)
         # Wrists 12 cm inside the front edge; the pelvis starts over the ankles.
         stand = np.asarray(table.centre_xy) + fwd * (table.size[0] / 2 - 0.12 + c.lean_reach)
-        self._approach(stand)
+        # The walk ends 30 cm further out, the performer turns to face the table there and walks
+        # the last 30 cm in: swinging arms and a turn on the spot that close to the table would
+        # sweep the hands through it.
+        self._approach(stand + fwd * 0.3)
         self.turn_to(table.yaw + np.pi)
+        self.walk_to(stand)
         T = cfg.lean_transition_s
-        self.channel_piece("lean_in", T, True, lean=_ease)
-        self.channel_piece("lean_table", hold, True, lean=np.ones_like)
-        self.channel_piece("lean_out", T, True, lean=lambda u: 1.0 - _ease(u))
+        # The arms swing forward over the top first, elbows bent to carry the hands over the
+        # edge; then the torso tilts and lowers the straightened arms onto the top (the hands
+        # only go down while over it). Straightening up is the same backwards.
+        arm_in, tilt_in = (lambda u: _ease(u / 0.55)), (lambda u: _ease((u - 0.35) / 0.65))
+        lift_in = lambda u: _bump(u, 0.0, 0.8)  # noqa: E731
+        self.channel_piece("lean_in", T, True, lean=tilt_in, lean_arm=arm_in, lean_lift=lift_in)
+        self.channel_piece("lean_table", hold, True, lean=np.ones_like, lean_arm=np.ones_like)
+        self.channel_piece("lean_out", T, True, lean=lambda u: tilt_in(1.0 - u),
+                           lean_arm=lambda u: arm_in(1.0 - u), lean_lift=lambda u: lift_in(1.0 - u))
+        # Step back (a slow shuffle: no faster than the feet's friction allows) before turning away.
+        self.shuffle_to(stand + fwd * 0.3, 1.2)
 
     def interaction(self, name: str, hold: float) -> bool:
         f = self.spec.furniture
-        if name == "chair" and "chair" in f:
+        if name in ("chair", "sit") and "chair" in f:
             self.sit(f["chair"], hold)
         elif name == "sofa" and ("sofa" in f or "bed" in f):
             self.sit(f.get("sofa", f.get("bed")), hold)
-        elif name == "box" and "box" in f:
+        elif name in ("box", "climb") and "box" in f:
             self.step_on_box(f["box"], hold)
-        elif name == "table" and "table" in f:
+        elif name in ("table", "support") and "table" in f:
+            i = len(self.pieces)
             self.lean_on_table(f["table"], hold)
+            # The support clip: from leaning in to the end of leaning out, the hold in between.
+            k = i + [p.name for p in self.pieces[i:]].index("lean_in")
+            self.marks.append(("support", "table", (k, 0.0), (k + 2, 1.0), (k + 1, k + 1)))
+        elif name in ("lie", "prone") and "bed" in f:
+            lie_on_bed(self, f["bed"], hold, prone=name == "prone")
+        elif name == "follow":
+            follow_path(self)
         else:
             return False
         return True
@@ -461,7 +501,7 @@ class _Planner:
     def build(self, n_frames: int) -> None:
         cfg = self.cfg
         self.idle(cfg.idle_s)
-        todo = [n for n in cfg.interactions if n in ("chair", "box", "table", "sofa")]
+        todo = [n for n in cfg.interactions if n in INTERACTIONS]
         # The nearest interaction first (so even a short clip has one), the rest in random order.
         if todo:
             dists = [self._distance_to(n) for n in todo]
@@ -471,17 +511,18 @@ class _Planner:
         for name in todo:
             if self.frames >= n_frames:
                 break
-            saved = (list(self.pieces), self.xy.copy(), self.yaw, self.phase)
+            saved = (list(self.pieces), self.xy.copy(), self.yaw, self.phase, list(self.marks))
             if not self.interaction(name, cfg.hold_s):
                 continue
             if self.frames > n_frames and done > 0:
                 # Does not fit: undo it and spend the time walking instead.
-                self.pieces, self.xy, self.yaw, self.phase = saved
+                self.pieces, self.xy, self.yaw, self.phase, self.marks = saved
                 break
             if self.frames > n_frames:
                 # The first interaction must fit: redo it with a short hold if that is enough.
                 over = (self.frames - n_frames) / self.fps
-                self.pieces, self.xy, self.yaw, self.phase = saved
+                self.pieces, self.xy, self.yaw, self.phase, self.marks = saved
+                self.marks = list(self.marks)
                 self.interaction(name, max(cfg.hold_s - over, 0.2))
             done += 1
             if self.frames < n_frames:
@@ -494,7 +535,10 @@ class _Planner:
 
     def _distance_to(self, name: str) -> float:
         f = self.spec.furniture
-        key = {"sofa": "sofa" if "sofa" in f else "bed"}.get(name, name)
+        if name == "follow":
+            return 0.0
+        key = {"sofa": "sofa" if "sofa" in f else "bed", "sit": "chair", "climb": "box", "support": "table",
+               "lie": "bed", "prone": "bed"}.get(name, name)
         if key not in f:
             return np.inf
         return float(np.linalg.norm(np.asarray(f[key].centre_xy) - self.xy))
@@ -527,42 +571,3 @@ def _first_locked(pieces: list[_Piece], i: int) -> int:
     while i > 0 and pieces[i - 1].lock:
         i -= 1
     return i
-
-
-# --------------------------------------------------------------------------------------------
-# skinning and placement
-# --------------------------------------------------------------------------------------------
-
-
-def _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec: SceneSpec, chunk: int) -> NDArray:
-    """SMPL ``transl`` (T, 3): pelvis at the planned xy (feet kept still in locked pieces),
-    lifted onto the supports (see the module docstring). Furniture holds the body up only in
-    interaction frames (``on_furniture``): elsewhere a heel brushing a sofa's front while walking
-    away must not lift the performer onto it."""
-    T = len(go)
-    transl = np.zeros((T, 3))
-    anchors: dict[int, NDArray] = {}
-    supports = [(f.top_z, f, SLAB_DEPTH.get(f.name, np.inf)) for f in _supports(spec)]
-    for s in range(0, T, chunk):
-        sl = slice(s, min(s + chunk, T))
-        base = np.concatenate([xy[sl] - J0[:2], np.full((sl.stop - sl.start, 1), -J0[2])], axis=1)
-        out = body.forward(betas, go[sl], body_pose[sl], base)
-        v = out.vertices.detach().cpu().numpy().astype(np.float64)
-        j = out.joints.detach().cpu().numpy().astype(np.float64)
-        feet = 0.5 * (j[:, _L_ANKLE, :2] + j[:, _R_ANKLE, :2])
-        shift = np.zeros((len(v), 2))
-        for k, seg in enumerate(lock[sl]):
-            if seg < 0:
-                continue
-            anchors.setdefault(int(seg), feet[k])  # first frame of the locked run
-            shift[k] = anchors[int(seg)] - feet[k]
-        v[..., :2] += shift[:, None]
-        lift = -v[..., 2].min(axis=1)  # floor
-        z_floor = v[..., 2] + lift[:, None]
-        for top, f, slab in supports:
-            over = _in_footprint(f, v[..., :2]) & (z_floor > top - slab)
-            low = np.where(over, v[..., 2], np.inf).min(axis=1)
-            active = on_furniture[sl] & np.isfinite(low)
-            lift = np.maximum(lift, np.where(active, top - low, -np.inf))
-        transl[sl] = base + np.concatenate([shift, lift[:, None]], axis=1)
-    return transl

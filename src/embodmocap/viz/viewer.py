@@ -8,6 +8,8 @@ What the page shows (Z up, metres, the scene's world):
   down to ``max_image_side``);
 - the triangulated COCO-17 keypoints of the current frame (gap-filled ones in orange);
 - the performer's pelvis path as a line;
+- the skill clips (``embodmocap skills``): each clip's object box and target, and a clip list that
+  moves the timeline to a clip;
 - one checkbox per layer.
 
 Body vertices are posed a chunk of frames at a time in float32 (:class:`embodmocap.viz.BodyFrames`)
@@ -39,7 +41,7 @@ log = logging.getLogger(__name__)
 VIEW_COLOURS: dict[str, tuple[int, int, int]] = {"v1": (220, 60, 60), "v2": (60, 180, 80)}
 
 #: Scene node names the viewer creates (also the layer names of the checkboxes).
-LAYERS: tuple[str, ...] = ("scene", "body", "cameras", "keypoints", "path", "robot")
+LAYERS: tuple[str, ...] = ("scene", "body", "cameras", "keypoints", "path", "robot", "skills")
 
 
 class ViewerHandle:
@@ -264,6 +266,14 @@ def _add_nodes(handle: ViewerHandle, session: Path, cfg: ViewerConfig) -> None:
     nodes["path"] = server.scene.add_line_segments("/path", segments.astype(np.float32), (255, 120, 200),
                                                    thickness=3.0, thickness_units="screen")
     _add_robot(handle, session, cfg)
+    _add_skills(handle, session)
+
+
+def _add_skills(handle: ViewerHandle, session: Path) -> None:
+    """The skill layer (clip boxes and targets, ``embodmocap skills``), if the sequence has clips."""
+    from embodmocap.viz.skills_layer import add_skills
+
+    add_skills(handle, session)
 
 
 def _add_robot(handle: ViewerHandle, session: Path, cfg: ViewerConfig) -> None:
@@ -300,6 +310,9 @@ def _add_gui(handle: ViewerHandle, cfg: ViewerConfig) -> None:
             box = gui.add_checkbox(layer.capitalize(), initial_value=True, disabled=not targets)
             box.on_update(lambda ev, ts=targets: [setattr(h, "visible", ev.target.value) for h in ts])
             g[f"layer_{layer}"] = box
+    from embodmocap.viz.skills_layer import add_clip_list
+
+    add_clip_list(handle)
 
 
 def serve(session: str | Path, seq: str, cfg: ViewerConfig = ViewerConfig()) -> ViewerHandle:
