@@ -4,7 +4,7 @@ written here from the script's known pieces and furniture (the clip finder is te
 Not a test module.
 
 Targets follow the supplement (and the skills.json contract): sit = 10 cm above the seat's top
-centre, climb = 94 cm above the box top's centre, support = the point of the table's top the hands
+centre, climb = 94 cm above the box top's centre, support = the hand joints' centre where the hands
 reach (their mean position over the hold, on the top), follow = the pelvis path every 0.1 s. The
 studio scripts no lie or prone on this branch: stand-in clips (``<skill>_standin``, the sit's
 frames on the bed) exercise those two environments.
@@ -75,10 +75,11 @@ def skill_clips(script, spec, joints: np.ndarray) -> list[dict]:
     lean = _seg(script, "lean_table")
     if lean and "table" in f:
         t = f["table"]
-        hands = joints[lean[0]:lean[1], [22, 23], :2].mean(axis=(0, 1))  # SMPL L_Hand, R_Hand
-        clips.append({"id": "support_00", "skill": "support", "start": _before(script, _seg(script, "lean_in")[0], 1.0),
+        hands = joints[lean[0]:lean[1], [22, 23]].mean(axis=(0, 1))  # SMPL L_Hand, R_Hand (as the clip finder)
+        # From 2.5 s before the lean: the studio walks its last 30 cm in, 1 s before it the body is at the table.
+        clips.append({"id": "support_00", "skill": "support", "start": _before(script, _seg(script, "lean_in")[0], 2.5),
                       "end": _seg(script, "lean_out", lean[0])[1], "contact_start": lean[0], "contact_end": lean[1],
-                      "object": furniture_box(t), "target": {"position": [hands[0], hands[1], t.top_z], "path": None,
+                      "object": furniture_box(t), "target": {"position": [hands[0], hands[1], hands[2]], "path": None,
                                                              "facing": None},
                       "parts": ["left_hand", "right_hand"], "score": 1.0})
     # The studio's own lie / prone clips, where it scripts them (``MotionScript.clips``): target 10 cm
@@ -146,7 +147,8 @@ def make_skill_session(root: Path, seed: int = 0, seconds: float = 24.0, skills_
 
 @pytest.fixture(scope="session")
 def skill_session(tmp_path_factory) -> Path:
-    """The 36 s studio session with skills.json (sit, climb, support, follow; lie / prone stand-ins)."""
+    """The 48 s studio session with skills.json (sit, climb, support, follow; lie / prone stand-ins)."""
+    # 48 s: the table lean walks in and steps back since the studio fix, so the climb needs the room.
     root = tmp_path_factory.mktemp("skills") / "session"
-    make_skill_session(root, seconds=36.0)
+    make_skill_session(root, seconds=48.0)
     return root

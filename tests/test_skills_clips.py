@@ -9,6 +9,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 
 from embodmocap.body.model import load_body_model
 from embodmocap.skills.config import SkillsConfig
@@ -63,7 +64,7 @@ def test_object_box_is_the_scripted_furniture_surface(six):
     assert checked == 5
 
 
-def test_targets_follow_the_supplement(six):
+def test_targets_follow_the_supplement(six, body):
     built, script, clips, _ = six
     pairs, _, _ = match(script.clips, clips, tol=10, follow_min_frames=FOLLOW_MIN)
     above = {"sit": 0.10, "climb": 0.94, "lie": 0.10, "prone": 0.10, "support": 0.0}
@@ -78,6 +79,14 @@ def test_targets_follow_the_supplement(six):
         corners = surface_corners(built.spec.furniture[t.furniture])
         top_centre = np.array([*corners[:, :2].mean(axis=0), corners[:, 2].max()])
         want = top_centre + [0.0, 0.0, above[t.skill]]
+        if t.skill == "support":
+            # The hand joints' centre over the hold, resting on the top (the part the hands bear on).
+            p = script.params
+            sl = slice(f.contact_start, f.contact_end)
+            with torch.no_grad():
+                j = body.forward(p.betas, p.global_orient[sl], p.body_pose[sl], p.transl[sl]).joints.cpu().numpy()
+            want = j[:, [22, 23]].mean(axis=(0, 1))
+            assert 0.0 < want[2] - corners[:, 2].max() < 0.12  # on the top, not above or inside it
         assert np.linalg.norm(np.asarray(f.target.position) - want) < 0.03, (t.skill, f.target.position, want)
         assert abs(np.linalg.norm(f.target.facing) - 1.0) < 1e-6
 

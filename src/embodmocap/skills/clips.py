@@ -218,6 +218,13 @@ def find_clips(c: Contacts, surfaces: Surfaces, fps: float, cfg: SkillsConfig = 
         above = {"sit": cfg.sit_target_above_m, "climb": cfg.climb_target_above_m, "lie": cfg.lie_target_above_m,
                  "prone": cfg.lie_target_above_m, "support": 0.0}[skill]
         pos = [float(box.center[0]), float(box.center[1]), float(box.top_z + above)]
+        if skill == "support":
+            # The hand joints' centre over the hold: the supplement's "object surface centre" is
+            # the centre of what the hands bear on (its support objects are small; on a table the
+            # centre of the whole top is out of reach). Its height is the hand joints' while they
+            # rest on the top (a palm's thickness above it, which depends on the body), so the
+            # 10 cm success test measures where the hands are, not the body's proportions.
+            pos = [float(x) for x in c.hands[cs:ce].mean(axis=(0, 1))]
         parts = [name for name, lab in p.items() if np.mean(lab[cs:ce] == k) >= 0.5]
         out.append(SkillClip(f"{skill}_{n:02d}", skill, s, e, cs, ce, SkillObject.of_box(box, f"surface_{k:02d}"),
                              SkillTarget([round(x, 6) for x in pos], None, _facing(c, cs, ce)), parts, round(score, 4)))

@@ -161,7 +161,8 @@ class Contacts:
         part: part name -> (T,) int label.
         foot_gap: (T, 2) lowest vertex of the (left, right) foot above the floor, metres.
         pelvis: (T, 3) pelvis joint; neck: (T, 3) neck joint; ankles: (T, 2, 3); hips: (T, 2, 3)
-            the (left, right) hip joints.
+            the (left, right) hip joints; hands: (T, 2, 3) the (left, right) hand joints (SMPL 22,
+            23: the palm, where a supporting hand bears).
         posture: (T, 22, 3) joints 0..21 relative to the pelvis in the heading frame (rotated
             about +Z so that the hips' forward direction is +x): what changes when the body
             changes its posture, not when it walks off or turns.
@@ -174,6 +175,7 @@ class Contacts:
     ankles: NDArray[np.float64]
     hips: NDArray[np.float64]
     posture: NDArray[np.float64]
+    hands: NDArray[np.float64]
 
     def posture_speed(self, fps: float, smooth_s: float = 0.0) -> NDArray[np.float64]:
         """(T,) mean speed of the joints in :attr:`posture`, m/s (central differences of the
@@ -195,7 +197,7 @@ def body_contacts(params, body, surfaces: Surfaces, part_ids: dict[str, NDArray]
     labels = {p: np.full(T, NONE, dtype=np.int64) for p in PARTS}
     foot_gap = np.zeros((T, 2))
     pelvis, neck = np.zeros((T, 3)), np.zeros((T, 3))
-    ankles, hips = np.zeros((T, 2, 3)), np.zeros((T, 2, 3))
+    ankles, hips, hands = np.zeros((T, 2, 3)), np.zeros((T, 2, 3)), np.zeros((T, 2, 3))
     posture = np.zeros((T, 22, 3))
     S = len(surfaces.boxes)
     for s in range(0, T, cfg.chunk_frames):
@@ -205,7 +207,7 @@ def body_contacts(params, body, surfaces: Surfaces, part_ids: dict[str, NDArray]
         v = out.vertices.cpu().numpy().astype(np.float64)
         j = out.joints.cpu().numpy().astype(np.float64)
         pelvis[sl], neck[sl] = j[:, 0], j[:, 12]
-        ankles[sl], hips[sl] = j[:, [7, 8]], j[:, [1, 2]]
+        ankles[sl], hips[sl], hands[sl] = j[:, [7, 8]], j[:, [1, 2]], j[:, [22, 23]]
         left = j[:, 1, :2] - j[:, 2, :2]
         yaw = np.arctan2(-left[:, 0], left[:, 1])  # forward = left hip direction turned by -90 deg
         cy, sy = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
@@ -226,4 +228,4 @@ def body_contacts(params, body, surfaces: Surfaces, part_ids: dict[str, NDArray]
             best = np.argmax(counts, axis=1)
             ok = counts[np.arange(len(v)), best] >= cfg.min_part_vertices
             labels[name][sl] = np.where(ok, np.where(best == S, FLOOR, best), NONE)
-    return Contacts(labels, foot_gap, pelvis, neck, ankles, hips, posture)
+    return Contacts(labels, foot_gap, pelvis, neck, ankles, hips, posture, hands)
