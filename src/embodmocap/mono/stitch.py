@@ -16,8 +16,8 @@ and re-weighted with a Cauchy kernel against outliers. Writing ``Y = S_(k-1) X^(
 stitched) makes the composition implicit: ``S_k = S_(k-1) S_(k-1 <- k)``.
 
 An alignment that cannot be trusted (too few overlapping frames or points, a residual over
-``max_rel_residual`` of the scene's depth, point maps of different sizes) starts a new
-*segment* (``S_k = I`` in a frame of its own) with a warning; never a silent jump.
+``max_rel_residual`` of the scene's depth, point maps of different sizes), and a chunk the scene
+model failed on (SfM: no model) and the one after it, start a new *segment* (``S_k = I`` in a frame of its own) with a warning; never a silent jump.
 """
 
 from __future__ import annotations
@@ -83,6 +83,8 @@ class StitchResult:
         chunks: one record per chunk.
         warnings: one line per segment break.
         metric: the scene model's units are metres.
+        failed: (T,) bool, frames placed by a chunk the scene model failed on (their poses are
+            meaningless: no metric scale, flagged invalid).
     """
 
     T_stitch_cam: NDArray[np.float64]
@@ -91,6 +93,7 @@ class StitchResult:
     chunks: list[ChunkRecord] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     metric: bool = False
+    failed: NDArray[np.bool_] | None = None
 
 
 #: Called after each chunk is placed: (prediction, S_k, indices of the frames it owns, segment).
@@ -163,7 +166,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
     grow with the video; ``visit`` sees each chunk's full prediction once, after it is placed.
     """
     T = plan[-1][1] if plan else 0
-    res = StitchResult(np.tile(np.eye(4), (T, 1, 1)), np.zeros(T, np.int64), np.ones(T))
+    res = StitchResult(np.tile(np.eye(4), (T, 1, 1)), np.zeros(T, np.int64), np.ones(T), failed=np.zeros(T, bool))
     owned_until = 0
     segment = -1
     prev = None  # (frames (n,), Y (n,h,w,3), conf (n,h,w), centres (n,3), rows, cols)
@@ -175,7 +178,11 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         rows, cols = grid(H, W, cfg.points_per_frame)
         S, info, reason = None, {"points": 0, "residual_rel": float("nan")}, "first chunk"
         n_ov = 0
-        if prev is not None:
+        if pred.failure:
+            reason = f"the scene model failed on it: {pred.failure}"
+        elif prev is not None and prev[6]:
+            reason = f"the previous chunk failed ({prev[6]})"
+        elif prev is not None:
             shared = np.intersect1d(prev[0], frames)
             n_ov = len(shared)
             ip = np.searchsorted(prev[0], shared)
@@ -191,7 +198,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         if not aligned:
             segment += 1
             S = np.eye(4)
-            if prev is not None:
+            if prev is not None or pred.failure:
                 msg = (f"chunk {start}..{end - 1} could not be aligned to the previous one ({reason}): frames from "
                        f"{max(owned_until, start)} on are segment {segment}, in a frame and scale of their own")
                 log.warning(msg)
@@ -204,7 +211,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         res.chunk_scale[f_own] = s_k
         res.chunks.append(ChunkRecord(start, end, segment, S, aligned, n_ov, int(info.get("points", 0)),
                                       float(info.get("residual_rel", float("nan"))),
-                                      "" if aligned or prev is None else reason))
+                                      "" if aligned or (prev is None and not pred.failure) else reason))
         if visit is not None:
             visit(pred, S, own, segment)
         owned_until = end
@@ -212,5 +219,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         # the two chunks share; the grid is small, so keeping every frame costs little).
         Yk = apply_similarity(S, pred.world_points(slice(None), rows, cols).reshape(len(frames), -1, 3))
         prev = (frames, Yk.reshape(len(frames), len(rows), len(cols), 3), pred.conf[:, rows][:, :, cols],
-                apply_similarity(S, pred.T_world_cam[:, :3, 3][None])[0], rows, cols)
+                apply_similarity(S, pred.T_world_cam[:, :3, 3][None])[0], rows, cols, pred.failure)
+        if pred.failure:
+            res.failed[f_own] = True
     return res
