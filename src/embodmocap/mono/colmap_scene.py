@@ -29,7 +29,9 @@ from __future__ import annotations
 
 import logging
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +42,18 @@ from embodmocap.mono.config import ColmapSceneConfig
 from embodmocap.mono.files import ChunkPrediction
 
 log = logging.getLogger(__name__)
+
+
+@contextmanager
+def _quiet(pycolmap) -> Iterator[None]:
+    """COLMAP logs (glog, to stderr) at INFO per image; keep it to errors unless we log at DEBUG."""
+    old = pycolmap.logging.minloglevel
+    if not log.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = max(old, 2)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
 
 
 def interpolate_poses(t_known: NDArray, T_known: NDArray, t: NDArray) -> NDArray[np.float64]:
@@ -101,13 +115,11 @@ class ColmapScene:
     def predict(self, frames: NDArray[np.int64]) -> ChunkPrediction:
         import pycolmap
 
-        from embodmocap.scene.colmap_steps import _quiet_colmap
-
         frames = np.asarray(frames, dtype=np.int64)
         sel = frames[frames % self.cfg.stride == 0]
         if len(sel) < 3:  # a short last chunk: keep its frames all
             sel = frames
-        with tempfile.TemporaryDirectory(prefix="embodmocap_mono_sfm_") as tmp, _quiet_colmap(pycolmap):
+        with tempfile.TemporaryDirectory(prefix="embodmocap_mono_sfm_") as tmp, _quiet(pycolmap):
             rec, failure = self._sfm(pycolmap, Path(tmp), sel)
             pred = self._prediction(rec, frames, sel, failure)
         self._cache = {f: v for f, v in self._cache.items() if f > frames[-1] - len(frames)}  # keep the overlap's
