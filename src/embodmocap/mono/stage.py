@@ -246,8 +246,13 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
         M_seg[g] = A @ Sm
         T_world_cam[fr] = transform_poses(M_seg[g], res.T_stitch_cam[fr])
     if not np.isfinite(metric_scale).any():
-        raise InputError(vl.masks, "no segment has enough body samples for the metric scale (person not in the masks, "
-                         "or no confident points on the body)", "check the person masks and the human model's file for this view")
+        for w in warnings:
+            log.warning(w)
+        raise InputError(vl.masks, f"no segment of the {n_seg} has a metric scale ("
+                         + "; ".join(f"segment {g}: cue {s.get('cue')}, {s.get('samples', 0)} samples"
+                                     + (f", {s['reason']}" if "reason" in s else "") for g, s in scales.items())
+                         + ")", "check the person masks and the human model's file for this view; with "
+                         "--scene-model colmap the floor must be visible and the feet on it")
     write_mono_cameras(ml.cameras_world, T_world_cam, K, W_rgb, H_rgb, res.segment, metric_scale,
                        float(cams.fps) if cams.fps is not None else float("nan"))
     if pts_acc:
