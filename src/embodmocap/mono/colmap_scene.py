@@ -21,7 +21,8 @@ Per chunk frame the backend returns (``ChunkPrediction``):
   (:mod:`embodmocap.mono.feet`).
 
 A chunk SfM cannot reconstruct (no model, or fewer than ``min_registered`` of its images
-registered) comes back with ``failure`` set: the stitching starts a new segment there with a
+registered) is tried again with half the stride (``retry_denser``), down to every frame; if it
+still fails it comes back with ``failure`` set: the stitching starts a new segment there with a
 warning (never a silent jump).
 """
 
@@ -119,9 +120,21 @@ class ColmapScene:
         sel = frames[frames % self.cfg.stride == 0]
         if len(sel) < 3:  # a short last chunk: keep its frames all
             sel = frames
-        with tempfile.TemporaryDirectory(prefix="embodmocap_mono_sfm_") as tmp, _quiet(pycolmap):
-            rec, failure = self._sfm(pycolmap, Path(tmp), sel)
-            pred = self._prediction(rec, frames, sel, failure)
+        stride = self.cfg.stride
+        with _quiet(pycolmap):
+            while True:
+                with tempfile.TemporaryDirectory(prefix="embodmocap_mono_sfm_") as tmp:
+                    rec, failure = self._sfm(pycolmap, Path(tmp), sel)
+                    if rec is not None or not self.cfg.retry_denser or stride == 1 or len(sel) == len(frames):
+                        pred = self._prediction(rec, frames, sel, failure)
+                        break
+                # Denser frames give longer tracks (a 4-frame step lost SfM on 2 of 37 chunks of a
+                # 60 s studio view; a 2-frame step reconstructed them). The SfM frames of the
+                # coarser step stay a subset, so the overlap with the neighbours keeps them.
+                log.debug("chunk %d..%d: %s at stride %d; retrying at %d", frames[0], frames[-1], failure, stride,
+                          stride // 2)
+                stride //= 2
+                sel = frames[frames % stride == 0]
         self._cache = {f: v for f, v in self._cache.items() if f > frames[-1] - len(frames)}  # keep the overlap's
         return pred
 

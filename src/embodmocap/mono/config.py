@@ -63,6 +63,9 @@ class ColmapSceneConfig:
     next image)."""
     init_min_inliers: int = 50
     """Fewest verified matches of SfM's initial pair (COLMAP: 100; 1024 features at 320 px give fewer)."""
+    retry_denser: bool = True
+    """A chunk SfM failed on is tried again with half the stride (down to every frame) before it
+    is declared failed (costs only on such chunks)."""
     min_registered: float = 0.5
     """A chunk where SfM registers fewer than this share of its images has failed: a new segment."""
     min_points: int = 100
