@@ -30,6 +30,11 @@ class StitchConfig:
     points): they pin the path where the points are few."""
     robust_iterations: int = 4
     """Cauchy re-weighting rounds of the alignment (0 = plain weighted Umeyama)."""
+    symmetric_scale: bool = True
+    """Take each alignment's scale as the ratio of the overlap's weighted spreads in the two
+    chunks (rotation from Umeyama) instead of Umeyama's least-squares scale, which noise in the
+    new chunk's points biases low; the bias compounds chunk after chunk (a 60 s studio view with
+    Pi3-like noise: the local scale drifted from -1.4 % to +1.2 % of the global one)."""
     min_overlap_frames: int = 2
     """Fewer overlapping frames than this cannot be aligned: a new segment starts."""
     min_points: int = 50

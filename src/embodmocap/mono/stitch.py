@@ -12,7 +12,9 @@ chunk ``k-1``:
 with ``w_i(u) = sqrt(conf^(k-1)_i(u) conf^k_i(u))`` on a regular pixel grid (pixels below
 ``min_conf`` in either chunk left out), ``lambda`` giving the centres ``centre_weight`` of the
 total weight, solved in closed form (:func:`~embodmocap.geometry.similarity.weighted_umeyama`)
-and re-weighted with a Cauchy kernel against outliers. Writing ``Y = S_(k-1) X^(k-1)`` (already
+and re-weighted with a Cauchy kernel against outliers; the scale is then taken as the ratio of
+the two sides' weighted spreads (:func:`symmetric_scale`: least squares shrinks a noisy chunk and
+the shrinkage compounds along the video). Writing ``Y = S_(k-1) X^(k-1)`` (already
 stitched) makes the composition implicit: ``S_k = S_(k-1) S_(k-1 <- k)``.
 
 An alignment that cannot be trusted (too few overlapping frames or points, a residual over
@@ -138,9 +140,12 @@ def align_overlap(Y: NDArray, conf_y: NDArray, cy: NDArray, X: NDArray, conf_x: 
     wc = np.full(n, cfg.centre_weight / max(1 - cfg.centre_weight, 1e-9) * w.sum() / n)
     src_all, dst_all, w_all = np.concatenate([src, cx]), np.concatenate([dst, cy]), np.concatenate([w, wc])
     if cfg.robust_iterations > 0:
-        s, R, t, _ = robust_umeyama(src_all, dst_all, w_all, iterations=cfg.robust_iterations)
+        s, R, t, w_fin = robust_umeyama(src_all, dst_all, w_all, iterations=cfg.robust_iterations)
     else:
         s, R, t = weighted_umeyama(src_all, dst_all, w_all)
+        w_fin = w_all
+    if cfg.symmetric_scale:
+        s, t = symmetric_scale(src_all, dst_all, w_fin, R)
     S = similarity_matrix(s, R, t)
     r = np.linalg.norm(apply_similarity(S, src) - dst, axis=-1)
     frame_of = np.broadcast_to(np.arange(n)[:, None, None], ok.shape)[ok]
@@ -151,6 +156,25 @@ def align_overlap(Y: NDArray, conf_y: NDArray, cy: NDArray, X: NDArray, conf_x: 
         info["reason"] = f"overlap residual {rel:.3f} of the scene depth (> {cfg.max_rel_residual})"
         return None, info
     return S, info
+
+
+def symmetric_scale(src: NDArray, dst: NDArray, w: NDArray, R: NDArray) -> tuple[float, NDArray]:
+    """Scale and translation of the alignment with ``R`` fixed, from the ratio of the weighted
+    spreads: ``s = sqrt(Σ w |y − μ_y|² / Σ w |x − μ_x|²)``, ``t = μ_y − s R μ_x``.
+
+    Umeyama's least-squares scale ``tr(D E) / var_x`` is attenuated when ``x`` is noisy (its
+    variance holds the noise too): with both chunks' points noisy, each alignment shrinks the new
+    chunk a little and the shrinkage compounds along the video (a 60 s studio view: the local
+    scale drifted from −1.4 % to +1.2 % of the global one). Both sides carry noise in proportion to
+    their own units (a point-map model's relative depth noise), so the spread ratio is unbiased;
+    on noise-free points it equals Umeyama's.
+    """
+    W = w.sum()
+    mx, my = (w[:, None] * src).sum(0) / W, (w[:, None] * dst).sum(0) / W
+    vx = (w * ((src - mx) ** 2).sum(1)).sum() / W
+    vy = (w * ((dst - my) ** 2).sum(1)).sum() / W
+    s = float(np.sqrt(vy / max(vx, 1e-300)))
+    return s, my - s * R @ mx
 
 
 def _wmedian(x: NDArray, w: NDArray) -> float:
