@@ -69,7 +69,7 @@ def floor_plane(points: NDArray, R_cams: NDArray, centres: NDArray, inlier_m: fl
     n, d = best
     inl = P[np.abs(P @ n + d) < inlier_m]
     mu = inl.mean(0)
-    n = np.linalg.svd(inl - mu)[2][-1]
+    n = np.linalg.svd(inl - mu, full_matrices=False)[2][-1]  # not full: U would be (N, N)
     if n @ up0 < 0:
         n = -n
     return n, float(-n @ mu), best_n / len(P)
