@@ -268,3 +268,28 @@ def test_colmap_failure_on_blank_frames_starts_a_segment(studio):
         s, R, t = umeyama(res.T_stitch_cam[fr, :3, 3], G[fr])
         err = np.linalg.norm(s * res.T_stitch_cam[fr, :3, 3] @ R.T + t - G[fr], axis=1)
         assert err.max() < 0.05, err.max()
+
+
+def test_benchmark_tables_carry_the_monocular_rows():
+    """`embodmocap benchmark`'s capture-methods table: mono_colmap / mono_vio rows beside the
+    others, means over the sessions that have them (a failed mono run or an older result without
+    them is left out of that row only), and the summary says whether dual view beats each."""
+    from embodmocap.evaluate.benchmark import summary, tables_markdown
+
+    def errs(w):
+        return {"w_mpjpe_mm": w, "wa_mpjpe_mm": w / 2, "w_mpjpe_mm_c500": w, "wa_mpjpe_mm_c500": w / 2,
+                "w_mpjpe_mm_c1000": w, "wa_mpjpe_mm_c1000": w / 2, "rte_pct": w / 100}
+
+    base = {m: errs(100.0) for m in ("monocular", "single_v1", "single_v2")} | {"dual": errs(40.0)}
+    rows = [{"seed": 0, "preset": "indoor", "perception": "hard", "methods": base | {"mono_colmap": errs(300.0),
+                                                                                     "mono_vio": errs(200.0)}},
+            {"seed": 1, "preset": "indoor", "perception": "hard", "methods": base | {"mono_colmap": errs(500.0),
+                                                                                     "mono_vio": {"error": "x"}}},
+            {"seed": 2, "preset": "indoor", "perception": "hard", "methods": dict(base)}]
+    md = tables_markdown(rows)
+    colmap = next(x for x in md.splitlines() if x.startswith("| mono_colmap |"))
+    vio = next(x for x in md.splitlines() if x.startswith("| mono_vio |"))
+    assert colmap.startswith("| mono_colmap | realistic | hard | 2 | 400.00 | 200.00 |"), colmap
+    assert vio.startswith("| mono_vio | realistic | hard | 1 | 200.00 |"), vio
+    text = summary({"rows": rows})
+    assert "Dual view better than mono_colmap at every chunk size and in RTE (2 sessions): True" in text
