@@ -85,7 +85,7 @@ def main() -> None:
                 shutil.rmtree(work)
             shutil.copytree(base, work, symlinks=True)
             truth = write_mono_inputs(work, cfg=icfg, seed=100 + seed)
-            cfg = MonoConfig(chunk=args.chunk, overlap=args.overlap, human_model="precomputed")
+            cfg = MonoConfig(scene_model="precomputed", chunk=args.chunk, overlap=args.overlap, human_model="precomputed")
             t0 = time.perf_counter()
             out = stage.run(cfg, work, force=True)
             secs = time.perf_counter() - t0

@@ -12,7 +12,11 @@ and RTE against the truth:
 - ``single_v1`` / ``single_v2``: that view calibrated alone (registration + single-view
   refinement: Chamfer and reprojection, no track term) and the motion fitted to that view alone
   (reprojection + smoothness + prior; no triangulation is possible);
-- ``dual``: the full pipeline.
+- ``dual``: the full pipeline;
+- ``mono_colmap`` / ``mono_vio``: ``embodmocap mono`` on view v1 alone (issue 15): the camera
+  path and scene from SfM on the video (metric scale from the feet on the SfM floor) or from the
+  phone's VIO and depth (ablation), the body from the camera-space prior; frames it could not place
+  metrically (failed SfM chunks) are left out and counted in ``invalid_frames``.
 
 Two more dimensions of that table (issue 11): ``perception`` (``clean``: the studio's default
 detector; ``hard``: every adversity of real detectors, ``embodmocap synth --perception hard``; or
@@ -46,6 +50,8 @@ from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_regis
 log = logging.getLogger(__name__)
 
 CAPTURE_METHODS = ("monocular", "single_v1", "single_v2", "dual")
+#: The monocular pipeline's rows (``embodmocap mono`` with these scene models), beside the above.
+MONO_METHODS = ("mono_colmap", "mono_vio")
 ABLATIONS = ("no_track", "no_chamfer", "no_reproj", "no_smooth", "no_kp3d", "all")
 _ERR_KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500", "w_mpjpe_mm_c1000",
              "wa_mpjpe_mm_c1000", "rte_pct")
@@ -147,6 +153,8 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
         params = ctx.fit(single_view=v, cameras={v: cams})
         methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth,
                                                same_frames(frames, dual_valid, len(params)))
+    for name in MONO_METHODS:
+        methods[name] = mono_errors(session, seq, name.split("_", 1)[1], truth, frames, dual_valid, ctx)
     result = {"methods": methods}
     if cfg.fit_without_prior:
         params, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
@@ -161,6 +169,28 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
             ablation[name] = {k: q.get(k) for k in _QUALITY_KEYS}
         result["ablation"] = ablation
     return result
+
+
+def mono_errors(session: Path, seq: str, scene_model: str, truth, frames: np.ndarray, dual_valid: np.ndarray,
+                ctx) -> dict:
+    """``embodmocap mono`` on view v1 with ``scene_model`` and the body prior (resumed when done),
+    scored like the other rows on the frames the dual fit placed; its own invalid frames (no
+    metric scale) are left out and counted. A failure is the row's ``error``, not the seed's."""
+    from embodmocap.evaluate.session import motion_errors
+    from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid
+    from embodmocap.mono import stage as mono_stage
+    from embodmocap.mono.config import MonoConfig
+
+    try:
+        out = mono_stage.run(MonoConfig(scene_model=scene_model, human_model="prior"), session, seq, "v1")
+        params, _ = read_smpl_npz(out.layout.smpl_world)
+        valid = read_smpl_valid(out.layout.smpl_world)
+    except Exception as err:  # noqa: BLE001 - reported in the row
+        log.warning("mono %s on %s failed: %s", scene_model, session, err)
+        return {"error": f"{type(err).__name__}: {err}"}
+    n = len(params)
+    return {**motion_errors(ctx.joints(params), np.arange(n), truth, valid & same_frames(frames, dual_valid, n)),
+            "mono_segments": int(out.figures.get("segments", 1))}
 
 
 def same_frames(frames: np.ndarray, valid: np.ndarray, n: int) -> np.ndarray:
@@ -311,6 +341,12 @@ def tables_markdown(rows: list[dict]) -> str:
         for m in CAPTURE_METHODS:
             vals = [np.mean([_err(r["methods"][m], k) for r in sel]) for k in _ERR_KEYS + _FLAG_KEYS]
             lines.append(f"| {m} | realistic | {perception} | {len(sel)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
+        for m in MONO_METHODS:  # rows written before the monocular pipeline existed have none
+            has = [r for r in sel if "error" not in r["methods"].get(m, {"error": ""})]
+            if has:
+                vals = [np.mean([_err(r["methods"][m], k) for r in has]) for k in _ERR_KEYS + _FLAG_KEYS]
+                lines.append(f"| {m} | realistic | {perception} | {len(has)} | " + " | ".join(f"{x:.2f}" for x in vals)
+                             + " |")
         nop = [r for r in sel if "methods_no_prior" in r]
         if nop:
             vals = [np.mean([_err(r["methods_no_prior"]["dual"], k) for r in nop]) for k in _ERR_KEYS + _FLAG_KEYS]
@@ -345,6 +381,12 @@ def summary(result: dict) -> str:
         beats_mono = all(mean("dual", k) < mean("monocular", k) for k in ("w_mpjpe_mm", "w_mpjpe_mm_c500", "w_mpjpe_mm_c1000"))
         text += (f"\nDual view vs the better single view, W-MPJPE chunk 1000: {ratio:.2f}x more accurate; "
                  f"dual better than monocular at every chunk size: {beats_mono}\n")
+        for m in MONO_METHODS:
+            has = [r for r in rows if "error" not in r["methods"].get(m, {"error": ""})]
+            if has:
+                better = all(np.mean([r["methods"]["dual"][k] for r in has]) < np.mean([r["methods"][m][k] for r in has])
+                             for k in ("w_mpjpe_mm", "w_mpjpe_mm_c500", "w_mpjpe_mm_c1000", "rte_pct"))
+                text += f"Dual view better than {m} at every chunk size and in RTE ({len(has)} sessions): {better}\n"
         nop = [r for r in rows if "methods_no_prior" in r]
         if nop:
             q = [r["methods_no_prior"]["dual"]["w_mpjpe_mm"] / max(r["methods"]["dual"]["w_mpjpe_mm"], 1e-9) for r in nop]

@@ -6,9 +6,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-SceneModelName = Literal["precomputed", "vio"]
-"""Scene/camera role backends: ``precomputed`` reads one npz per chunk in Pi3's output layout
-(bring Pi3, VGGT or MASt3R output); ``vio`` uses the phone's own metric poses and LiDAR depth as
+SceneModelName = Literal["colmap", "precomputed", "vio"]
+"""Scene/camera role backends: ``colmap`` runs structure from motion (pycolmap, CPU) on each
+chunk's frames (up to scale; runs on any machine); ``precomputed`` reads one npz per chunk in Pi3's
+output layout (bring Pi3, VGGT or MASt3R output); ``vio`` uses the phone's own metric poses and LiDAR depth as
 point maps (an ablation: what a perfect scene model would give)."""
 HumanModelName = Literal["precomputed", "prior"]
 """Human role backends: ``precomputed`` reads a camera-space SMPL npz (VIMO / TRAM / GVHMR output);
@@ -29,6 +30,11 @@ class StitchConfig:
     points): they pin the path where the points are few."""
     robust_iterations: int = 4
     """Cauchy re-weighting rounds of the alignment (0 = plain weighted Umeyama)."""
+    symmetric_scale: bool = True
+    """Take each alignment's scale as the ratio of the overlap's weighted spreads in the two
+    chunks (rotation from Umeyama) instead of Umeyama's least-squares scale, which noise in the
+    new chunk's points biases low; the bias compounds chunk after chunk (a 60 s studio view with
+    Pi3-like noise: the local scale drifted from -1.4 % to +1.2 % of the global one)."""
     min_overlap_frames: int = 2
     """Fewer overlapping frames than this cannot be aligned: a new segment starts."""
     min_points: int = 50
@@ -36,6 +42,75 @@ class StitchConfig:
     max_rel_residual: float = 0.1
     """An alignment whose weighted median point residual exceeds this fraction of the median
     point distance from the cameras is refused: a new segment starts (never a silent jump)."""
+
+
+@dataclass(frozen=True)
+class ColmapSceneConfig:
+    """The ``colmap`` scene model: SfM per chunk (:mod:`embodmocap.mono.colmap_scene`)."""
+
+    stride: int = 4
+    """Every n-th sequence frame (by frame number, so overlapping chunks share them) goes into SfM;
+    the poses of the others are interpolated."""
+    image_width: int = 320
+    """Frames are downscaled to at most this width for SfM (the intrinsics with them)."""
+    max_features: int = 1024
+    """SIFT features kept per image."""
+    mask_dilate_px: int = 4
+    """The person mask is grown by this many pixels (at the SfM image size) before it masks SIFT."""
+    seq_neighbours: int = 8
+    """Sequential matching: each image is matched with this many following ones."""
+    init_min_tri_angle_deg: float = 4.0
+    """Smallest triangulation angle of SfM's initial pair (COLMAP's 16 deg default suits photo
+    collections, not a 2 s chunk of video)."""
+    min_tri_angle_deg: float = 0.5
+    """Points whose rays meet at a smaller angle are dropped (COLMAP: 1.5 deg; a chunk of video
+    that mostly turns has little parallax, and at 1.5 deg too few points remain to register the
+    next image)."""
+    init_min_inliers: int = 50
+    """Fewest verified matches of SfM's initial pair (COLMAP: 100; 1024 features at 320 px give fewer)."""
+    retry_denser: bool = True
+    """A chunk SfM failed on is tried again with half the stride (down to every frame) before it
+    is declared failed (costs only on such chunks)."""
+    min_registered: float = 0.5
+    """A chunk where SfM registers fewer than this share of its images has failed: a new segment."""
+    min_points: int = 100
+    """A chunk with fewer triangulated points has failed: a new segment."""
+    map_width: int = 64
+    """Width of the sparse point maps (height from the aspect ratio)."""
+    num_threads: int = 1
+    """Threads of COLMAP's extraction, matching and mapping (-1 = all cores)."""
+    seed: int = 0
+    """Seed of COLMAP's random generator, so runs repeat."""
+
+    def __post_init__(self) -> None:
+        from embodmocap.errors import InputError
+
+        if self.stride < 1 or self.image_width < 32 or self.map_width < 4:
+            raise InputError(None, f"colmap settings stride {self.stride}, image width {self.image_width}, map width "
+                             f"{self.map_width}", "need stride >= 1, image width >= 32, map width >= 4")
+
+
+@dataclass(frozen=True)
+class FeetScaleConfig:
+    """The metric scale from the feet on the floor (:mod:`embodmocap.mono.feet`), used where the
+    scene model has no points on the person (``colmap``)."""
+
+    max_speed: float = 0.5
+    """A foot moving slower than this (m/s, in the provisional metric world) can be in contact. Not
+    tighter: a regressor's depth error moves a planted foot along the ray from frame to frame (10 %
+    depth error changing over 0.5 s at 3 m is ~0.6 m/s), and a tight bound leaves few frames."""
+    max_height: float = 0.08
+    """... and no higher than this above the floor plane (metres, provisional scale)."""
+    min_down_cos: float = 0.15
+    """The foot's pixel ray must point down onto the floor at least this much (cosine between the
+    ray and the floor's downward normal): grazing rays give unstable intersections."""
+    plane_inlier_rel: float = 0.01
+    """Floor plane RANSAC inlier band, as a share of the median camera-to-point distance (the
+    stitched points have no metric scale yet)."""
+    iterations: int = 3
+    """Rounds of (scale -> contact frames -> scale)."""
+    min_frames: int = 10
+    """Fewer contact frames than this: no metric scale from the feet."""
 
 
 @dataclass(frozen=True)
@@ -56,16 +131,25 @@ class ScaleConfig:
     min_frame_samples: int = 10
     """A frame whose person mask covers fewer point-map pixels than this does not vote."""
     min_samples: int = 50
-    """Fewer (pixel, frame) samples in a segment than this: no metric scale (the segment stays in
-    the model's units, its frames flagged invalid)."""
+    """Fewer (pixel, frame) samples in a segment than this: no metric scale from the body's depth
+    (the feet are tried next with ``cue = auto``; without either the segment stays in the model's
+    units, its frames flagged invalid)."""
+    cue: Literal["auto", "body", "feet"] = "auto"
+    """Metric cue: ``body`` (body depth / point-map depth inside the person mask: needs points on
+    the person, as Pi3-like dense maps have), ``feet`` (the body's feet in contact against the
+    scene's floor plane: works with sparse SfM), ``auto`` = ``body`` where it has ``min_samples``,
+    else ``feet``."""
+    feet: FeetScaleConfig = field(default_factory=FeetScaleConfig)
+    """Settings of the feet cue."""
 
 
 @dataclass(frozen=True)
 class MonoConfig:
     """The monocular pipeline: one view's video -> cameras, scene points and SMPL in a metric world."""
 
-    scene_model: SceneModelName = "precomputed"
-    """Scene/camera model: ``precomputed`` (npz per chunk, Pi3 layout, in
+    scene_model: SceneModelName = "colmap"
+    """Scene/camera model: ``colmap`` (SfM per chunk on the video, CPU, up to scale; the default:
+    runs on any machine), ``precomputed`` (npz per chunk, Pi3 layout, in
     ``perception/<seq>/<view>/mono_scene/``) or ``vio`` (the phone's poses and depth; ablation)."""
     human_model: HumanModelName = "prior"
     """Camera-space body: ``prior`` (Stage II's body prior) or ``precomputed``
@@ -86,6 +170,8 @@ class MonoConfig:
     """Chunk alignment settings."""
     scale: ScaleConfig = field(default_factory=ScaleConfig)
     """Metric scale settings."""
+    colmap: ColmapSceneConfig = field(default_factory=ColmapSceneConfig)
+    """``--scene-model colmap`` settings."""
 
     def __post_init__(self) -> None:
         from embodmocap.errors import InputError

@@ -69,19 +69,23 @@ def mono_metrics(lay: SessionLayout, scene: str, seq: str, body_model_path=None)
         out[f"{v}_mono_w_mpjpe_mm"] = round(float(M.w_mpjpe(pred, gt, chunk=100)), 2)
         out[f"{v}_mono_wa_mpjpe_mm"] = round(float(M.wa_mpjpe(pred, gt, chunk=100)), 2)
         out[f"{v}_mono_rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
-        cam_err, scale_err = camera_errors(mc["T_world_cam"][:n, :3, 3], ref_cam[:n, :3, 3], mc["segment"][:n])
+        cam_err, scale_err = camera_errors(mc["T_world_cam"][:n, :3, 3], ref_cam[:n, :3, 3], mc["segment"][:n],
+                                            mc["metric_scale"][:n])
         out[f"{v}_mono_camera_err_cm"] = round(100 * cam_err, 3)
         out[f"{v}_mono_scale_err_pct"] = round(100 * scale_err, 3)
         out[f"{v}_mono_segments"] = int(mc["segment"].max()) + 1
     return out
 
 
-def camera_errors(centres, ref_centres, segment) -> tuple[float, float]:
+def camera_errors(centres, ref_centres, segment, metric_scale=None) -> tuple[float, float]:
     """(mean distance after a rigid alignment per segment, frame-weighted ``|s - 1|`` of the
-    similarity per segment) of camera centres (T, 3) against reference centres (T, 3)."""
+    similarity per segment) of camera centres (T, 3) against reference centres (T, 3); frames
+    without a metric scale (``metric_scale`` NaN: flagged invalid) are left out."""
     errs, sc, w = [], [], []
     for g in np.unique(segment):
         m = segment == g
+        if metric_scale is not None:
+            m &= np.isfinite(metric_scale)
         if m.sum() < 3:
             continue
         p, q = centres[m], ref_centres[m]

@@ -50,6 +50,10 @@ class ChunkPrediction:
             ``((j + 0.5) W_rgb / W - 0.5, (i + 0.5) H_rgb / H - 0.5)``).
         conf: (N, H, W) confidence in [0, 1] (0 = no point).
         metric: the units are metres (the ``vio`` model): the body's scale is then only reported.
+        failure: why the model could not reconstruct the chunk ("" when it did): the stitching
+            starts a new segment there with a warning, and the chunk's frames get no metric scale.
+        registered: (N,) bool, frames the model reconstructed itself (None: all); the others'
+            poses are interpolated and their maps empty (the ``colmap`` model).
     """
 
     frames: NDArray[np.int64]
@@ -57,6 +61,8 @@ class ChunkPrediction:
     local_points: NDArray[np.float32]
     conf: NDArray[np.float32]
     metric: bool = False
+    failure: str = ""
+    registered: NDArray[np.bool_] | None = None
 
     def world_points(self, idx: NDArray | slice = slice(None), rows: NDArray | slice = slice(None),
                      cols: NDArray | slice = slice(None)) -> NDArray[np.float64]:

@@ -32,12 +32,13 @@ def vio_alignment(R_stitch: NDArray, T_vio: NDArray) -> NDArray[np.float64]:
 
 
 def floor_plane(points: NDArray, R_cams: NDArray, centres: NDArray, inlier_m: float = 0.03, iters: int = 300,
-                seed: int = 0) -> tuple[NDArray, float, float] | None:
+                seed: int = 0, min_below: float = 0.3) -> tuple[NDArray, float, float] | None:
     """The dominant plane below the cameras: (unit normal towards the cameras (3,), offset ``d``
     with ``n . x + d = 0``, inlier fraction), or None when no such plane holds 5 % of the points.
 
     Args:
         points: (N, 3) metric points; ``R_cams`` (n, 3, 3) and ``centres`` (n, 3) the cameras.
+        min_below: the plane lies at least this far below the mean camera centre.
     """
     P = np.asarray(points, dtype=np.float64)
     if len(P) < 3:
@@ -58,7 +59,7 @@ def floor_plane(points: NDArray, R_cams: NDArray, centres: NDArray, inlier_m: fl
         if n @ up0 < np.cos(np.deg2rad(35)):
             continue
         d = -n @ P[a]
-        if n @ cbar + d < 0.3:  # the floor is below the cameras
+        if n @ cbar + d < min_below:  # the floor is below the cameras
             continue
         k = int((np.abs(P @ n + d) < inlier_m).sum())
         if k > best_n:
@@ -68,7 +69,7 @@ def floor_plane(points: NDArray, R_cams: NDArray, centres: NDArray, inlier_m: fl
     n, d = best
     inl = P[np.abs(P @ n + d) < inlier_m]
     mu = inl.mean(0)
-    n = np.linalg.svd(inl - mu)[2][-1]
+    n = np.linalg.svd(inl - mu, full_matrices=False)[2][-1]  # not full: U would be (N, N)
     if n @ up0 < 0:
         n = -n
     return n, float(-n @ mu), best_n / len(P)

@@ -42,7 +42,10 @@ class MonoOutputs:
 
 def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> tuple[SceneModel, HumanModel, list[Path]]:
     vl, pl = lay.sequence(seq).view(view), lay.perception(seq, view)
-    if cfg.scene_model == "precomputed":
+    if cfg.scene_model == "colmap":
+        scene = _colmap_scene(cfg, lay, seq, view, cams)
+        scene_inputs = []  # the video and the masks: the capture and Stage II's outputs, fingerprinted already
+    elif cfg.scene_model == "precomputed":
         if not pl.mono_scene_dir.is_dir():
             raise InputError(pl.mono_scene_dir, "--scene-model precomputed needs the scene model's chunk files here",
                              "run Pi3 / VGGT / MASt3R per chunk and write chunk_<first frame>.npz files (docs/formats.md, "
@@ -65,6 +68,23 @@ def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> t
         human = PrecomputedHuman(pl.mono_human)
         human_input = pl.mono_human
     return scene, human, scene_inputs + [human_input]
+
+
+def _colmap_scene(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams):
+    from embodmocap.io.captures import open_capture
+    from embodmocap.mono.colmap_scene import ColmapScene
+
+    vl = lay.sequence(seq).view(view)
+    if not vl.masks.is_file():
+        raise InputError(vl.masks, "--scene-model colmap needs Stage II's person masks (the person is masked out of SfM)",
+                         f"run `embodmocap sequence {lay.root} --seq {seq}`")
+    capture = open_capture(load_manifest(lay.manifest).sequences[seq].views[view].capture)
+    raw = np.asarray(cams.raw_frames, dtype=np.int64)
+    W = int(cams.width)
+    packed = np.load(vl.masks, mmap_mode="r")
+    return ColmapScene(lambda f: capture.frames.rgb(int(raw[f])),
+                       lambda f: np.unpackbits(np.asarray(packed[f]), axis=-1)[:, :W].astype(bool),
+                       np.asarray(cams.K, dtype=np.float64), (W, int(cams.height)), cfg.colmap)
 
 
 @tracked_stage
@@ -116,6 +136,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     from embodmocap.body.model import load_body_model
     from embodmocap.io.captures import open_capture
     from embodmocap.mono import gravity
+    from embodmocap.mono.feet import feet_scale, foot_vertices, stitched_floor
     from embodmocap.mono.scale import depth_ratios, summarise
     from embodmocap.mono.stitch import grid, stitch
 
@@ -135,6 +156,9 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     covered: dict[int, list] = {}
     pts_acc: list[tuple[int, np.ndarray, np.ndarray]] = []  # (segment, stitched points, colours)
     ply_budget = max(1, cfg.ply_points // max(1, len(range(0, T, cfg.ply_frame_stride))))
+    use_body = cfg.scale.cue != "feet"
+    feet_idx = foot_vertices(model) if cfg.scale.cue != "body" else None
+    feet_cam = np.zeros((T, 2, feet_idx.shape[1], 3)) if feet_idx is not None else None
 
     def visit(pred, S, own, segment):
         s_k = float(np.cbrt(np.linalg.det(S[:3, :3])))
@@ -145,11 +169,16 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             f = pred.frames[idx]
             with torch.no_grad():
                 out = model.forward(hum.betas[f], hum.global_orient[f], hum.body_pose[f], hum.transl[f], dtype=torch.float64)
-            masks = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[..., :W_rgb].astype(bool)
-            r, cov = depth_ratios(out.vertices.numpy(), np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
-                             masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
-            ratios.setdefault(segment, []).extend(r)
-            covered.setdefault(segment, []).extend(cov)
+            verts = out.vertices.numpy()
+            if feet_cam is not None:
+                feet_cam[f] = verts[:, feet_idx]
+            # the body-depth cue needs map points on the person (dense maps); sparse SfM has none
+            if use_body and (cfg.scale.cue == "body" or (pred.conf[idx] > 0).mean() > 0.2):
+                masks = np.unpackbits(np.asarray(masks_packed[f]), axis=-1)[..., :W_rgb].astype(bool)
+                r, cov = depth_ratios(verts, np.asarray(model.faces), pred.local_points[idx, ..., 2], pred.conf[idx],
+                                      masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
+                ratios.setdefault(segment, []).extend(r)
+                covered.setdefault(segment, []).extend(cov)
         # coloured points of every ply_frame_stride-th frame (not the person: scene points only)
         H, W = pred.conf.shape[1:]
         rows, cols = grid(H, W, ply_budget)
@@ -177,17 +206,33 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     tracked = ~np.asarray(cams.untracked, dtype=bool) if cams.untracked is not None else np.ones(T, bool)
     use_vio = cfg.gravity == "vio" or (cfg.gravity == "auto" and tracked.any())
     M_seg = {}
+    fps = float(cams.fps) if cams.fps is not None and np.isfinite(cams.fps) else 30.0
     for g in range(n_seg):
         fr = np.flatnonzero(res.segment == g)
-        summ = summarise(ratios.get(g, []), np.asarray(covered.get(g, []), dtype=np.int64), cfg.scale.min_frame_samples)
+        summ = {"cue": "body", **summarise(ratios.get(g, []), np.asarray(covered.get(g, []), dtype=np.int64),
+                                           cfg.scale.min_frame_samples)}
+        if feet_cam is not None and not res.failed[fr].all() and (cfg.scale.cue == "feet" or summ["samples"] < cfg.scale.min_samples):
+            seg_pts = [p for s, p, _ in pts_acc if s == g]
+            plane = stitched_floor(np.concatenate(seg_pts), res.T_stitch_cam[fr], cfg.scale.feet.plane_inlier_rel) \
+                if seg_pts else None
+            if plane is None:
+                summ = {"cue": "feet", "scale": float("nan"), "frames": 0, "samples": 0, "reason": "no floor plane"}
+            else:
+                fs = feet_scale(feet_cam[fr], res.T_stitch_cam[fr], hum.valid[fr], plane, fps, cfg.scale.feet)
+                summ = {"cue": "feet", **{k: v for k, v in fs.items() if k not in ("per_frame", "contact")},
+                        "samples": fs["frames"]}
         if res.metric:
             m = 1.0  # the model's units are metres already; the body's figure is a check
         else:
             m = summ["scale"]
-            if summ["samples"] < cfg.scale.min_samples:
+            enough = summ["samples"] >= (cfg.scale.min_samples if summ["cue"] == "body" else cfg.scale.feet.min_frames)
+            if res.failed[fr].all() or not enough or not np.isfinite(m):
+                why = "the scene model failed on it" if res.failed[fr].all() else (
+                    f"only {summ['samples']} {'body samples' if summ['cue'] == 'body' else 'feet contact frames'}"
+                    + (f" ({summ['reason']})" if "reason" in summ else ""))
                 m = float("nan")
-                warnings.append(f"segment {g} (frames {fr[0]}..{fr[-1]}): only {summ['samples']} body samples for the "
-                                "metric scale: left in the scene model's units, its frames flagged invalid")
+                warnings.append(f"segment {g} (frames {fr[0]}..{fr[-1]}): no metric scale ({why}): left in the scene "
+                                "model's units, its frames flagged invalid")
         scales[str(g)] = {k: (round(v, 6) if isinstance(v, float) else v) for k, v in summ.items()}
         metric_scale[fr] = m
         Sm = similarity_matrix(np.float64(m if np.isfinite(m) else 1.0), np.eye(3), np.zeros(3))
@@ -201,8 +246,13 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
         M_seg[g] = A @ Sm
         T_world_cam[fr] = transform_poses(M_seg[g], res.T_stitch_cam[fr])
     if not np.isfinite(metric_scale).any():
-        raise InputError(vl.masks, "no segment has enough body samples for the metric scale (person not in the masks, "
-                         "or no confident points on the body)", "check the person masks and the human model's file for this view")
+        for w in warnings:
+            log.warning(w)
+        raise InputError(vl.masks, f"no segment of the {n_seg} has a metric scale ("
+                         + "; ".join(f"segment {g}: cue {s.get('cue')}, {s.get('samples', 0)} samples"
+                                     + (f", {s['reason']}" if "reason" in s else "") for g, s in scales.items())
+                         + ")", "check the person masks and the human model's file for this view; with "
+                         "--scene-model colmap the floor must be visible and the feet on it")
     write_mono_cameras(ml.cameras_world, T_world_cam, K, W_rgb, H_rgb, res.segment, metric_scale,
                        float(cams.fps) if cams.fps is not None else float("nan"))
     if pts_acc:

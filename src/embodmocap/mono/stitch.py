@@ -12,12 +12,14 @@ chunk ``k-1``:
 with ``w_i(u) = sqrt(conf^(k-1)_i(u) conf^k_i(u))`` on a regular pixel grid (pixels below
 ``min_conf`` in either chunk left out), ``lambda`` giving the centres ``centre_weight`` of the
 total weight, solved in closed form (:func:`~embodmocap.geometry.similarity.weighted_umeyama`)
-and re-weighted with a Cauchy kernel against outliers. Writing ``Y = S_(k-1) X^(k-1)`` (already
+and re-weighted with a Cauchy kernel against outliers; the scale is then taken as the ratio of
+the two sides' weighted spreads (:func:`symmetric_scale`: least squares shrinks a noisy chunk and
+the shrinkage compounds along the video). Writing ``Y = S_(k-1) X^(k-1)`` (already
 stitched) makes the composition implicit: ``S_k = S_(k-1) S_(k-1 <- k)``.
 
 An alignment that cannot be trusted (too few overlapping frames or points, a residual over
-``max_rel_residual`` of the scene's depth, point maps of different sizes) starts a new
-*segment* (``S_k = I`` in a frame of its own) with a warning; never a silent jump.
+``max_rel_residual`` of the scene's depth, point maps of different sizes), and a chunk the scene
+model failed on (SfM: no model) and the one after it, start a new *segment* (``S_k = I`` in a frame of its own) with a warning; never a silent jump.
 """
 
 from __future__ import annotations
@@ -83,6 +85,8 @@ class StitchResult:
         chunks: one record per chunk.
         warnings: one line per segment break.
         metric: the scene model's units are metres.
+        failed: (T,) bool, frames placed by a chunk the scene model failed on (their poses are
+            meaningless: no metric scale, flagged invalid).
     """
 
     T_stitch_cam: NDArray[np.float64]
@@ -91,6 +95,7 @@ class StitchResult:
     chunks: list[ChunkRecord] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     metric: bool = False
+    failed: NDArray[np.bool_] | None = None
 
 
 #: Called after each chunk is placed: (prediction, S_k, indices of the frames it owns, segment).
@@ -135,9 +140,12 @@ def align_overlap(Y: NDArray, conf_y: NDArray, cy: NDArray, X: NDArray, conf_x: 
     wc = np.full(n, cfg.centre_weight / max(1 - cfg.centre_weight, 1e-9) * w.sum() / n)
     src_all, dst_all, w_all = np.concatenate([src, cx]), np.concatenate([dst, cy]), np.concatenate([w, wc])
     if cfg.robust_iterations > 0:
-        s, R, t, _ = robust_umeyama(src_all, dst_all, w_all, iterations=cfg.robust_iterations)
+        s, R, t, w_fin = robust_umeyama(src_all, dst_all, w_all, iterations=cfg.robust_iterations)
     else:
         s, R, t = weighted_umeyama(src_all, dst_all, w_all)
+        w_fin = w_all
+    if cfg.symmetric_scale:
+        s, t = symmetric_scale(src_all, dst_all, w_fin, R)
     S = similarity_matrix(s, R, t)
     r = np.linalg.norm(apply_similarity(S, src) - dst, axis=-1)
     frame_of = np.broadcast_to(np.arange(n)[:, None, None], ok.shape)[ok]
@@ -148,6 +156,25 @@ def align_overlap(Y: NDArray, conf_y: NDArray, cy: NDArray, X: NDArray, conf_x: 
         info["reason"] = f"overlap residual {rel:.3f} of the scene depth (> {cfg.max_rel_residual})"
         return None, info
     return S, info
+
+
+def symmetric_scale(src: NDArray, dst: NDArray, w: NDArray, R: NDArray) -> tuple[float, NDArray]:
+    """Scale and translation of the alignment with ``R`` fixed, from the ratio of the weighted
+    spreads: ``s = sqrt(Σ w |y − μ_y|² / Σ w |x − μ_x|²)``, ``t = μ_y − s R μ_x``.
+
+    Umeyama's least-squares scale ``tr(D E) / var_x`` is attenuated when ``x`` is noisy (its
+    variance holds the noise too): with both chunks' points noisy, each alignment shrinks the new
+    chunk a little and the shrinkage compounds along the video (a 60 s studio view: the local
+    scale drifted from −1.4 % to +1.2 % of the global one). Both sides carry noise in proportion to
+    their own units (a point-map model's relative depth noise), so the spread ratio is unbiased;
+    on noise-free points it equals Umeyama's.
+    """
+    W = w.sum()
+    mx, my = (w[:, None] * src).sum(0) / W, (w[:, None] * dst).sum(0) / W
+    vx = (w * ((src - mx) ** 2).sum(1)).sum() / W
+    vy = (w * ((dst - my) ** 2).sum(1)).sum() / W
+    s = float(np.sqrt(vy / max(vx, 1e-300)))
+    return s, my - s * R @ mx
 
 
 def _wmedian(x: NDArray, w: NDArray) -> float:
@@ -163,7 +190,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
     grow with the video; ``visit`` sees each chunk's full prediction once, after it is placed.
     """
     T = plan[-1][1] if plan else 0
-    res = StitchResult(np.tile(np.eye(4), (T, 1, 1)), np.zeros(T, np.int64), np.ones(T))
+    res = StitchResult(np.tile(np.eye(4), (T, 1, 1)), np.zeros(T, np.int64), np.ones(T), failed=np.zeros(T, bool))
     owned_until = 0
     segment = -1
     prev = None  # (frames (n,), Y (n,h,w,3), conf (n,h,w), centres (n,3), rows, cols)
@@ -175,7 +202,11 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         rows, cols = grid(H, W, cfg.points_per_frame)
         S, info, reason = None, {"points": 0, "residual_rel": float("nan")}, "first chunk"
         n_ov = 0
-        if prev is not None:
+        if pred.failure:
+            reason = f"the scene model failed on it: {pred.failure}"
+        elif prev is not None and prev[6]:
+            reason = f"the previous chunk failed ({prev[6]})"
+        elif prev is not None:
             shared = np.intersect1d(prev[0], frames)
             n_ov = len(shared)
             ip = np.searchsorted(prev[0], shared)
@@ -191,7 +222,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         if not aligned:
             segment += 1
             S = np.eye(4)
-            if prev is not None:
+            if prev is not None or pred.failure:
                 msg = (f"chunk {start}..{end - 1} could not be aligned to the previous one ({reason}): frames from "
                        f"{max(owned_until, start)} on are segment {segment}, in a frame and scale of their own")
                 log.warning(msg)
@@ -204,7 +235,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         res.chunk_scale[f_own] = s_k
         res.chunks.append(ChunkRecord(start, end, segment, S, aligned, n_ov, int(info.get("points", 0)),
                                       float(info.get("residual_rel", float("nan"))),
-                                      "" if aligned or prev is None else reason))
+                                      "" if aligned or (prev is None and not pred.failure) else reason))
         if visit is not None:
             visit(pred, S, own, segment)
         owned_until = end
@@ -212,5 +243,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
         # the two chunks share; the grid is small, so keeping every frame costs little).
         Yk = apply_similarity(S, pred.world_points(slice(None), rows, cols).reshape(len(frames), -1, 3))
         prev = (frames, Yk.reshape(len(frames), len(rows), len(cols), 3), pred.conf[:, rows][:, :, cols],
-                apply_similarity(S, pred.T_world_cam[:, :3, 3][None])[0], rows, cols)
+                apply_similarity(S, pred.T_world_cam[:, :3, 3][None])[0], rows, cols, pred.failure)
+        if pred.failure:
+            res.failed[f_own] = True
     return res
