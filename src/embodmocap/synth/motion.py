@@ -13,7 +13,8 @@ How a motion is made (read :func:`script_motion` top to bottom):
 2. **Pose.** Joint angles are sums of per-channel contributions (hip flexion, knee flexion, arm
    swing ...), turned into SMPL axis-angle ``body_pose`` in one vectorised call. Angles that
    depend on the body (seat posture, table lean, step height) are calibrated once by posing the
-   actual body model on a small grid of candidate angles.
+   actual body model on a small grid of candidate angles (the table lean's arm angle is then
+   solved continuously so that the hands' lowest vertices rest on the table top).
 3. **Skin and place.** The body is skinned in chunks of frames. While seated or leaning the feet
    stay where they were when the piece began (the pelvis moves instead, as it does in life).
    Then each frame is lifted so that no vertex is below a support (floor z = 0; the box, chair
@@ -50,6 +51,10 @@ _NECK, _HEAD, _L_SHOULDER, _R_SHOULDER, _L_ELBOW, _R_ELBOW = 12, 15, 16, 17, 18,
 #: Channels a plan piece may set; missing ones are 0.
 CHANNELS: tuple[str, ...] = (
     "gait_amp", "gait_phase", "lean",
+    # Leaning: the arms' part (0 hanging .. 1 on the table), ahead of the torso's ``lean``.
+    "lean_arm",
+    # Leaning: extra elbow bend (0 .. 1 = 45 degrees) while the hands pass over the table's edge.
+    "lean_lift",
     # Seated: how far (0 standing .. 1 seated) and the seated hip/knee angles of this seat.
     "sit", "sit_hip", "sit_knee",
     # Stepping onto / off the box places the feet by inverse kinematics: weight of the IK legs,
@@ -429,12 +434,22 @@ class _Planner:
         fwd = _heading(table)
         # Wrists 12 cm inside the front edge; the pelvis starts over the ankles.
         stand = np.asarray(table.centre_xy) + fwd * (table.size[0] / 2 - 0.12 + c.lean_reach)
-        self._approach(stand)
-        self.turn_to(table.yaw + np.pi)
+        # The walk ends 30 cm further out and the turn to face the table steps in: swinging
+        # arms and a turn on the spot that close to the table would sweep the hands through it.
+        self._approach(stand + fwd * 0.3)
+        self.turn_to(table.yaw + np.pi, stand)
         T = cfg.lean_transition_s
-        self.channel_piece("lean_in", T, True, lean=_ease)
-        self.channel_piece("lean_table", hold, True, lean=np.ones_like)
-        self.channel_piece("lean_out", T, True, lean=lambda u: 1.0 - _ease(u))
+        # The arms swing forward over the top first, elbows bent to carry the hands over the
+        # edge; then the torso tilts and lowers the straightened arms onto the top (the hands
+        # only go down while over it). Straightening up is the same backwards.
+        arm_in, tilt_in = (lambda u: _ease(u / 0.55)), (lambda u: _ease((u - 0.35) / 0.65))
+        lift_in = lambda u: _bump(u, 0.0, 0.8)  # noqa: E731
+        self.channel_piece("lean_in", T, True, lean=tilt_in, lean_arm=arm_in, lean_lift=lift_in)
+        self.channel_piece("lean_table", hold, True, lean=np.ones_like, lean_arm=np.ones_like)
+        self.channel_piece("lean_out", T, True, lean=lambda u: tilt_in(1.0 - u),
+                           lean_arm=lambda u: arm_in(1.0 - u), lean_lift=lambda u: lift_in(1.0 - u))
+        # Step back before turning away.
+        self.turn_to(self.yaw, stand + fwd * 0.3)
 
     def interaction(self, name: str, hold: float) -> bool:
         f = self.spec.furniture

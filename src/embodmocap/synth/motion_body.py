@@ -99,17 +99,8 @@ def _calibrate(body, betas: NDArray, spec: SceneSpec) -> _Calib:
             back=float(-(rel[i, :, 0][seat_set[i]]).min()),
         )
 
-    # Leaning on the table: torso forward by a (hips flex), arms forward of vertical by g;
-    # wrists about 4 cm above the top, and far enough ahead of the feet for the toes to clear.
-    A, G = np.meshgrid(deg(np.arange(10, 61, 5)), deg(np.arange(0, 41, 5)), indexing="ij")
-    A, G = A.ravel(), G.ravel()
-    j, v = _pose_batch(body, betas, np.zeros_like(A), np.zeros_like(A), A, A + G, np.full_like(A, deg(10)))
-    floor = v[..., 2].min(axis=1)
-    wrist_z = 0.5 * (j[:, 20, 2] + j[:, 21, 2]) - floor
-    reach = 0.5 * (j[:, 20, 0] + j[:, 21, 0]) - 0.5 * (j[:, _L_ANKLE, 0] + j[:, _R_ANKLE, 0])
-    table_top = spec.furniture["table"].top_z if "table" in spec.furniture else 0.75
-    score = np.abs(wrist_z - (table_top + 0.04)) + 0.5 * np.maximum(0.0, 0.35 - reach) + 0.05 * A
-    i = int(np.argmin(score))
+    # Leaning on the table: torso forward by a (hips flex), arms forward of vertical by g.
+    A, G, reach = _solve_lean(body, betas, spec.furniture["table"].top_z if "table" in spec.furniture else 0.75)
 
     # Leg segment lengths for the stepping IK (rest pose).
     j, v = _pose_batch(body, betas, np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
@@ -119,10 +110,58 @@ def _calibrate(body, betas: NDArray, spec: SceneSpec) -> _Calib:
     sole = v[:, 2].min()
     toe_ahead = float(v[:, 0].max() - j[_L_ANKLE, 0])
     return _Calib(
-        seats=seats, lean_a=float(A[i]), lean_g=float(G[i]), lean_reach=float(reach[i]),
+        seats=seats, lean_a=A, lean_g=G, lean_reach=reach,
         thigh=thigh, shin=shin, ankle_h=float(j[_L_ANKLE, 2] - sole), hip_h=float(j[_L_HIP, 2] - sole),
         toe_ahead=toe_ahead,
     )
+
+
+#: Leaning: the hands' lowest point this far above the table top (they rest on it), metres.
+LEAN_HAND_GAP_M = 0.002
+
+
+def hand_vertex_ids(body) -> NDArray[np.int64]:
+    """Vertex ids of both hands: vertices skinned mostly to a wrist or a hand joint (20-23)."""
+    return np.nonzero(np.isin(np.asarray(body.lbs_weights).argmax(axis=1), (20, 21, 22, 23)))[0]
+
+
+def _lean_pose(body, betas, A: NDArray, G: NDArray) -> tuple[NDArray, NDArray]:
+    """The leaning posture (tilt A, arms A + G forward, elbows 10 deg) on a batch (n,) of angles:
+    height of the hands' lowest vertex above the soles (n,), wrists ahead of the ankles (n,)."""
+    zero = np.zeros_like(A)
+    j, v = _pose_batch(body, betas, zero, zero, A, A + G, np.full_like(A, np.deg2rad(10.0)))
+    hands = v[:, hand_vertex_ids(body)]
+    floor = v[..., 2].min(axis=1)
+    reach = 0.5 * (j[:, 20, 0] + j[:, 21, 0]) - 0.5 * (j[:, _L_ANKLE, 0] + j[:, _R_ANKLE, 0])
+    return hands[..., 2].min(axis=1) - floor, reach
+
+
+def _solve_lean(body, betas, table_top: float, iters: int = 12) -> tuple[float, float, float]:
+    """Leaning posture for this body and this table: tilt a, arm angle g (radians) and the
+    wrists' reach ahead of the ankles (metres).
+
+    For each tilt a on a 5-degree grid the arm angle g is solved continuously (vectorised secant
+    on the hands' lowest vertex, not the wrist: fingers hang below it) so that the hands rest on
+    the top, :data:`LEAN_HAND_GAP_M` above it; then the tilt whose solution reaches far enough
+    ahead of the feet for the toes to clear the table (35 cm), with the smallest tilt, wins."""
+    deg = np.deg2rad
+    A = deg(np.arange(10.0, 61.0, 5.0))
+    target = table_top + LEAN_HAND_GAP_M
+    g0, g1 = np.full_like(A, deg(0.0)), np.full_like(A, deg(40.0))
+    h0, h1 = _lean_pose(body, betas, A, g0)[0] - target, _lean_pose(body, betas, A, g1)[0] - target
+    for _ in range(iters):
+        slope = np.where(np.abs(h1 - h0) > 1e-9, (h1 - h0) / np.where(g1 != g0, g1 - g0, 1.0), 1.0)
+        g2 = np.clip(g1 - h1 / np.where(np.abs(slope) > 1e-6, slope, 1e-6), deg(-30.0), deg(90.0))
+        g0, h0 = g1, h1
+        g1 = g2
+        h1 = _lean_pose(body, betas, A, g1)[0] - target
+        if np.all(np.abs(h1) < 1e-4):
+            break
+    reach = _lean_pose(body, betas, A, g1)[1]
+    ok = np.abs(h1) < 1e-3  # reachable: the hands can touch the top at this tilt
+    score = np.where(ok, 0.0, 10.0 + np.abs(h1)) + 0.5 * np.maximum(0.0, 0.35 - reach) + 0.05 * A
+    i = int(np.argmin(score))
+    return float(A[i]), float(g1[i]), float(reach[i])
 
 
 # --------------------------------------------------------------------------------------------
@@ -140,6 +179,9 @@ def _joint_angles(ch: dict, c: _Calib, cfg: MotionScriptConfig) -> tuple[NDArray
     deg = np.deg2rad
     a, ph = ch["gait_amp"], ch["gait_phase"]
     sit, lean = ch["sit"], ch["lean"]
+    # The arms have their own lean channel: they reach over the table's edge before the torso
+    # tilts (and leave after it has straightened), so the hands never cut through the top.
+    lean_arm = ch.get("lean_arm", lean)
     T = len(a)
     t = np.arange(T)
 
@@ -172,14 +214,16 @@ def _joint_angles(ch: dict, c: _Calib, cfg: MotionScriptConfig) -> tuple[NDArray
         _L_SHOULDER: -swing * np.sin(ph + np.pi), _R_SHOULDER: -swing * np.sin(ph),
     }
     for sh, el, side in ((_L_SHOULDER, _L_ELBOW, 1.0), (_R_SHOULDER, _R_ELBOW, -1.0)):
-        flex = arm[sh] + sit * deg(30.0) + lean * (c.lean_a + c.lean_g) + deg(20.0) * np.sin(np.pi * sit)
+        flex = arm[sh] + sit * deg(30.0) + lean_arm * (c.lean_a + c.lean_g) + deg(20.0) * np.sin(np.pi * sit)
         e[:, sh - 1, 0] = -flex
         e[:, sh - 1, 2] = -side * deg(75.0)
-        elbow = deg(15.0) + a * deg(10.0) + sit * deg(35.0) - lean * deg(5.0)
+        elbow = deg(15.0) + a * deg(10.0) + sit * deg(35.0) - lean_arm * deg(5.0) + ch.get("lean_lift", 0.0 * lean) * deg(45.0)
         e[:, el - 1, 1] = -side * elbow
 
-    # Breathing and a little sway, always on, so that no frame is perfectly still.
-    e[:, _SPINE2 - 1, 0] += deg(1.0) * np.sin(2 * np.pi * t / 110.0)
+    # Breathing and a little sway, always on, so that no frame is perfectly still; the chest's
+    # breathing fades out while leaning on the table (1 degree there moves the braced hands
+    # about 7 mm up and down through the top).
+    e[:, _SPINE2 - 1, 0] += deg(1.0) * np.sin(2 * np.pi * t / 110.0) * (1.0 - lean)
     e[:, _NECK - 1, 1] += deg(4.0) * np.sin(2 * np.pi * t / 170.0 + 1.0)
     e[:, _HEAD - 1, 0] += deg(3.0) * np.sin(2 * np.pi * t / 130.0 + 2.0) - deg(5.0) * lean
     # Torso counter-rotation against the pelvis while walking.
