@@ -34,6 +34,13 @@ class SimCheck:
 
         path = sim_check(self.session, self.seq, self.config, repair=self.repair, force=self.force)
         print(f"wrote {path}")
+        import json
+
+        from embodmocap.sim.check import unsupported_note
+
+        note = unsupported_note(json.loads(path.read_text())["summary"])
+        if note:
+            print(f"note: {note}")
         return 0
 
 
