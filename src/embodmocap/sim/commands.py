@@ -56,11 +56,14 @@ class SimTrain:
     """Train on this sequence of each session only (default: every fitted sequence)."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()
     """Training settings (--steps, --device, --num-envs, ...)."""
+    resume: Path | None = None
+    """Continue from this checkpoint (policy.zip or checkpoints/policy_N_steps.zip of a run):
+    its policy, optimiser, step count and normalisation statistics; --steps is the total."""
 
     def run(self) -> int:
         from embodmocap.sim.train import train
 
-        path = train(list(self.sessions), self.out, self.config, seq=self.seq)
+        path = train(list(self.sessions), self.out, self.config, seq=self.seq, resume=self.resume)
         print(f"wrote {path}")
         return 0
 
