@@ -44,7 +44,7 @@ def test_smoke_training_raises_the_mean_return_and_eval_writes_the_table(sim_ses
 @pytest.mark.slow
 def test_resume_continues_from_a_checkpoint(sim_session, tmp_path):
     """`sim train --resume CHECKPOINT`: the policy, step count and normalisation statistics carry
-    on from the checkpoint; --steps is the total."""
+    on from the checkpoint; --steps is the total. Then `sim eval --video-backend raycast`."""
     from stable_baselines3 import PPO
 
     from embodmocap.cli import main
@@ -70,3 +70,10 @@ def test_resume_continues_from_a_checkpoint(sim_session, tmp_path):
     with open(second / "vecnormalize.pkl", "rb") as f:
         after = pickle.load(f).obs_rms.count
     assert after > before + 1000 - 1
+    # The video without OpenGL: the package's ray caster draws it.
+    assert main(["sim", "eval", str(second / "policy.zip"), "--episodes", "1", "--video-backend", "raycast"]) == 0
+    ev = json.loads((second / "eval.json").read_text())
+    assert ev["video_backend"] == "raycast" and ev["episodes"] == 1
+    from embodmocap.io.video import probe_video
+
+    assert probe_video(second / "eval.mp4").num_frames >= 1

@@ -80,10 +80,14 @@ class SimEval:
     """Render the first episode to an MP4 next to the results."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Torch device of the policy."""
+    video_backend: Literal["auto", "mujoco", "raycast"] = "auto"
+    """Who draws the MP4: MuJoCo's offscreen OpenGL renderer, the package's ray caster (no OpenGL
+    needed), or auto (MuJoCo's, the ray caster where OpenGL is not available)."""
 
     def run(self) -> int:
         from embodmocap.sim.train import evaluate
 
-        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
+        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device,
+                        video_backend=self.video_backend)
         print(f"wrote {path}")
         return 0
