@@ -4,7 +4,7 @@ How a motion is made (read :func:`script_motion` top to bottom):
 
 1. **Plan.** A list of pieces, each a few seconds long with a name (``idle``, ``turn``, ``walk``,
    ``sit_down``, ``sit``, ``stand_up``, ``step_up``, ``stand_on_box``, ``step_down``,
-   ``lean_in``, ``lean_table``, ``lean_out``). Each piece gives, per frame, the planned pelvis
+   ``lean_in``, ``lean_table``, ``lean_out``, ``step_back``). Each piece gives, per frame, the planned pelvis
    position on the floor (x, y), the heading (yaw about +Z) and a few scalar *channels* in
    [0, 1] (gait amplitude and phase, how far seated, how far leaning, how far each leg is lifted
    ...). Every piece starts where the previous one ended and eases in and out (quintic
@@ -305,6 +305,13 @@ class _Planner:
         xy = self.xy + _ease(u)[:, None] * (end - self.xy)
         self._add("turn", xy, self.yaw + d * _ease(u))
 
+    def shuffle_to(self, end_xy: NDArray, seconds: float) -> None:
+        """Move the pelvis to ``end_xy`` keeping the heading, with an ease over ``seconds`` (small
+        steps, no gait: for a few tens of centimetres, e.g. backwards)."""
+        u = self._u(seconds)
+        xy = self.xy + _ease(u)[:, None] * (np.asarray(end_xy, dtype=np.float64) - self.xy)
+        self._add("step_back", xy, np.full(len(u), self.yaw))
+
     def walk_to(self, target: NDArray) -> None:
         """Turn toward ``target``, then walk there in a straight line (ease in and out)."""
         target = np.asarray(target, dtype=np.float64)
@@ -434,10 +441,12 @@ class _Planner:
         fwd = _heading(table)
         # Wrists 12 cm inside the front edge; the pelvis starts over the ankles.
         stand = np.asarray(table.centre_xy) + fwd * (table.size[0] / 2 - 0.12 + c.lean_reach)
-        # The walk ends 30 cm further out and the turn to face the table steps in: swinging
-        # arms and a turn on the spot that close to the table would sweep the hands through it.
+        # The walk ends 30 cm further out, the performer turns to face the table there and walks
+        # the last 30 cm in: swinging arms and a turn on the spot that close to the table would
+        # sweep the hands through it.
         self._approach(stand + fwd * 0.3)
-        self.turn_to(table.yaw + np.pi, stand)
+        self.turn_to(table.yaw + np.pi)
+        self.walk_to(stand)
         T = cfg.lean_transition_s
         # The arms swing forward over the top first, elbows bent to carry the hands over the
         # edge; then the torso tilts and lowers the straightened arms onto the top (the hands
@@ -448,8 +457,8 @@ class _Planner:
         self.channel_piece("lean_table", hold, True, lean=np.ones_like, lean_arm=np.ones_like)
         self.channel_piece("lean_out", T, True, lean=lambda u: tilt_in(1.0 - u),
                            lean_arm=lambda u: arm_in(1.0 - u), lean_lift=lambda u: lift_in(1.0 - u))
-        # Step back before turning away.
-        self.turn_to(self.yaw, stand + fwd * 0.3)
+        # Step back (a slow shuffle: no faster than the feet's friction allows) before turning away.
+        self.shuffle_to(stand + fwd * 0.3, 1.2)
 
     def interaction(self, name: str, hold: float) -> bool:
         f = self.spec.furniture
