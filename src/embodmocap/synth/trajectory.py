@@ -134,7 +134,7 @@ def _rounded_rect(lo: NDArray, hi: NDArray, radius: float, s: NDArray) -> tuple[
 
 
 #: Time to come to a stop before a glance (and to walk on after it), seconds.
-_GLANCE_STOP_S = 0.6
+_GLANCE_STOP_S = 1.2
 
 
 def _glances(n: int, fps: float, cfg: SceneWalkConfig, rng: np.random.Generator,
@@ -226,12 +226,14 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     look = np.stack([c * outward[:, 0] - sn * outward[:, 1], sn * outward[:, 0] + c * outward[:, 1]], axis=-1)
     floor_lo, floor_hi = np.asarray(spec.floor_min_xy, float), np.asarray(spec.floor_max_xy, float)
     dist = 0.9 * _exit_distance(xy, look, floor_lo, floor_hi)
-    dist = (1.0 - glance) * dist + glance * np.minimum(dist, 1.6)
+    # Stopped, the phone looks down as far as it goes (the pitch limit) during the whole turn, so
+    # the turn sees the floor all round the stop from ~0.6 m out (the loop the performer walks).
+    dist = (1.0 - still) * dist + still * np.minimum(dist, 1.0)
     h0, h1 = cfg.height_m
     height = (h0 + h1) / 2 + (h1 - h0) / 2 * np.sin(2 * np.pi * t / 11.0 + ph[1])
     g0, g1 = cfg.target_height_m
     tz = (g0 + g1) / 2 + (g1 - g0) / 2 * np.sin(2 * np.pi * t / 6.5 + ph[2])
-    tz = (1.0 - glance) * tz  # a glance looks at the floor
+    tz = (1.0 - still) * tz  # a glance looks at the floor
     tz = np.maximum(tz, height - np.tan(np.deg2rad(cfg.max_pitch_deg)) * dist)
     centres = np.column_stack([xy, height])
     targets = np.column_stack([xy + look * dist[:, None], tz])
