@@ -41,8 +41,8 @@ def truth_row(seed: int, body) -> dict:
     sq = SimSequence(Path("."), f"seed{seed}", sc.params, np.arange(len(sc.params)), body,
                      np.asarray(built.vertices, float), np.asarray(built.faces, np.int64))
     s = plausibility(sq)["summary"]
-    return {"seed": seed, "frames": s["frames"], "interactions": sorted({n for n, _, _ in sc.segments} - {"idle", "turn", "walk"}),
-            **{k: s[k] for k in KEYS}}
+    moves = sorted({n for n, _, _ in sc.segments} - {"idle", "turn", "walk"})
+    return {"seed": seed, "frames": s["frames"], "interactions": moves, **{k: s[k] for k in KEYS}}
 
 
 def floor_coverage(spec, T: np.ndarray, hfov_deg: float = 67.0, aspect: float = 0.75, range_m: float = 5.0) -> float:

@@ -55,7 +55,8 @@ def heightfield_mjcf(hm: HeightMap, name: str = "scene", base_m: float = 0.5) ->
 # Convex pieces
 
 
-def crop_scene(vertices: NDArray, faces: NDArray, xy_lo: NDArray, xy_hi: NDArray, cap_z: float) -> tuple[NDArray, NDArray]:
+def crop_scene(vertices: NDArray, faces: NDArray, xy_lo: NDArray, xy_hi: NDArray,
+               cap_z: float) -> tuple[NDArray, NDArray]:
     """The scene mesh near the motion: faces whose xy bounds overlap the box ``[xy_lo, xy_hi]``
     and that are not entirely above ``cap_z`` (as the heightfield). A closed connected part (a studio box)
     that has any such face is kept whole, so it stays closed; an open scan is cut."""
@@ -126,7 +127,8 @@ def mesh_hash(vertices: NDArray, faces: NDArray, *settings) -> str:
     return h.hexdigest()[:20]
 
 
-def cached_convex_pieces(vertices: NDArray, faces: NDArray, cache_dir: Path | None, **kw) -> list[tuple[NDArray, NDArray]]:
+def cached_convex_pieces(vertices: NDArray, faces: NDArray, cache_dir: Path | None,
+                         **kw) -> list[tuple[NDArray, NDArray]]:
     """:func:`convex_pieces`, cached in ``cache_dir/coacd_<hash>.npz`` (hash of the mesh and the
     settings: a changed mesh or setting never reuses a stale file). ``cache_dir`` None: no cache."""
     from embodmocap.io.atomic import write_npz
