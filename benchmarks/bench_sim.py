@@ -52,6 +52,30 @@ def fit_in_true_mesh(truth, fit):
     return SimSequence(fit.session, fit.name, fit.params, fit.frames, fit.body_model, v, truth.scene_faces)
 
 
+def make_sessions(sessions: list[Path]) -> None:
+    """Synthesise (if missing) and fit each session folder named ``hard_<seed>`` like issue 11's
+    hard sessions: indoor, 6 s at 30 fps, 15 s scene scan, hard perception, Stages I-IV with their
+    default settings (each stage resumes: a finished one is skipped)."""
+    from embodmocap.calibrate import stage as stage3
+    from embodmocap.motion import stage as stage4
+    from embodmocap.scene import stage as stage1
+    from embodmocap.scene.config import SceneConfig
+    from embodmocap.sequence import stage as stage2
+    from embodmocap.sequence.config import SequenceConfig
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.studio import synthesize
+
+    for s in sessions:
+        seed = int(s.name.rsplit("_", 1)[-1])
+        if not (s / "ground_truth" / "ground_truth.json").is_file():
+            synthesize(SynthConfig(seed=seed, preset="indoor", seconds=6.0, scene_seconds=15.0, perception="hard"), s)
+        stage1.run(SceneConfig(), s)
+        stage2.run(SequenceConfig(), s)
+        stage3.run(stage3.CalibrateConfig(), s)
+        stage4.run(stage4.MotionConfig(), s)
+        print(f"made {s}", flush=True)
+
+
 def check_rows(sessions: list[Path]) -> list[dict]:
     from embodmocap.sim.check import plausibility
 
@@ -122,7 +146,11 @@ def main() -> None:
     ap.add_argument("--skip", nargs="*", default=[], choices=["check", "time", "env"])
     ap.add_argument("--profile", action="store_true", help="print where the 60 s check spends its time")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--make", action="store_true",
+                    help="first synthesise and fit the sessions (folders named hard_<seed>) that are not done")
     a = ap.parse_args()
+    if a.make:
+        make_sessions(a.sessions)
     res: dict = {"date": time.strftime("%Y-%m-%d"), "sessions": [str(s) for s in a.sessions]}
     if "env" not in a.skip:
         res["env"] = env_speed(a.sessions[0], a.steps, a.num_envs)

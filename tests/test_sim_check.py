@@ -163,3 +163,32 @@ def test_rerun_and_a_copy_reached_by_a_relative_path_redo_nothing_and_keep_the_b
     with caplog.at_level(logging.INFO, logger="embodmocap.io.stage_manifest"):
         assert main(["sim", "check", str(work), "--force"]) == 0
     assert "check done in" in caplog.text  # the step ran again
+
+
+def test_frames_with_no_surface_under_them_are_counted_and_said_plainly(truth, sim_session, tmp_path, capsys):
+    """A scene with nothing under the body (its mesh moved 100 m away): every frame is
+    unsupported, floating is not measured, and the CLI and the report say so in words."""
+    import shutil
+
+    from embodmocap.evaluate.report import write_report
+    from embodmocap.sim.check import unsupported_note
+
+    far = dataclasses.replace(truth, scene_vertices=truth.scene_vertices + [100.0, 0.0, 0.0])
+    s = plausibility(far, residual=False)["summary"]
+    assert s["unsupported_frames"] == s["frames"] == len(truth.params)
+    assert s["floating_max_cm"] == 0.0
+    assert unsupported_note(s).startswith(f"{s['frames']} of {s['frames']} frames (100 %) have no scene surface")
+    assert unsupported_note(plausibility(truth, residual=False)["summary"]) is None
+
+    copy = tmp_path / "session"
+    shutil.copytree(sim_session, copy)
+    from embodmocap.cli import main
+
+    assert main(["sim", "check", str(copy)]) == 0
+    assert "no scene surface" not in capsys.readouterr().out  # the true scene supports every frame
+    path = copy / "sequences" / "seq0" / "sim" / "sim_check.json"
+    doc = json.loads(path.read_text())
+    doc["summary"]["unsupported_frames"] = 3
+    path.write_text(json.dumps(doc))
+    _, md = write_report(copy)
+    assert f"3 of {doc['summary']['frames']} frames" in md.read_text()

@@ -117,3 +117,51 @@ def test_a_missing_extra_is_one_line_naming_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "mujoco", None)  # as if not installed
     with pytest.raises(MissingExtraError, match=r"embodmocap\[sim\]"):
         deps.mujoco()
+
+
+def test_raycast_render_matches_mujocos_picture(sim_session):
+    """The ray-cast fallback of the video (no OpenGL) draws what MuJoCo's renderer draws: the
+    performer's silhouette overlaps MuJoCo's own segmentation of the same camera (IoU > 0.8, at
+    320 x 240), the ground is below it and the sky above."""
+    from embodmocap.sim.env import TrackingEnv
+
+    env = TrackingEnv(session=sim_session, config=TrackingConfig(random_start=False), render_mode="rgb_array")
+    env.reset(seed=0)
+    env.data.qpos[7 + 3 * 16] = -1.2  # an arm raised sideways: a silhouette with some shape
+    env.mj.mj_forward(env.model, env.data)
+    env.render_backend = "raycast"
+    img = env.render()
+    assert img.shape == (240, 320, 3) and img.dtype == np.uint8
+    body = (img[..., 0].astype(int) - img[..., 2] > 40)
+    sky = (img == [170, 200, 230]).all(axis=-1)
+    assert sky[:10].mean() > 0.5 and not sky[-20:].any()
+    # MuJoCo's own segmentation of the same free camera, as the reference (in a subprocess with
+    # EGL: this process may have imported MuJoCo with another GL backend first).
+    import os
+    import subprocess
+    import sys
+
+    from embodmocap.sim.env import _heading
+
+    tmp = sim_session.parent / "raycast_ref"
+    tmp.mkdir(exist_ok=True)
+    (tmp / "m.xml").write_text(env.clip.xml)
+    np.save(tmp / "qpos.npy", env.data.qpos)
+    az = 90.0 + np.degrees(_heading(env.data.xquat[1]))
+    code = f"""
+import numpy as np, mujoco
+m = mujoco.MjModel.from_xml_path({str(tmp / 'm.xml')!r}); d = mujoco.MjData(m)
+d.qpos[:] = np.load({str(tmp / 'qpos.npy')!r}); mujoco.mj_forward(m, d)
+r = mujoco.Renderer(m, 240, 320); cam = mujoco.MjvCamera(); cam.lookat[:] = d.xpos[1]
+cam.distance, cam.azimuth, cam.elevation = 3.5, {az!r}, -20.0
+r.enable_segmentation_rendering(); r.update_scene(d, cam); seg = r.render()
+body = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (m.geom_bodyid[np.clip(seg[..., 0], 0, None)] > 0) & (seg[..., 0] >= 0)
+np.save({str(tmp / 'ref.npy')!r}, body)
+"""
+    res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, MUJOCO_GL="egl"), capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"no MuJoCo offscreen rendering here: {res.stderr.strip().splitlines()[-1:]}")
+    ref = np.load(tmp / "ref.npy")
+    iou = (body & ref).sum() / (body | ref).sum()
+    assert ref.sum() > 500 and iou > 0.8, iou
+    env.close()

@@ -238,3 +238,96 @@ def test_a_body_dropped_on_a_bed_lies_on_its_top(tmp_path):
     seat_geoms = {m.geom(f"{b}_geom").id for b in ("Pelvis", "L_Hip", "R_Hip")}
     on_bed = [c for c in d.contact[:d.ncon] if m.geom("scene").id in (c.geom1, c.geom2) and {c.geom1, c.geom2} & seat_geoms]
     assert on_bed and all(abs(c.pos[2] - bed["top_z"]) < 0.01 for c in on_bed)
+
+
+def _l_block(depth=0.6, width=0.8, seat=0.45, back=0.2, height=0.9):
+    """A closed L-shaped seat with a backrest (one concave solid, as a scanned sofa would be):
+    profile in x (front +x) and z, extruded along y. Returns (vertices, faces) outward."""
+    x0, x1, xb = -depth / 2, depth / 2, -depth / 2 + back
+    prof = np.array([[x0, 0], [x1, 0], [x1, seat], [xb, seat], [xb, height], [x0, height]])
+    n = len(prof)
+    v = np.concatenate([np.column_stack([prof[:, 0], np.full(n, y), prof[:, 1]]) for y in (-width / 2, width / 2)])
+    cap = [[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]]  # a fan from the L's outer corner
+    f = [[a, c, b] for a, b, c in cap] + [[a + n, b + n, c + n] for a, b, c in cap]
+    for i in range(n):
+        j = (i + 1) % n
+        f += [[i, j, j + n], [i, j + n, i + n]]
+    import trimesh
+
+    m = trimesh.Trimesh(v, np.array(f), process=False)
+    trimesh.repair.fix_normals(m)
+    assert m.is_watertight and m.volume > 0
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def test_coacd_pieces_hold_a_body_on_a_concave_seat_and_are_cached(sim_session, tmp_path):
+    """`--scene-collision coacd`: a concave L-shaped seat (coacd splits it) and the floor; a body
+    dropped sitting on the seat rests on its top within 1 cm, one lying on the floor at 0; the
+    pieces are cached by mesh hash (a rerun reads them, another mesh gets its own file)."""
+    from embodmocap.sim.scene import cached_convex_pieces, pieces_mjcf
+
+    sq = load_sequence(sim_session)
+    seat_v, seat_f = _l_block()
+    import trimesh
+
+    floor = trimesh.creation.box(extents=(6, 6, 0.1))
+    floor.apply_translation([0, 0, -0.05])
+    v = np.concatenate([seat_v + [1.0, 0, 0], floor.vertices])
+    f = np.concatenate([seat_f, floor.faces + len(seat_v)])
+    cache = tmp_path / "cache"
+    pieces = cached_convex_pieces(v, f, cache, threshold=0.03)
+    assert len(pieces) >= 3  # the floor + at least two for the L
+    files = list(cache.glob("coacd_*.npz"))
+    assert len(files) == 1
+    again = cached_convex_pieces(v, f, cache, threshold=0.03)
+    assert all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) for a, b in zip(pieces, again))
+    cached_convex_pieces(v + [0, 0, 0.01], f, cache, threshold=0.03)
+    assert len(list(cache.glob("coacd_*.npz"))) == 2
+    asset, geom = pieces_mjcf(pieces)
+    m = mujoco.MjModel.from_xml_string(performer_mjcf(sq.body_model, sq.params.betas, scene_assets=asset, scene_geoms=geom))
+    body_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] > 0]
+    scene_geoms = {g for g in range(m.ngeom) if m.geom_bodyid[g] == 0}
+    seat_geoms = [m.geom(f"{b}_geom").id for b in ("Pelvis", "L_Hip", "R_Hip")]
+    d = _drop(m, SIT, np.array([1.05, 0.0]), 0.45)
+    on_seat = [c for c in d.contact[:d.ncon] if {c.geom1, c.geom2} & scene_geoms and {c.geom1, c.geom2} & set(seat_geoms)]
+    assert on_seat
+    for c in on_seat:
+        assert abs(c.pos[2] - 0.45) < 0.01 and -c.dist < 0.01
+    assert np.abs(d.qvel[:3]).max() < 0.05
+    d = _drop(m, {}, np.array([-1.5, 0.0]), 0.0, pitch=-np.pi / 2)
+    assert abs(_lowest(m, d, body_geoms)) < 0.01 and np.abs(d.qvel[:3]).max() < 0.05
+
+
+def test_export_mjcf_scene_collision_coacd_and_both(sim_session, tmp_path):
+    """`export --to mjcf --scene-collision coacd|both` loads and steps (pieces cached in the
+    sequence's sim/ folder); the studio room as convex pieces (its boxes are convex: each its own
+    hull, no coacd run) holds a body sitting on its seats at their height."""
+    from embodmocap.cli import main
+    from embodmocap.sim.scene import convex_pieces, pieces_mjcf
+
+    for mode, n_hfield in (("coacd", 0), ("both", 1)):
+        out = tmp_path / mode
+        assert main(["export", str(sim_session), "--to", "mjcf", "--out", str(out), "--scene-collision", mode]) == 0
+        m = mujoco.MjModel.from_xml_path(str(out / "seq0.xml"))
+        assert m.nhfield == n_hfield and m.nmesh >= 1  # the floor under the motion at least
+        mujoco.mj_step(m, mujoco.MjData(m))
+    assert list((sim_session / "sequences" / "seq0" / "sim").glob("coacd_*.npz"))
+    sq = load_sequence(sim_session)
+    pieces = convex_pieces(sq.scene_vertices, sq.scene_faces)
+    asset, geom = pieces_mjcf(pieces)
+    m = mujoco.MjModel.from_xml_string(performer_mjcf(sq.body_model, sq.params.betas, scene_assets=asset, scene_geoms=geom))
+    scene_geoms = {g for g in range(m.ngeom) if m.geom_bodyid[g] == 0}
+    seat_geoms = [m.geom(f"{b}_geom").id for b in ("Pelvis", "L_Hip", "R_Hip")]
+    seats = 0
+    for name, piece in furniture(sim_session).items():
+        if name not in ("chair", "sofa", "bed"):
+            continue
+        fwd = np.array([np.cos(piece["yaw"]), np.sin(piece["yaw"])])
+        d = _drop(m, SIT, np.asarray(piece["centre_xy"]) + 0.05 * fwd, piece["top_z"], yaw=piece["yaw"])
+        on_seat = [c for c in d.contact[:d.ncon] if {c.geom1, c.geom2} & scene_geoms and {c.geom1, c.geom2} & set(seat_geoms)]
+        assert on_seat, name
+        for c in on_seat:
+            assert abs(c.pos[2] - piece["top_z"]) < 0.01 and -c.dist < 0.01, name
+        assert np.abs(d.qvel[:3]).max() < 0.05, name
+        seats += 1
+    assert seats >= 2

@@ -39,3 +39,41 @@ def test_smoke_training_raises_the_mean_return_and_eval_writes_the_table(sim_ses
         assert probe_video(run / "eval.mp4").num_frames >= 1
     else:
         assert "video_error" in ev
+
+
+@pytest.mark.slow
+def test_resume_continues_from_a_checkpoint(sim_session, tmp_path):
+    """`sim train --resume CHECKPOINT`: the policy, step count and normalisation statistics carry
+    on from the checkpoint; --steps is the total. Then `sim eval --video-backend raycast`."""
+    from stable_baselines3 import PPO
+
+    from embodmocap.cli import main
+
+    common = ["--num-envs", "1", "--n-steps", "256", "--batch-size", "128", "--checkpoint-every", "512"]
+    first = tmp_path / "first"
+    assert main(["sim", "train", str(sim_session), "--out", str(first), "--steps", "1024", *common]) == 0
+    ckpt = first / "checkpoints" / "policy_512_steps.zip"
+    assert ckpt.is_file() and (first / "checkpoints" / "policy_vecnormalize_512_steps.pkl").is_file()
+    second = tmp_path / "second"
+    assert main(["sim", "train", str(sim_session), "--out", str(second), "--steps", "1536", "--resume", str(ckpt),
+                 *common]) == 0
+    resumed = PPO.load(second / "policy.zip", device="cpu")
+    assert resumed.num_timesteps == 1536
+    prog = json.loads((second / "progress.json").read_text())
+    assert prog["steps"] and prog["steps"][0] > 512 and prog["steps"][-1] == 1536
+    assert json.loads((second / "run.json").read_text())["resumed_from"] == str(ckpt.resolve())
+    # The statistics went on from the checkpoint's (count grows from there, not from zero).
+    import pickle
+
+    with open(first / "checkpoints" / "policy_vecnormalize_512_steps.pkl", "rb") as f:
+        before = pickle.load(f).obs_rms.count
+    with open(second / "vecnormalize.pkl", "rb") as f:
+        after = pickle.load(f).obs_rms.count
+    assert after > before + 1000 - 1
+    # The video without OpenGL: the package's ray caster draws it.
+    assert main(["sim", "eval", str(second / "policy.zip"), "--episodes", "1", "--video-backend", "raycast"]) == 0
+    ev = json.loads((second / "eval.json").read_text())
+    assert ev["video_backend"] == "raycast" and ev["episodes"] == 1
+    from embodmocap.io.video import probe_video
+
+    assert probe_video(second / "eval.mp4").num_frames >= 1

@@ -146,3 +146,29 @@ def test_imu_of_a_known_motion():
     Ri = rot_z(w * ti) @ R0
     expect = np.einsum("nji,nj->ni", Ri, a_world)
     assert np.allclose(acc[inner], expect[inner], atol=0.02)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_scene_walk_glance_sees_the_floor_inside_the_loop(seed):
+    """With `glance_every_s` the 15 s scan stops, looks down and turns round: the walk area's floor
+    (where the performer walks) falls inside its depth frustums (hfov 67 deg, 4:3, 5 m), which the
+    outward-only walk never manages; the turn stays a handheld one (< 120 deg/s, < 45 deg down)."""
+    spec = build_scene("indoor", np.random.default_rng([seed, 1])).spec
+    lo, hi = np.asarray(spec.walk_area_min_xy), np.asarray(spec.walk_area_max_xy)
+    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.05), np.arange(lo[1], hi[1], 0.05), indexing="ij"), -1)
+    P = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
+    tx = np.tan(np.radians(33.5))
+
+    def seen(T):
+        out = np.zeros(len(P), bool)
+        for Tk in T[::3]:
+            pc = (P - Tk[:3, 3]) @ Tk[:3, :3]
+            z = pc[:, 2]
+            out |= (z > 0.05) & (z < 5.0) & (np.abs(pc[:, 0]) < tx * z) & (np.abs(pc[:, 1]) < 0.75 * tx * z)
+        return out.mean()
+
+    T = tr.scene_walk(spec, 15.0, FPS, np.random.default_rng([seed, 5]), tr.SceneWalkConfig(glance_every_s=15.0))
+    T0 = tr.scene_walk(spec, 15.0, FPS, np.random.default_rng([seed, 5]))
+    assert seen(T) > 0.8 and seen(T0) < 0.3
+    assert np.percentile(_rot_speed_deg_s(T), 99) < 120
+    assert np.all(np.rad2deg(np.arcsin(-T[:, :3, 2][:, 2])) < 45)

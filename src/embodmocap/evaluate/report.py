@@ -308,6 +308,11 @@ def _sim_check_section(page: _Page, path: Path) -> None:
             "foot_skating_mean_cm",
             "residual_force_n_per_kg_mean", "residual_torque_nm_per_kg_mean", "mass_kg")
     page.table(["figure", "value"], [[k, s[k]] for k in keys if k in s])
+    if s.get("unsupported_frames"):  # said plainly: those frames' floating is not measured
+        n, total = int(s["unsupported_frames"]), max(int(s.get("frames", 0)), 1)
+        page.para(f"Note: {n} of {total} frames ({100.0 * n / total:.0f} %) have no scene surface under the body "
+                  "(a hole in the scene mesh, e.g. floor the scan never saw): floating is not measured on them "
+                  "and penetration may be missed; the figures describe the other frames.")
     page.table(["body part", "contact fraction"], [[k, v] for k, v in s.get("contact_fraction", {}).items()])
 
 

@@ -20,6 +20,9 @@ class ExportConfig:
     """MimicKit: what the motion does past its end (clamp = hold the last frame, wrap = loop)."""
     heightmap_cell_m: float = 0.05
     """MimicKit and MJCF: height-map cell size, metres (the paper samples a 0.05 m map)."""
+    scene_collision: Literal["heightfield", "coacd", "both"] = "heightfield"
+    """MJCF: the scene as a support heightfield, as convex pieces of the mesh (coacd, cached in
+    sequences/SEQ/sim/ by mesh hash; keeps overhangs such as a table's underside open), or both."""
     robot: str = "g1"
     """Robot (``--to robot``): a built-in robot name (g1)."""
     robot_config: Path | None = None

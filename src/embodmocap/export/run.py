@@ -106,7 +106,8 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
         from embodmocap.sim.config import SceneCollisionConfig
         from embodmocap.sim.session import export_mjcf
 
-        return export_mjcf(layout.root, seq, out, scene=SceneCollisionConfig(heightmap_cell_m=config.heightmap_cell_m))
+        return export_mjcf(layout.root, seq, out, scene=SceneCollisionConfig(heightmap_cell_m=config.heightmap_cell_m,
+                                                                             collision=config.scene_collision))
 
     from embodmocap.body.model import load_body_model
     from embodmocap.io.manifest import load_manifest

@@ -329,3 +329,15 @@ def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig =
              sq.name, s["penetration_max_cm"], s["floating_max_cm"], s["foot_skating_mean_cm"],
              s.get("residual_force_n_per_kg_mean", float("nan")))
     return path
+
+
+def unsupported_note(summary: dict) -> str | None:
+    """One plain sentence when some frames have no scene surface at all under the body (holes in
+    the scanned mesh), else None: floating is not measured on those frames and penetration may be
+    missed there, so the figures describe the other frames only."""
+    n, total = int(summary.get("unsupported_frames", 0)), int(summary.get("frames", 0))
+    if n == 0:
+        return None
+    return (f"{n} of {total} frames ({100.0 * n / max(total, 1):.0f} %) have no scene surface under the body "
+            f"(a hole in the scene mesh, e.g. floor the scan never saw): floating is not measured on them and "
+            f"penetration may be missed; the figures describe the other frames.")

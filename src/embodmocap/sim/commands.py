@@ -35,6 +35,13 @@ class SimCheck:
 
         path = sim_check(self.session, self.seq, self.config, repair=self.repair, force=self.force)
         print(f"wrote {path}")
+        import json
+
+        from embodmocap.sim.check import unsupported_note
+
+        note = unsupported_note(json.loads(path.read_text())["summary"])
+        if note:
+            print(f"note: {note}")
         return 0
 
 
@@ -50,6 +57,9 @@ class SimTrain:
     """Train on this sequence of each session only (default: every fitted sequence)."""
     config: Annotated[TrainConfig, tyro.conf.arg(name="")] = TrainConfig()
     """Training settings (--steps, --device, --num-envs, ...)."""
+    resume: Path | None = None
+    """Continue from this checkpoint (policy.zip or checkpoints/policy_N_steps.zip of a run):
+    its policy, optimiser, step count and normalisation statistics; --steps is the total."""
 
     def run(self) -> int:
         from embodmocap.sim.train import train
@@ -57,10 +67,15 @@ class SimTrain:
         if self.config.skill is not None:  # an interaction skill: task + AMP style (sim/skill_train.py)
             from embodmocap.sim.skill_train import train_skill
 
+            if self.resume is not None:
+                from embodmocap.errors import InputError
+
+                raise InputError(self.resume, "--resume continues tracking runs only, not `--skill` runs",
+                                 "start the skill run again without --resume")
             out = Path(f"sim_runs/skill_{self.config.skill}") if self.out == Path("sim_runs/tracking") else self.out
             print(f"wrote {train_skill(list(self.sessions), out, self.config, seq=self.seq)}")
             return 0
-        path = train(list(self.sessions), self.out, self.config, seq=self.seq)
+        path = train(list(self.sessions), self.out, self.config, seq=self.seq, resume=self.resume)
         print(f"wrote {path}")
         return 0
 
@@ -77,6 +92,9 @@ class SimEval:
     """Render the first episode to an MP4 next to the results."""
     device: Literal["cpu", "cuda"] = "cpu"
     """Torch device of the policy."""
+    video_backend: Literal["auto", "mujoco", "raycast"] = "auto"
+    """Who draws the MP4: MuJoCo's offscreen OpenGL renderer, the package's ray caster (no OpenGL
+    needed), or auto (MuJoCo's, the ray caster where OpenGL is not available)."""
 
     def run(self) -> int:
         from embodmocap.sim.train import evaluate
@@ -88,6 +106,7 @@ class SimEval:
 
             print(f"wrote {evaluate_skill(self.checkpoint, episodes=self.episodes, device=self.device)}")
             return 0
-        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device)
+        path = evaluate(self.checkpoint, episodes=self.episodes, video=self.video, device=self.device,
+                        video_backend=self.video_backend)
         print(f"wrote {path}")
         return 0

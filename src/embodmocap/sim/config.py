@@ -53,6 +53,19 @@ class SceneCollisionConfig:
     becomes a column at the cap."""
     margin_m: float = 0.5
     """The heightfield covers the motion's footprint grown by this much (at least the mesh under it), metres."""
+    collision: Literal["heightfield", "coacd", "both"] = "heightfield"
+    """Scene collision geometry: the support heightfield, convex pieces of the scene mesh (coacd:
+    overhangs such as a table top's underside or the space under a chair stay open), or both.
+    The pieces cover the same footprint and cap as the heightfield."""
+    coacd_threshold: float = 0.05
+    """coacd concavity threshold (its ``threshold``; smaller = more, tighter pieces, slower)."""
+    coacd_max_pieces: int = 64
+    """At most this many convex pieces per concave part of the mesh (coacd ``max_convex_hull``)."""
+    coacd_resolution: int = 50
+    """coacd's voxel resolution for making an open (scanned) mesh manifold (``preprocess_resolution``)."""
+    convex_tolerance: float = 0.01
+    """A closed connected part whose volume is within this fraction of its convex hull's is used
+    as its hull directly (the studio's boxes, a box-like scan part), without coacd."""
 
 
 @dataclass(frozen=True)

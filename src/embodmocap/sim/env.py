@@ -148,6 +148,10 @@ class TrackingEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (D,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (69,), np.float32)
         self._renderer = None
+        #: ``"mujoco"`` (offscreen OpenGL, 640 x 480) or ``"raycast"`` (the package's ray caster,
+        #: 320 x 240: :mod:`embodmocap.sim.raycast_view`, no OpenGL needed).
+        self.render_backend = "mujoco"
+        self._scene_mesh: tuple | None = None
 
     # ------------------------------------------------------------------ model per clip
 
@@ -292,12 +296,20 @@ class TrackingEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
+        heading = 90.0 + np.degrees(_heading(self.data.xquat[1]))
+        if self.render_backend == "raycast":
+            from embodmocap.sim.raycast_view import free_camera_pose, heightmap_mesh, render_state
+
+            if self._scene_mesh is None or self._scene_mesh[0] is not self.clip.heightmap:
+                self._scene_mesh = (self.clip.heightmap, heightmap_mesh(self.clip.heightmap))
+            T = free_camera_pose(self.data.xpos[1], 3.5, heading, -20.0)
+            return render_state(self.mj, self.model, self.data, self.clip.heightmap, T, scene_mesh=self._scene_mesh[1])
         if self._renderer is None or self._renderer_model is not self.model:
             self._renderer = self.mj.Renderer(self.model, 480, 640)
             self._renderer_model = self.model
         cam = self.mj.MjvCamera()
         cam.lookat[:] = self.data.xpos[1]
-        cam.distance, cam.azimuth, cam.elevation = 3.5, 90.0 + np.degrees(_heading(self.data.xquat[1])), -20.0
+        cam.distance, cam.azimuth, cam.elevation = 3.5, heading, -20.0
         self._renderer.update_scene(self.data, cam)
         return self._renderer.render()
 

@@ -19,7 +19,7 @@ from embodmocap.export.mimickit import HeightMap, write_heightmap
 from embodmocap.io.layout import SessionLayout
 from embodmocap.sim.config import HumanoidConfig, SceneCollisionConfig
 from embodmocap.sim.model import hinge_names, performer_mjcf, reference_qpos
-from embodmocap.sim.scene import heightfield_mjcf, support_heightmap
+from embodmocap.sim.scene import cached_convex_pieces, crop_scene, heightfield_mjcf, pieces_mjcf, support_heightmap
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -109,12 +109,45 @@ def sequence_heightmap(sq: SimSequence, cfg: SceneCollisionConfig = SceneCollisi
                              cell_m=cfg.heightmap_cell_m, xy_lo=lo, xy_hi=hi)
 
 
+def scene_pieces(sq: SimSequence, cfg: SceneCollisionConfig = SceneCollisionConfig(),
+                 verts: NDArray | None = None) -> list[tuple[NDArray, NDArray]]:
+    """Convex pieces of the scene mesh around the sequence (the heightfield's footprint and cap),
+    :func:`embodmocap.sim.scene.cached_convex_pieces`, cached under ``sequences/<seq>/sim/`` when the
+    session folder exists."""
+    verts = body_vertices(sq.body_model, sq.params) if verts is None else verts
+    flat = verts.reshape(-1, 3)
+    lo, hi = flat[:, :2].min(axis=0) - cfg.margin_m, flat[:, :2].max(axis=0) + cfg.margin_m
+    v, f = crop_scene(sq.scene_vertices, sq.scene_faces, lo, hi, float(flat[:, 2].max()) + cfg.cap_above_motion_m)
+    cache = None
+    if (Path(sq.session) / "session.toml").is_file():
+        cache = SessionLayout(sq.session).sequence(sq.name).sim_dir
+    return cached_convex_pieces(v, f, cache, threshold=cfg.coacd_threshold, max_pieces=cfg.coacd_max_pieces,
+                                resolution=cfg.coacd_resolution, convex_tolerance=cfg.convex_tolerance)
+
+
 def sequence_mjcf(sq: SimSequence, hcfg: HumanoidConfig = HumanoidConfig(),
                   scfg: SceneCollisionConfig = SceneCollisionConfig(), *, keyframes: bool = True,
                   heightmap: HeightMap | None = None) -> tuple[str, HeightMap, NDArray]:
-    """MJCF text of the performer in the scene; returns ``(xml, heightmap, reference qpos (T, NQ))``."""
-    hm = sequence_heightmap(sq, scfg) if heightmap is None else heightmap
-    asset, geom = heightfield_mjcf(hm)
+    """MJCF text of the performer in the scene; returns ``(xml, heightmap, reference qpos (T, NQ))``.
+
+    The scene is the support heightfield, convex pieces of the mesh over the same footprint and
+    under the same cap (``scfg.collision``: ``coacd`` or ``both``; cached in the sequence's
+    ``sim/`` folder by mesh hash), or both."""
+    need = heightmap is None or scfg.collision != "heightfield"
+    verts = body_vertices(sq.body_model, sq.params) if need else None
+    hm = sequence_heightmap(sq, scfg, verts) if heightmap is None else heightmap
+    assets, geoms = [], []
+    if scfg.collision in ("heightfield", "both"):
+        asset, geom = heightfield_mjcf(hm)
+        assets.append(asset)
+        geoms.append(geom)
+    if scfg.collision in ("coacd", "both"):
+        pieces = scene_pieces(sq, scfg, verts)
+        asset, geom = pieces_mjcf(pieces)
+        assets.append(asset)
+        geoms.append(geom)
+        log.info("scene collision: %d convex pieces", len(pieces))
+    asset, geom = "\n".join(assets), "\n".join(geoms)
     qpos = reference_qpos(sq.params, sq.rest_joints)
     times = np.arange(len(qpos)) / sq.params.fps
     xml = performer_mjcf(sq.body_model, sq.params.betas, hcfg, scene_assets=asset, scene_geoms=geom,
@@ -127,7 +160,8 @@ def export_mjcf(session: str | Path, seq: str | None = None, out: str | Path | N
                 scene: SceneCollisionConfig = SceneCollisionConfig()) -> Path:
     """Write the MuJoCo bundle of a sequence into the folder ``out`` (replaced atomically).
 
-    Files: ``<seq>.xml`` (performer + scene heightfield + one keyframe per motion frame),
+    Files: ``<seq>.xml`` (performer + scene heightfield and/or convex pieces, ``scene.collision``,
+    + one keyframe per motion frame),
     ``<seq>_reference.npz`` (qpos per frame, fps, frames, joint names) and ``scene_heightfield.npz``
     (the support height map, :func:`embodmocap.export.mimickit.write_heightmap` format). Default
     ``out``: ``sequences/<seq>/export/mjcf``.

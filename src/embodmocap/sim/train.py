@@ -78,8 +78,12 @@ def _progress_callback(path: Path):
 
 
 def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainConfig(), *, seq: str | None = None,
-          progress: bool = True) -> Path:
-    """Train PPO on the clips of ``sessions``; writes the run folder ``out``; returns ``policy.zip``."""
+          progress: bool = True, resume: str | Path | None = None) -> Path:
+    """Train PPO on the clips of ``sessions``; writes the run folder ``out``; returns ``policy.zip``.
+
+    ``resume``: a checkpoint (``policy.zip`` or ``checkpoints/policy_<n>_steps.zip``) whose policy,
+    optimiser state, step count and normalisation statistics training continues from, up to
+    ``cfg.steps`` steps in all (the PPO hyper-parameters are the checkpoint's)."""
     sb3 = require("stable_baselines3", "sim")
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
@@ -91,19 +95,36 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     clips = load_clips([Path(s) for s in sessions], seq, cfg.tracking)
     log.info("training on %d clips (%s) for %d steps, %d envs, device %s", len(clips),
              ", ".join(c.name for c in clips), cfg.steps, cfg.num_envs, cfg.device)
-    write_json(out / "run.json", {"version": 1, "sessions": [str(Path(s).resolve()) for s in sessions], "seq": seq,
-                                  "clips": [c.name for c in clips], "config": dataclasses.asdict(cfg)})
-    venv = VecNormalize(_vec_env(clips, cfg.tracking, cfg.num_envs, cfg.seed), gamma=0.99)
-    n_steps = max(cfg.n_steps, 2)
-    batch = min(cfg.batch_size, n_steps * cfg.num_envs)
-    model = sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
-                    gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
-                    device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
-                    policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
+    run_doc = {"version": 1, "sessions": [str(Path(s).resolve()) for s in sessions], "seq": seq,
+               "clips": [c.name for c in clips], "config": dataclasses.asdict(cfg)}
+    if resume is not None:
+        resume = Path(resume)
+        if not resume.is_file():
+            raise InputError(resume, "checkpoint to resume from not found",
+                             "give a policy zip written by `embodmocap sim train` (policy.zip or checkpoints/*.zip)")
+        run_doc["resumed_from"] = str(resume.resolve())
+    write_json(out / "run.json", run_doc)
+    raw = _vec_env(clips, cfg.tracking, cfg.num_envs, cfg.seed)
+    if resume is None:
+        venv = VecNormalize(raw, gamma=0.99)
+        n_steps = max(cfg.n_steps, 2)
+        batch = min(cfg.batch_size, n_steps * cfg.num_envs)
+        model = sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
+                        gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
+                        device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
+                        policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
+    else:
+        stats = _stats_for(resume, _run_folder(resume))
+        venv = VecNormalize.load(str(stats), raw) if stats is not None else VecNormalize(raw, gamma=0.99)
+        venv.training = True
+        model = sb3.PPO.load(resume, env=venv, device=cfg.device, tensorboard_log=str(out / "tb"))
+        log.info("resuming %s at step %d (normalisation statistics: %s)", resume, model.num_timesteps, stats)
     ckpt = CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
                               name_prefix="policy", save_vecnormalize=True)
-    model.learn(total_timesteps=cfg.steps, callback=[ckpt, _progress_callback(out / "progress.json")],
-                progress_bar=progress, tb_log_name="ppo")
+    # With reset_num_timesteps=False stable-baselines3 adds total_timesteps to the step count.
+    model.learn(total_timesteps=max(cfg.steps - model.num_timesteps, 0) if resume is not None else cfg.steps,
+                callback=[ckpt, _progress_callback(out / "progress.json")], progress_bar=progress, tb_log_name="ppo",
+                reset_num_timesteps=resume is None)
     model.save(out / "policy.zip")
     venv.save(str(out / "vecnormalize.pkl"))
     venv.close()
@@ -149,9 +170,13 @@ def rollout_lengths(policy, env, normalize, episodes: int, seed: int, frames: li
 
 
 def evaluate(checkpoint: str | Path, *, episodes: int = 32, video: bool = True, device: str = "cpu",
-             seed: int = 10_000) -> Path:
+             seed: int = 10_000, video_backend: str = "auto") -> Path:
     """The paper's table (success / failure rate, episode lengths) over ``episodes`` random-start
-    episodes and an MP4 of the first; writes ``eval.json`` (and ``eval.mp4``) in the run folder."""
+    episodes and an MP4 of the first; writes ``eval.json`` (and ``eval.mp4``) in the run folder.
+
+    ``video_backend``: ``mujoco`` (offscreen OpenGL), ``raycast`` (the package's ray caster, no
+    OpenGL), or ``auto``: MuJoCo's, falling back to the ray caster when OpenGL is not available
+    (``eval.json`` records the backend used and why it fell back)."""
     sb3 = require("stable_baselines3", "sim")
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -175,20 +200,27 @@ def evaluate(checkpoint: str | Path, *, episodes: int = 32, video: bool = True, 
         normalize.training = False
     frames: list | None = [] if video else None
     video_error = None
-    if video:
+    if video and video_backend == "raycast":
+        env.render_backend = "raycast"
+    elif video:
         try:
             env.reset(seed=seed)
             env.render()
-        except Exception as err:  # noqa: BLE001 - no OpenGL here: the table without the video
+        except Exception as err:  # noqa: BLE001 - no OpenGL here: the ray caster, or the table alone
             video_error = f"MuJoCo offscreen rendering failed ({type(err).__name__}: {err}); set MUJOCO_GL=egl or osmesa"
             log.warning("%s", video_error)
-            frames = None
+            if video_backend == "auto":
+                env.render_backend = "raycast"
+                log.warning("drawing the video with the package's ray caster instead")
+            else:
+                frames = None
     lengths = rollout_lengths(policy, env, normalize, episodes, seed, frames)
     table = tracking_table(lengths, tcfg.success_s)
     doc = {"version": 1, "checkpoint": str(checkpoint), "episode_s": tcfg.episode_s, **table,
            "lengths_s": lengths.tolist()}
     if frames:
         doc["video"] = str(_write_video(run / "eval.mp4", frames, tcfg.control_hz))
+        doc["video_backend"] = env.render_backend
     if video_error:
         doc["video_error"] = video_error
     write_json(run / "eval.json", doc)

@@ -94,6 +94,17 @@ class SceneWalkConfig:
     """Period of that sweep, seconds."""
     max_pitch_deg: float = 40.0
     """The view never points more than this far below the horizon, degrees."""
+    glance_every_s: float = 0.0
+    """One look back across the loop at the floor inside it per this many seconds (at least one
+    per capture; 15 is a good value): looking outwards only, the phone never sees the middle of the
+    room, where the performer walks. 0 = never (the default for now: in a 15 s scan the glance
+    takes 9 s from the walls and furniture, and Stage III then registered only 7 of 16 view frames
+    of tests/test_calibrate_register.py's session, which needs >= 90 %)."""
+    glance_turn_s: float = 3.0
+    """Time to turn round for a glance, and to turn back, seconds (slow: a handheld phone's turn
+    rate stays under ~120 deg/s with the loop's own turning)."""
+    glance_hold_s: float = 0.8
+    """Time spent looking back at the floor about 1.6 m away, seconds."""
     shake: ShakeConfig = ShakeConfig()
     """Hand shake."""
 
@@ -124,6 +135,52 @@ def _rounded_rect(lo: NDArray, hi: NDArray, radius: float, s: NDArray) -> tuple[
     return p, n
 
 
+#: Time to come to a stop before a glance (and to walk on after it), seconds.
+_GLANCE_STOP_S = 1.2
+
+
+def _glances(n: int, fps: float, cfg: SceneWalkConfig, rng: np.random.Generator,
+             sweep: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Looks back across the loop, one per ``glance_every_s`` at a random place in its slot:
+    ``(weight, turn, still)``, each (n,). The operator slows to a stop (``still`` 0 -> 1), the view
+    turns round by pi (quintic ease; ``turn`` in radians) the way the ``sweep`` (n,) is turned at
+    the time (so that fading the sweep out slows the turn down instead of adding to it), holds,
+    and goes on turning the same way back to outwards (a full turn on the spot: every direction
+    is seen once more), then the walk resumes. ``weight`` (0 outside, 1 while looking back) fades
+    the sweep out and the floor look in."""
+    w, turn, still = np.zeros(n), np.zeros(n), np.zeros(n)
+    seconds = n / fps
+    if _glance_seconds(seconds, cfg) == 0:
+        return w, turn, still
+    length = 2 * cfg.glance_turn_s + cfg.glance_hold_s + 2 * _GLANCE_STOP_S
+    k = round(_glance_seconds(seconds, cfg) / length)
+    slot = seconds / k
+    t = np.arange(n) / fps
+
+    def ramp(x):
+        x = np.clip(x, 0.0, 1.0)
+        return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
+
+    for i in range(k):
+        start = i * slot + rng.uniform(0.0, max(slot - length, 0.0))
+        t0 = start + _GLANCE_STOP_S
+        sign = 1.0 if sweep[min(int(t0 * fps), n - 1)] >= 0 else -1.0
+        up = ramp((t - t0) / cfg.glance_turn_s)
+        down = ramp((t - t0 - cfg.glance_turn_s - cfg.glance_hold_s) / cfg.glance_turn_s)
+        w = np.maximum(w, up - down)
+        turn += sign * np.pi * (up + down)
+        still = np.maximum(still, ramp((t - start) / _GLANCE_STOP_S) - ramp((t - start - length + _GLANCE_STOP_S) / _GLANCE_STOP_S))
+    return w, turn, still
+
+
+def _glance_seconds(seconds: float, cfg: SceneWalkConfig) -> float:
+    """Time a capture of ``seconds`` spends stopped for its glances back across the loop."""
+    length = 2 * cfg.glance_turn_s + cfg.glance_hold_s + 2 * _GLANCE_STOP_S
+    if cfg.glance_every_s <= 0 or seconds < length + 5.0:
+        return 0.0
+    return max(int(seconds // cfg.glance_every_s), 1) * length
+
+
 def _exit_distance(p: NDArray, d: NDArray, lo: NDArray, hi: NDArray) -> NDArray:
     """Distance (T,) from points p (T, 2) inside [lo, hi] along unit directions d (T, 2) to the boundary."""
     with np.errstate(divide="ignore"):
@@ -138,7 +195,8 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     The phone follows a rounded rectangle just inside the walk area (away from furniture and
     walls), at 1.25-1.55 m, looking outwards at the walls and furniture (1-4 m away) with a slow
     left-right sweep and a slowly changing pitch (floor, furniture tops, walls), plus hand shake.
-    ``T = round(seconds * fps)``.
+    Once per ``glance_every_s`` the operator stops, turns round and looks at the floor inside
+    the loop (where the performer will walk), then turns back. ``T = round(seconds * fps)``.
     """
     n = max(int(round(seconds * fps)), 2)
     t = np.arange(n) / fps
@@ -146,6 +204,7 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     hi = np.asarray(spec.walk_area_max_xy, float) - 0.1
     # Shrink the loop about its centre until one lap fits in the recording at the top speed: the
     # phone looks outwards, so a whole lap is what makes every wall visible.
+    outward_s = n / fps - _glance_seconds(n / fps, cfg)
     lap_max = 0.9 * cfg.speed_mps[1] * n / fps
     if 2 * (hi - lo).sum() > lap_max:
         mid, half = (lo + hi) / 2, (hi - lo) / 2
@@ -153,23 +212,30 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
         lo, hi = mid - half, mid + half
     r = cfg.corner_radius_m
     loop = 2 * (hi - lo).sum() - (8 - 2 * np.pi) * min(r, 0.49 * np.min(hi - lo))
-    v = float(np.clip(1.05 * loop / (n / fps), *cfg.speed_mps))
+    v = float(np.clip(1.05 * loop / outward_s, *cfg.speed_mps))
     speed = v * (1.0 + 0.12 * _smooth_noise(n, 1.5 * fps, rng, 1)[:, 0])
-    s = rng.uniform(0, loop) + np.cumsum(speed) / fps
-    if rng.random() < 0.5:
-        s = -s  # clockwise loop
-    xy, outward = _rounded_rect(lo, hi, r, s)
-
+    s0 = rng.uniform(0, loop)
+    spin = -1.0 if rng.random() < 0.5 else 1.0  # clockwise / counter-clockwise loop
     ph = rng.uniform(0, 2 * np.pi, 3)
     sweep = np.deg2rad(cfg.sweep_deg) * np.sin(2 * np.pi * t / cfg.sweep_period_s + ph[0])
-    c, sn = np.cos(sweep), np.sin(sweep)
+    # Glances back across the loop: the operator stops and turns round on the spot (the sweep
+    # fading out meanwhile), looks at the floor, turns on round to outwards, walks on.
+    glance, back, still = _glances(n, fps, cfg, rng, sweep)
+    s = spin * (s0 + np.cumsum(speed * (1.0 - still)) / fps)
+    xy, outward = _rounded_rect(lo, hi, r, s)
+    turn = (1.0 - glance) * sweep + back
+    c, sn = np.cos(turn), np.sin(turn)
     look = np.stack([c * outward[:, 0] - sn * outward[:, 1], sn * outward[:, 0] + c * outward[:, 1]], axis=-1)
     floor_lo, floor_hi = np.asarray(spec.floor_min_xy, float), np.asarray(spec.floor_max_xy, float)
     dist = 0.9 * _exit_distance(xy, look, floor_lo, floor_hi)
+    # Stopped, the phone looks down as far as it goes (the pitch limit) during the whole turn, so
+    # the turn sees the floor all round the stop from ~0.6 m out (the loop the performer walks).
+    dist = (1.0 - still) * dist + still * np.minimum(dist, 1.0)
     h0, h1 = cfg.height_m
     height = (h0 + h1) / 2 + (h1 - h0) / 2 * np.sin(2 * np.pi * t / 11.0 + ph[1])
     g0, g1 = cfg.target_height_m
     tz = (g0 + g1) / 2 + (g1 - g0) / 2 * np.sin(2 * np.pi * t / 6.5 + ph[2])
+    tz = (1.0 - still) * tz  # a glance looks at the floor
     tz = np.maximum(tz, height - np.tan(np.deg2rad(cfg.max_pitch_deg)) * dist)
     centres = np.column_stack([xy, height])
     targets = np.column_stack([xy + look * dist[:, None], tz])
