@@ -31,7 +31,6 @@ holds the clips' own transitions (the discriminator's real data).
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,12 +45,12 @@ from embodmocap.sim.deps import gymnasium, mujoco
 from embodmocap.sim.model import BODY_NAMES, hinge_ranges
 from embodmocap.sim.reference import Clip, make_clip
 from embodmocap.skills import tasks
+from embodmocap.skills.files import read_skills
 from embodmocap.skills.tasks.common import heading_frame, rot6d
 
 log = logging.getLogger(__name__)
 gym = gymnasium()
 
-SKILLS_FORMAT = "embodmocap.skills/1"
 PROPRIO_SIZE = 23 * 3 + 24 * 6 + 24 * 3 + 24 * 3 + 1
 _IDX = {n: i for i, n in enumerate(BODY_NAMES)}
 
@@ -85,42 +84,28 @@ class SkillClip:
     floor_z: float
 
 
-def read_skills_json(path: Path) -> dict:
-    """The parsed skills.json; InputError naming the file when missing or malformed."""
-    if not path.is_file():
-        session = path.parents[3] if len(path.parents) > 3 else path.parent
-        raise InputError(path, "no skill clips (skills.json missing)", f"run `embodmocap skills {session}` first")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON ({err})", f"rerun `embodmocap skills` to rewrite it") from err
-    if doc.get("format") != SKILLS_FORMAT or not isinstance(doc.get("clips"), list):
-        raise InputError(path, f"not a {SKILLS_FORMAT} file", "rerun `embodmocap skills` to rewrite it")
-    return doc
-
-
-def _goal(c: dict, skill: str, root_q: NDArray, fps: float, floor_z: float, path: Path) -> tasks.SkillGoal:
-    """The task goal of one skills.json clip (its reference root positions ``root_q`` (n, 3))."""
+def _goal(c, skill: str, root_q: NDArray, fps: float, floor_z: float, path: Path) -> tasks.SkillGoal:
+    """The task goal of one skills.json clip (:class:`embodmocap.skills.files.SkillClip`; its
+    reference root positions ``root_q`` (n, 3))."""
     one = lambda a: None if a is None else np.asarray(a, dtype=np.float64)[None]  # noqa: E731
-    tgt = c.get("target") or {}
     if skill == "follow":
-        p = tgt.get("path")
+        p = c.target.path
         if not p or len(p) < 2:
-            raise InputError(path, f"follow clip {c.get('id')} has no target path", "rerun `embodmocap skills`")
+            raise InputError(path, f"follow clip {c.id} has no target path", "rerun `embodmocap skills`")
         return tasks.SkillGoal(path=np.asarray(p, dtype=np.float64), ground_z=one(floor_z))
-    obj, pos = c.get("object"), tgt.get("position")
+    obj, pos = c.object, c.target.position
     if obj is None or pos is None:
-        raise InputError(path, f"{skill} clip {c.get('id')} has no object box or target position", "rerun `embodmocap skills`")
-    R = np.asarray(obj["R_world_box"], dtype=np.float64)
-    size = np.asarray(obj["size"], dtype=np.float64)
+        raise InputError(path, f"{skill} clip {c.id} has no object box or target position", "rerun `embodmocap skills`")
+    R = np.asarray(obj.R_world_box, dtype=np.float64)
+    size = np.asarray(obj.size, dtype=np.float64)
     axis = R[:2, 0] if size[0] >= size[1] else R[:2, 1]
     # Standing beside the object before lying: the last upright root position before the contact.
-    k = c.get("contact_start")
-    k = len(root_q) - 1 if k is None else int(np.clip(k - c["start"], 0, len(root_q) - 1))
+    k = c.contact_start
+    k = len(root_q) - 1 if k is None else int(np.clip(k - c.start, 0, len(root_q) - 1))
     up = root_q[: k + 1, 2] - floor_z >= 0.9 * (root_q[0, 2] - floor_z)
     stand = root_q[int(np.nonzero(up)[0].max()) if up.any() else 0]
-    return tasks.SkillGoal(target=one(pos), box_center=one(obj["center"]), box_rot=R[None],
-                           box_corners=np.asarray(obj["corners"], dtype=np.float64)[None],
+    return tasks.SkillGoal(target=one(pos), box_center=one(obj.center), box_rot=R[None],
+                           box_corners=np.asarray(obj.corners, dtype=np.float64)[None],
                            long_axis=(axis / np.linalg.norm(axis))[None], stand_point=stand[None],
                            stand_z=one(root_q[0, 2]), ground_z=one(floor_z))
 
@@ -146,8 +131,10 @@ def load_skill_clips(session, skill: str, seq: str | None = None, control_hz: fl
             for name in names:
                 path = skills_json_path(folder, name)
                 looked.append(path)
-                doc = read_skills_json(path)
-                mine = [c for c in doc["clips"] if c.get("skill") == skill]
+                if not path.is_file():
+                    raise InputError(path, "no skill clips (skills.json missing)",
+                                     f"run `embodmocap skills {folder}` first")
+                mine = read_skills(path).of_skill(skill)
                 if not mine:
                     continue
                 xml, hm, qpos, fps = _sequence_model(folder, name, humanoid, scene)
@@ -155,16 +142,16 @@ def load_skill_clips(session, skill: str, seq: str | None = None, control_hz: fl
                 for c in mine:
                     # The reference ends with the interaction (its hold's end, when it has one):
                     # a clip that goes on to stand up again would teach the style of leaving.
-                    s = int(c["start"])
-                    e = int(c["contact_end"]) if c.get("contact_end") is not None else int(c["end"])
+                    s = c.start
+                    e = c.contact_end if c.contact_end is not None else c.end
                     if not (0 <= s < e <= len(qpos)) or e - s < 2:
-                        raise InputError(path, f"clip {c.get('id')} frames [{s}, {e}) outside the sequence's {len(qpos)}",
+                        raise InputError(path, f"clip {c.id} frames [{s}, {e}) outside the sequence's {len(qpos)}",
                                          "rerun `embodmocap skills` on the current motion")
-                    ref = make_clip(f"{folder.name}/{name}/{c.get('id')}", xml, hm, qpos[s:e], fps, control_hz)
-                    contact = c.get("contact_start")
-                    contact = None if contact is None else int(round((int(contact) - s) / fps * control_hz))
+                    ref = make_clip(f"{folder.name}/{name}/{c.id}", xml, hm, qpos[s:e], fps, control_hz)
+                    contact = c.contact_start
+                    contact = None if contact is None else int(round((contact - s) / fps * control_hz))
                     goal = _goal(c, skill, qpos[s:e, :3], fps, floor, path)
-                    out.append(SkillClip(str(c.get("id")), skill, folder, name, ref, contact, goal, floor))
+                    out.append(SkillClip(c.id, skill, folder, name, ref, contact, goal, floor))
     if not out:
         raise InputError(looked[0] if looked else Path(paths[0]), f"no {skill!r} clip in skills.json",
                          f"run `embodmocap skills` on a session with a {skill} interaction, or pick another skill")

@@ -112,14 +112,14 @@ def train_skill(sessions: list[str | Path], out: str | Path, cfg: TrainConfig, *
                 progress: bool = True) -> Path:
     """Train PPO + AMP on the ``cfg.skill`` clips of ``sessions``; writes the run folder ``out``;
     returns ``policy.zip``. InputError when a sequence has no skills.json (run ``embodmocap skills``)."""
-    sb3 = require("stable_baselines3", "sim")
+    require("stable_baselines3", "sim")
     import torch
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.monitor import Monitor
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
 
     from embodmocap.sim.amp import Discriminator
     from embodmocap.sim.skill_env import SkillEnv, load_skill_clips
+    from embodmocap.sim.train import checkpoint_callback, new_ppo
 
     if cfg.skill is None:
         raise ValueError("train_skill needs cfg.skill (follow, sit, climb, lie, prone or support)")
@@ -147,14 +147,8 @@ def train_skill(sessions: list[str | Path], out: str | Path, cfg: TrainConfig, *
     base = SubprocVecEnv(fns, start_method="fork") if cfg.num_envs > 1 else DummyVecEnv(fns)
     styled = _style_wrapper(base, disc, scfg)
     venv = VecNormalize(styled, gamma=0.99)
-    n_steps = max(cfg.n_steps, 2)
-    batch = min(cfg.batch_size, n_steps * cfg.num_envs)
-    model = sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
-                    gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
-                    device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
-                    policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
-    ckpt = CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
-                              name_prefix="policy", save_vecnormalize=True)
+    model = new_ppo(venv, cfg, out)
+    ckpt = checkpoint_callback(cfg, out)
     model.learn(total_timesteps=cfg.steps, callback=[ckpt, _callback(styled, disc, scfg, out / "progress.json")],
                 progress_bar=progress, tb_log_name="ppo")
     model.save(out / "policy.zip")

@@ -85,7 +85,6 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     optimiser state, step count and normalisation statistics training continues from, up to
     ``cfg.steps`` steps in all (the PPO hyper-parameters are the checkpoint's)."""
     sb3 = require("stable_baselines3", "sim")
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
     from embodmocap.sim.env import load_clips
@@ -107,20 +106,14 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     raw = _vec_env(clips, cfg.tracking, cfg.num_envs, cfg.seed)
     if resume is None:
         venv = VecNormalize(raw, gamma=0.99)
-        n_steps = max(cfg.n_steps, 2)
-        batch = min(cfg.batch_size, n_steps * cfg.num_envs)
-        model = sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
-                        gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
-                        device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
-                        policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
+        model = new_ppo(venv, cfg, out)
     else:
         stats = _stats_for(resume, _run_folder(resume))
         venv = VecNormalize.load(str(stats), raw) if stats is not None else VecNormalize(raw, gamma=0.99)
         venv.training = True
         model = sb3.PPO.load(resume, env=venv, device=cfg.device, tensorboard_log=str(out / "tb"))
         log.info("resuming %s at step %d (normalisation statistics: %s)", resume, model.num_timesteps, stats)
-    ckpt = CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
-                              name_prefix="policy", save_vecnormalize=True)
+    ckpt = checkpoint_callback(cfg, out)
     # With reset_num_timesteps=False stable-baselines3 adds total_timesteps to the step count.
     model.learn(total_timesteps=max(cfg.steps - model.num_timesteps, 0) if resume is not None else cfg.steps,
                 callback=[ckpt, _progress_callback(out / "progress.json")], progress_bar=progress, tb_log_name="ppo",
@@ -130,6 +123,30 @@ def train(sessions: list[str | Path], out: str | Path, cfg: TrainConfig = TrainC
     venv.close()
     log.info("wrote %s", out / "policy.zip")
     return out / "policy.zip"
+
+
+def new_ppo(venv, cfg: TrainConfig, out: Path):
+    """A fresh stable-baselines3 PPO on ``venv`` with the package's settings (the tracking and the
+    skill runs share them): rollouts of ``cfg.n_steps`` per environment, minibatches of at most
+    ``cfg.batch_size``, a [512, 256] MLP with a small initial action noise (exp(-2) of the PD
+    target range: large noise makes the humanoid fall before it learns anything), TensorBoard
+    logs in ``out/tb``."""
+    sb3 = require("stable_baselines3", "sim")
+    n_steps = max(cfg.n_steps, 2)
+    batch = min(cfg.batch_size, n_steps * cfg.num_envs)
+    return sb3.PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=batch, learning_rate=cfg.learning_rate,
+                   gamma=0.99, gae_lambda=0.95, n_epochs=5, clip_range=0.2, ent_coef=0.0, seed=cfg.seed,
+                   device=cfg.device, tensorboard_log=str(out / "tb"), verbose=0,
+                   policy_kwargs={"net_arch": [512, 256], "log_std_init": -2.0})
+
+
+def checkpoint_callback(cfg: TrainConfig, out: Path):
+    """Saves ``out/checkpoints/policy_<steps>_steps.zip`` (+ normalisation statistics) every
+    ``cfg.checkpoint_every`` environment steps."""
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    return CheckpointCallback(save_freq=max(cfg.checkpoint_every // cfg.num_envs, 1), save_path=str(out / "checkpoints"),
+                              name_prefix="policy", save_vecnormalize=True)
 
 
 def _run_folder(checkpoint: Path) -> Path:
