@@ -62,7 +62,9 @@ def main() -> None:
 
 
 def _per_cue_errors(work: Path, out, row: dict) -> dict:
-    """Signed scale errors (%) of the combined run and of each cue alone on the same stitch."""
+    """Signed scale errors (%) of the combined run and of each cue alone on the same stitch: ``s - 1``
+    with ``s`` the similarity scale from the mono camera centres onto the true ones (so that
+    ``|s - 1|`` is ``v1_mono_scale_err_pct``; positive: the mono world is too small)."""
     import numpy as np
 
     from embodmocap.evaluate.metrics import umeyama
@@ -79,7 +81,8 @@ def _per_cue_errors(work: Path, out, row: dict) -> dict:
     for cue in ("body", "feet"):
         c = row.get(cue)
         if isinstance(c, dict) and np.isfinite(c.get("scale", np.nan)):
-            extra[f"{cue}_signed_err_pct"] = round(100 * (float(s) * c["scale"] / row["scale"] - 1), 3)
+            # the camera centres scale with m, so the similarity onto the truth scales with 1 / m
+            extra[f"{cue}_signed_err_pct"] = round(100 * (float(s) * row["scale"] / c["scale"] - 1), 3)
             extra[f"{cue}_se_pct"] = round(100 * c.get("se_rel", np.nan), 3)
     return extra
 
