@@ -12,6 +12,8 @@ times the combined run's signed similarity scale to the true camera centres).
         --out /work/bench/15/s5/scale_cues_20s.json
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/bench_mono_scale_cues.py --seeds 0 1 2 --seconds 20 \\
         --cues combined --copies /work/bench/15/s5b --out /work/bench/15/s5b/combined_20s.json
+    OMP_NUM_THREADS=1 nice -n 10 python benchmarks/bench_mono_scale_cues.py --seeds 0 1 2 --seconds 20 --cues feet \\
+        --feet-max-speed 0.5 1.0 --feet-max-height 0.08 0.15 --copies /work/bench/15/s5b --out /work/bench/15/s5b/feet_20s.json
 """
 
 from __future__ import annotations
@@ -37,6 +39,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--cues", nargs="+", default=["body", "feet"], choices=["body", "feet", "auto", "combined"])
     ap.add_argument("--copies", type=Path, default=None, help="folder of the session copies (default WORK/s5)")
+    ap.add_argument("--feet-max-speed", type=float, nargs="+", default=[None],
+                    help="feet contact speed bound(s) to try (m/s; default: FeetScaleConfig's)")
+    ap.add_argument("--feet-max-height", type=float, nargs="+", default=[None],
+                    help="feet contact height bound(s) to try (m; default: FeetScaleConfig's)")
     args = ap.parse_args()
     rows = []
     for seed in args.seeds:
@@ -47,11 +53,16 @@ def main() -> None:
                 shutil.rmtree(work)
             shutil.copytree(base, work, symlinks=True, ignore=shutil.ignore_patterns("mono"))
             write_mono_inputs(work, cfg=MonoInputConfig(), seed=100 + seed)
-        for cue in args.cues:
+        variants = [(cue, v, h) for cue in args.cues for v in args.feet_max_speed for h in args.feet_max_height]
+        for cue, max_speed, max_height in variants:
             cfg = MonoConfig(scene_model="precomputed", human_model="precomputed")
-            out = stage.run(replace(cfg, scale=replace(cfg.scale, cue=cue)), work, force=True)
+            feet = cfg.scale.feet
+            feet = replace(feet, max_speed=feet.max_speed if max_speed is None else max_speed,
+                           max_height=feet.max_height if max_height is None else max_height)
+            out = stage.run(replace(cfg, scale=replace(cfg.scale, cue=cue, feet=feet)), work, force=True)
             mm = mono_metrics(SessionLayout(work), "scene0", "seq0")
-            row = {"seed": seed, "seconds": args.seconds, "cue": cue, **out.figures["metric_scale"]["0"],
+            row = {"seed": seed, "seconds": args.seconds, "cue": cue, "feet_max_speed": feet.max_speed,
+                   "feet_max_height": feet.max_height, **out.figures["metric_scale"]["0"],
                    "scale_err_pct": mm["v1_mono_scale_err_pct"], "camera_err_cm": mm["v1_mono_camera_err_cm"],
                    "w_mpjpe_mm": mm["v1_mono_w_mpjpe_mm"], "segments": out.figures["segments"]}
             if cue == "combined" and out.figures["segments"] == 1:
