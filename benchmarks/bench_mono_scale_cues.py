@@ -48,6 +48,15 @@ def main() -> None:
     for seed in args.seeds:
         base = args.work / f"mono_s{seed}_{args.seconds:g}s"
         work = (args.copies or args.work / "s5") / f"cues_s{seed}_{args.seconds:g}s"
+        if not (base / "sequences").is_dir():  # a new seed: the studio session as bench_mono.py makes it
+            from embodmocap.sequence import stage as sequence_stage
+            from embodmocap.sequence.config import SequenceConfig
+            from embodmocap.synth.config import SynthConfig
+            from embodmocap.synth.studio import synthesize
+
+            synthesize(SynthConfig(seed=seed, seconds=args.seconds, scene_seconds=1.0, width=320, height=240,
+                                   depth_width=128, depth_height=96), base)
+            sequence_stage.run(SequenceConfig(), base)
         if not (work / "perception" / "seq0" / "v1" / "mono_human.npz").is_file():
             if work.exists():
                 shutil.rmtree(work)
