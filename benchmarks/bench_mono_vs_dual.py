@@ -11,6 +11,8 @@ and RTE against the truth. Writes the rows (JSON) and the benchmark's Markdown t
 
     OMP_NUM_THREADS=1 nice -n 19 python benchmarks/bench_mono_vs_dual.py \\
         /work/bench/11/sessions/hard_{0..9} --work /work/bench/15/s5/sessions --out /work/bench/15/s5/vsdual.json
+
+``--redo-mono SESSIONS`` reruns only the mono rows of those sessions (e.g. after a change to mono).
 """
 
 from __future__ import annotations
@@ -39,13 +41,17 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--no-single", action="store_true", help="skip the single-view fits (slow)")
     ap.add_argument("--redo-mono", action="store_true",
-                    help="for sessions already in --out, run only the mono rows again (after a change to mono)")
+                    help="for the given sessions already in --out (matched by folder name), run only the mono rows "
+                         "again (after a change to mono); the others are left as they are")
     args = ap.parse_args()
     rows = json.loads(args.out.read_text()) if args.out.is_file() else []
     rows = [r for r in rows if "error" not in r]  # sessions that could not be scored are tried again
     done = {r["session"] for r in rows}
     if args.redo_mono:
+        names = {s.name for s in args.sessions}
         for r in rows:
+            if r["session"] not in names:
+                continue
             session = args.work / r["session"]
             lay = SessionLayout(session)
             man = load_manifest(lay.manifest)

@@ -141,6 +141,32 @@ def test_noisy_inputs_stitch_within_the_path_and_report_residuals(noisy):
     assert sc["samples"] >= 100 and sc["frames"] >= 20 and sc["p10"] <= sc["scale"] <= sc["p90"] and sc["mad_rel"] > 0
 
 
+def test_combined_scale_cue(exact, noisy, tmp_path):
+    """``--scale.cue combined``: both cues' summaries in the manifest, the scale their weighted mean
+    by their own block standard errors; on noise-free inputs the body cue (zero spread) takes all
+    the weight and the scale is exact."""
+    from embodmocap.mono.scale import combine_cues
+
+    cfg = replace(CFG, scale=replace(CFG.scale, cue="combined", block_s=0.5))  # 3 s: 6 blocks
+    root, truth, _ = exact
+    out = stage.run(cfg, _copy(root, tmp_path / "exact"), force=True)
+    sc = out.figures["metric_scale"]["0"]
+    assert sc["cue"] == "combined" and sc["weights"]["body"] > 0.999 and sc["body"]["se_rel"] < 1e-6
+    s, *_ = _centre_errors(out, truth)
+    assert abs(s - 1) < 1e-3
+    root, truth, _ = noisy
+    out = stage.run(cfg, _copy(root, tmp_path / "noisy"), force=True)
+    sc = out.figures["metric_scale"]["0"]
+    assert sc["cue"] == "combined" and {"body", "feet"} <= set(sc) and out.figures["segments"] == 1
+    assert sc["body"]["frames"] >= 20 and sc["body"]["se_rel"] > 0
+    used = {k: sc[k] for k in sc["weights"]}
+    assert "body" in used and np.isclose(sum(sc["weights"].values()), 1.0, atol=1e-3)
+    assert np.isclose(sc["scale"], combine_cues(used)["scale"], rtol=1e-5)
+    lo, hi = min(c["scale"] for c in used.values()), max(c["scale"] for c in used.values())
+    assert lo * (1 - 1e-5) <= sc["scale"] <= hi * (1 + 1e-5)
+    assert abs(_centre_errors(out, truth)[0] - 1) < 0.15  # metric, as the body cue alone (3 s, 10 % prior)
+
+
 def test_second_run_skips_and_force_redoes(exact):
     root, truth, out = exact
     before = read_mono_cameras(out.layout.cameras_world)["T_world_cam"]

@@ -109,3 +109,57 @@ def test_scale_summary_is_a_median_of_frame_medians():
     s = summarise(frames, np.array([50, 50, 5, 50]), min_frame_samples=10)
     assert s["frames"] == 3 and s["scale"] == 2.0 and s["samples"] == 115
     assert np.isnan(summarise([])["scale"])
+
+
+def test_block_standard_error_covers_the_median_of_a_drifting_error():
+    """A regressor's depth error drifts (correlated over ~0.5 s), so 600 frames are far fewer
+    independent votes: the block standard error must match the median's real spread over many
+    sequences, where the per-frame formula would be several times too small."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from embodmocap.mono.scale import block_se_rel
+
+    rng = np.random.default_rng(0)
+    T, fps, true = 600, 30.0, 2.5
+    z, z_naive = [], []
+    for _ in range(300):
+        e = gaussian_filter1d(rng.normal(size=T), 15.0, mode="reflect")  # 0.5 s correlation
+        v = true * (1 + 0.1 * e / e.std())
+        med = np.median(v)
+        se = block_se_rel(v, np.arange(T), fps, 2.0)
+        naive = 1.2533 * 1.4826 * np.median(np.abs(v - med)) / np.sqrt(T) / med
+        z.append((med / true - 1) / se)
+        z_naive.append((med / true - 1) / naive)
+    assert 0.7 < np.std(z) < 1.4, np.std(z)
+    assert np.std(z_naive) > 2.5, np.std(z_naive)
+    # Too few blocks: no standard error.
+    assert np.isnan(block_se_rel(np.ones(50), np.arange(50), fps, 2.0))
+
+
+def test_combined_cue_weights_each_cue_by_its_own_standard_error():
+    from embodmocap.mono.scale import combine_cues
+
+    c = combine_cues({"body": {"scale": 2.0, "se_rel": 0.02}, "feet": {"scale": 2.2, "se_rel": 0.01}})
+    w_body = (1 / 0.02**2) / (1 / 0.02**2 + 1 / 0.01**2)
+    assert c["weights"] == {"body": round(w_body, 4), "feet": round(1 - w_body, 4)}
+    assert np.isclose(c["scale"], np.exp(w_body * np.log(2.0) + (1 - w_body) * np.log(2.2)))
+    assert np.isclose(c["se_rel"], 1 / np.sqrt(1 / 0.02**2 + 1 / 0.01**2))
+    # An exact cue (zero spread) takes all the weight; a cue without a scale is left out.
+    c = combine_cues({"body": {"scale": 2.0, "se_rel": 0.0}, "feet": {"scale": 2.2, "se_rel": 0.01}})
+    assert np.isclose(c["scale"], 2.0) and c["weights"]["body"] == 1.0
+    c = combine_cues({"body": {"scale": float("nan"), "se_rel": 0.01}, "feet": {"scale": 2.2, "se_rel": 0.01}})
+    assert np.isclose(c["scale"], 2.2) and c["weights"] == {"feet": 1.0}
+    # No standard error anywhere (too short): equal weights (geometric mean); a cue with one wins.
+    c = combine_cues({"body": {"scale": 2.0, "se_rel": float("nan")}, "feet": {"scale": 8.0, "se_rel": float("nan")}})
+    assert np.isclose(c["scale"], 4.0) and np.isnan(c["se_rel"])
+    c = combine_cues({"body": {"scale": 2.0, "se_rel": float("nan")}, "feet": {"scale": 8.0, "se_rel": 0.05}})
+    assert np.isclose(c["scale"], 8.0)
+    assert np.isnan(combine_cues({})["scale"])
+
+
+def test_scale_summary_reports_a_block_standard_error():
+    rng = np.random.default_rng(1)
+    frames = [1 + 0.05 * rng.normal(size=20) for _ in range(300)]
+    s = summarise(frames, min_frame_samples=10, frames=np.arange(300), fps=30.0, block_s=1.0)
+    assert 0 < s["se_rel"] < 0.01  # 10 blocks of frame medians each ~1 % off
+    assert np.isnan(summarise(frames[:20], min_frame_samples=10, frames=np.arange(20))["se_rel"])

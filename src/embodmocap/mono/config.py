@@ -134,11 +134,16 @@ class ScaleConfig:
     """Fewer (pixel, frame) samples in a segment than this: no metric scale from the body's depth
     (the feet are tried next with ``cue = auto``; without either the segment stays in the model's
     units, its frames flagged invalid)."""
-    cue: Literal["auto", "body", "feet"] = "auto"
+    cue: Literal["auto", "body", "feet", "combined"] = "auto"
     """Metric cue: ``body`` (body depth / point-map depth inside the person mask: needs points on
     the person, as Pi3-like dense maps have), ``feet`` (the body's feet in contact against the
     scene's floor plane: works with sparse SfM), ``auto`` = ``body`` where it has ``min_samples``,
-    else ``feet``."""
+    else ``feet``; ``combined`` = both where each has enough samples, averaged (in log scale) with
+    weights ``1 / se_rel^2`` from each cue's own block standard error."""
+    block_s: float = 2.0
+    """Block length (seconds) of the scale's standard error ``se_rel``: the per-frame votes are
+    grouped into blocks this long, longer than the regressor's error correlation (its depth error
+    drifts over ~0.5 s), and the blocks' medians spread gives the error of their median."""
     feet: FeetScaleConfig = field(default_factory=FeetScaleConfig)
     """Settings of the feet cue."""
 

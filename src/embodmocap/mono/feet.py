@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.mono.config import FeetScaleConfig
+from embodmocap.mono.scale import block_se_rel
 
 #: SMPL joints of the feet: left ankle and left foot, right ankle and right foot.
 _LEFT, _RIGHT = (7, 10), (8, 11)
@@ -70,7 +71,7 @@ def lowest_points(feet_cam: NDArray, R: NDArray, n: NDArray) -> NDArray[np.float
 
 
 def feet_scale(feet_cam: NDArray, T_stitch_cam: NDArray, valid: NDArray, plane: tuple[NDArray, float], fps: float,
-               cfg: FeetScaleConfig) -> dict:
+               cfg: FeetScaleConfig, block_s: float = 2.0) -> dict:
     """The metric scale of one segment from its feet (see the module).
 
     Args:
@@ -79,10 +80,12 @@ def feet_scale(feet_cam: NDArray, T_stitch_cam: NDArray, valid: NDArray, plane: 
         valid: (T,) bool: the human model gave the frame.
         plane: (n (3,), d) the floor in the stitched frame, ``n`` pointing towards the cameras.
         fps: frame rate (for the feet's speed).
+        block_s: block length of the standard error (seconds; ``ScaleConfig.block_s``).
 
     Returns:
         ``scale`` (metres per stitched unit; NaN with fewer than ``min_frames`` voting frames),
         ``mad_rel``, ``p10``, ``p90`` (over the voting frames' ``m_t``), ``frames`` (voting),
+        ``se_rel`` (relative standard error, :func:`~embodmocap.mono.scale.block_se_rel`),
         ``per_frame`` ((T,) ``m_t`` of the lower foot, NaN where its ray misses the floor) and
         ``contact`` ((T,) bool, the voting frames).
     """
@@ -101,7 +104,7 @@ def feet_scale(feet_cam: NDArray, T_stitch_cam: NDArray, valid: NDArray, plane: 
     ok = np.asarray(valid, bool) & (cam_h > 0) & (cos >= cfg.min_down_cos)
     m_t = np.where(ok, -dn / np.where(cam_h > 0, cam_h, np.nan), np.nan)
     nan = {"scale": float("nan"), "mad_rel": float("nan"), "p10": float("nan"), "p90": float("nan"), "frames": 0,
-           "per_frame": m_t, "contact": np.zeros(len(q), bool)}
+           "se_rel": float("nan"), "per_frame": m_t, "contact": np.zeros(len(q), bool)}
     if ok.sum() < cfg.min_frames:
         return nan
     m = float(np.nanmedian(m_t))
@@ -120,7 +123,8 @@ def feet_scale(feet_cam: NDArray, T_stitch_cam: NDArray, valid: NDArray, plane: 
         m = float(np.median(m_t[contact]))
     f = m_t[contact]
     return {"scale": m, "mad_rel": float(1.4826 * np.median(np.abs(f - m)) / m), "p10": float(np.percentile(f, 10)),
-            "p90": float(np.percentile(f, 90)), "frames": int(contact.sum()), "per_frame": m_t, "contact": contact}
+            "p90": float(np.percentile(f, 90)), "frames": int(contact.sum()),
+            "se_rel": block_se_rel(f, np.flatnonzero(contact), fps, block_s), "per_frame": m_t, "contact": contact}
 
 
 def stitched_floor(points: NDArray, T_stitch_cam: NDArray, inlier_rel: float) -> tuple[NDArray, float] | None:

@@ -154,6 +154,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     raw = np.asarray(cams.raw_frames, dtype=np.int64)
     ratios: dict[int, list] = {}
     covered: dict[int, list] = {}
+    ratio_frames: dict[int, list] = {}  # the sequence frame of each entry of ratios[segment]
     pts_acc: list[tuple[int, np.ndarray, np.ndarray]] = []  # (segment, stitched points, colours)
     ply_budget = max(1, cfg.ply_points // max(1, len(range(0, T, cfg.ply_frame_stride))))
     use_body = cfg.scale.cue != "feet"
@@ -179,6 +180,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
                                       masks, K, (W_rgb, H_rgb), s_k, cfg.scale)
                 ratios.setdefault(segment, []).extend(r)
                 covered.setdefault(segment, []).extend(cov)
+                ratio_frames.setdefault(segment, []).extend(int(x) for x in f)
         # coloured points of every ply_frame_stride-th frame (not the person: scene points only)
         H, W = pred.conf.shape[1:]
         rows, cols = grid(H, W, ply_budget)
@@ -210,25 +212,32 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     for g in range(n_seg):
         fr = np.flatnonzero(res.segment == g)
         summ = {"cue": "body", **summarise(ratios.get(g, []), np.asarray(covered.get(g, []), dtype=np.int64),
-                                           cfg.scale.min_frame_samples)}
-        if feet_cam is not None and not res.failed[fr].all() and (cfg.scale.cue == "feet" or summ["samples"] < cfg.scale.min_samples):
+                                           cfg.scale.min_frame_samples, np.asarray(ratio_frames.get(g, []), dtype=np.int64),
+                                           fps, cfg.scale.block_s)}
+        body_summ = summ
+        if feet_cam is not None and not res.failed[fr].all() and (
+                cfg.scale.cue in ("feet", "combined") or summ["samples"] < cfg.scale.min_samples):
             seg_pts = [p for s, p, _ in pts_acc if s == g]
             plane = stitched_floor(np.concatenate(seg_pts), res.T_stitch_cam[fr], cfg.scale.feet.plane_inlier_rel) \
                 if seg_pts else None
             if plane is None:
                 summ = {"cue": "feet", "scale": float("nan"), "frames": 0, "samples": 0, "reason": "no floor plane"}
             else:
-                fs = feet_scale(feet_cam[fr], res.T_stitch_cam[fr], hum.valid[fr], plane, fps, cfg.scale.feet)
+                fs = feet_scale(feet_cam[fr], res.T_stitch_cam[fr], hum.valid[fr], plane, fps, cfg.scale.feet,
+                                cfg.scale.block_s)
                 summ = {"cue": "feet", **{k: v for k, v in fs.items() if k not in ("per_frame", "contact")},
                         "samples": fs["frames"]}
+        if cfg.scale.cue == "combined":
+            summ = _combined(body_summ, summ if summ["cue"] == "feet" else None, cfg)
         if res.metric:
             m = 1.0  # the model's units are metres already; the body's figure is a check
         else:
             m = summ["scale"]
-            enough = summ["samples"] >= (cfg.scale.min_samples if summ["cue"] == "body" else cfg.scale.feet.min_frames)
+            enough = summ["samples"] >= {"body": cfg.scale.min_samples, "feet": cfg.scale.feet.min_frames,
+                                         "combined": 1}[summ["cue"]]
             if res.failed[fr].all() or not enough or not np.isfinite(m):
                 why = "the scene model failed on it" if res.failed[fr].all() else (
-                    f"only {summ['samples']} {'body samples' if summ['cue'] == 'body' else 'feet contact frames'}"
+                    f"only {summ['samples']} {_UNITS[summ['cue']]}"
                     + (f" ({summ['reason']})" if "reason" in summ else ""))
                 m = float("nan")
                 warnings.append(f"segment {g} (frames {fr[0]}..{fr[-1]}): no metric scale ({why}): left in the scene "
@@ -272,6 +281,31 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             "overlap_residual_rel_max": round(float(np.max(res_rel)), 5) if res_rel else None,
             "metric_scale": scales, "scale_from": "scene model (metric)" if res.metric else "body",
             "gravity": up_sources, "points": int(len(P)), "warnings": warnings}
+
+
+_UNITS = {"body": "body samples", "feet": "feet contact frames", "combined": "cues with enough samples"}
+
+
+def _combined(body: dict, feet: dict | None, cfg: MonoConfig) -> dict:
+    """``--scale.cue combined``: the body-depth and the feet cues of one segment, each where it has
+    enough samples, averaged by :func:`~embodmocap.mono.scale.combine_cues`. ``samples`` = the
+    number of cues used; the manifest keeps both cues' own summaries under ``body`` / ``feet``."""
+    from embodmocap.mono.scale import combine_cues
+
+    def r6(d):
+        return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in d.items()}
+
+    cues = {}
+    if body["samples"] >= cfg.scale.min_samples and np.isfinite(body["scale"]):
+        cues["body"] = body
+    if feet is not None and feet.get("frames", 0) >= cfg.scale.feet.min_frames and np.isfinite(feet["scale"]):
+        cues["feet"] = {k: v for k, v in feet.items() if k != "cue"}
+    comb = combine_cues(cues)
+    out = {"cue": "combined", "scale": comb["scale"], "se_rel": comb["se_rel"], "weights": comb["weights"],
+           "samples": len(comb["weights"]), "body": r6({k: v for k, v in body.items() if k != "cue"})}
+    if feet is not None:
+        out["feet"] = r6({k: v for k, v in feet.items() if k != "cue"})
+    return out
 
 
 def _body_step(cams, human: HumanModel, ml: MonoLayout, body_path, fps: float) -> dict:
