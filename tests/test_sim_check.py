@@ -12,6 +12,7 @@ import pytest
 pytest.importorskip("mujoco")
 
 from embodmocap.sim.check import foot_skating, plausibility  # noqa: E402
+from embodmocap.sim.config import SimCheckConfig  # noqa: E402
 from embodmocap.sim.session import load_sequence  # noqa: E402
 from sim_session import sim_session  # noqa: E402,F401
 
@@ -192,3 +193,46 @@ def test_frames_with_no_surface_under_them_are_counted_and_said_plainly(truth, s
     path.write_text(json.dumps(doc))
     _, md = write_report(copy)
     assert f"3 of {doc['summary']['frames']} frames" in md.read_text()
+
+
+def _floor_with_flipped_footprints(sq, cell=0.05, margin=0.03):
+    """A 4 m floor at z = 0 around the performer in 5 cm cells (a simplified scan's size), facing
+    up except under the feet: every triangle within ``margin`` (horizontally) of a foot vertex in
+    any frame faces down (a turned-over patch of ~30 x 15 cm per foot)."""
+    from embodmocap.sim.check import BODY_PARTS, _part_of_vertex
+    from embodmocap.sim.session import body_vertices
+
+    verts = body_vertices(sq.body_model, sq.params)
+    part = _part_of_vertex(sq.body_model)
+    feet = np.isin(part, [list(BODY_PARTS).index("left_foot"), list(BODY_PARTS).index("right_foot")])
+    foot_xy = verts[:, feet, :2].reshape(-1, 2)
+    c = np.round(foot_xy.mean(axis=0) / cell) * cell
+    n = int(round(4.0 / cell))
+    x, y = np.meshgrid(c[0] - 2.0 + cell * np.arange(n + 1), c[1] - 2.0 + cell * np.arange(n + 1), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    f = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    from scipy.spatial import cKDTree
+
+    centroid_xy = v[f].mean(axis=1)[:, :2]
+    under = np.isfinite(cKDTree(foot_xy).query(centroid_xy, distance_upper_bound=margin)[0])
+    f[under] = f[under][:, [0, 2, 1]]
+    return v, f, under
+
+
+def test_a_turned_over_floor_patch_under_the_feet_is_not_solid(truth):
+    # A scanned floor with the triangles under the feet facing down: the closest triangle alone
+    # says "behind the floor" for every sole vertex above it; the sheet around it says otherwise.
+    v, f, under = _floor_with_flipped_footprints(truth)
+    assert 20 < under.sum() < 0.05 * len(f)
+    floor_truth = truth.__class__(truth.session, truth.name, truth.params, truth.frames, truth.body_model, v, f)
+    base = plausibility(floor_truth, residual=False)["per_frame"]
+    lifted = plausibility(_shifted(floor_truth, dz=0.05), residual=False)
+    assert lifted["summary"]["penetration_max_cm"] == 0.0
+    assert np.allclose(lifted["per_frame"]["floating_cm"], 5.0 + np.array(base["floating_cm"]), atol=0.5)
+    pushed = plausibility(_shifted(floor_truth, dz=-0.05), residual=False)
+    assert np.allclose(pushed["per_frame"]["penetration_cm"], 5.0 + np.array(base["penetration_cm"]), atol=0.5)
+    # The closest triangle alone (side_radius_m = 0, the old rule) reads the lifted body as inside.
+    alone = plausibility(_shifted(floor_truth, dz=0.05), SimCheckConfig(side_radius_m=0.0), residual=False)
+    assert alone["summary"]["penetration_max_cm"] > 4.0
