@@ -236,3 +236,33 @@ def test_a_turned_over_floor_patch_under_the_feet_is_not_solid(truth):
     # The closest triangle alone (side_radius_m = 0, the old rule) reads the lifted body as inside.
     alone = plausibility(_shifted(floor_truth, dz=0.05), SimCheckConfig(side_radius_m=0.0), residual=False)
     assert alone["summary"]["penetration_max_cm"] > 4.0
+
+
+def test_side_of_a_table_top_and_of_a_floor_turned_over_entirely():
+    import trimesh
+
+    from embodmocap.sim.check import SceneQuery
+
+    top = trimesh.creation.box(extents=(1.0, 0.6, 0.04))  # closed, faces outwards
+    top.apply_translation((0.0, 0.0, 0.72))
+    n = 40
+    x, y = np.meshgrid(np.linspace(-2, 2, n + 1), np.linspace(-2, 2, n + 1), indexing="ij")
+    fv = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    ff = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    pts = np.array([[0.1, 0.1, 0.72],   # inside the top, 2 cm from its faces
+                    [0.1, 0.1, 0.705],  # 5 mm above its underside (a knee pushed up into it)
+                    [0.1, 0.1, 0.66],   # under it
+                    [0.1, 0.1, 0.78],   # above it
+                    [1.5, 1.5, 0.05],   # above the floor
+                    [1.5, 1.5, -0.03]])  # below the floor
+    for floor_faces, below_floor_inside in ((ff, True), (ff[:, [0, 2, 1]], False)):
+        v = np.concatenate([top.vertices, fv])
+        f = np.concatenate([top.faces, floor_faces + len(top.vertices)])
+        sd, _ = SceneQuery(v, f, enclosed_m=0.3).signed_distance(pts)
+        np.testing.assert_allclose(np.abs(sd), [0.02, 0.005, 0.04, 0.04, 0.05, 0.03], atol=1e-4)
+        # The table top reads right either way; a floor turned over entirely (every face looking
+        # down) is read as a ceiling with nothing above it: the air above it stays air (and a
+        # foot below it is missed: the mesh says nothing is there).
+        assert list(sd < 0) == [True, True, False, False, False, below_floor_inside]

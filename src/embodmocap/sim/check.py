@@ -69,13 +69,16 @@ class SceneQuery:
     The side of a triangle that is solid comes from its normal (scene meshes are oriented
     outwards), but not from that one triangle alone: with ``side_radius_m > 0`` the closest
     triangle's normal is voted over the surface sheet around it (:meth:`face_side`), so a patch of
-    a few triangles facing the wrong way does not turn the air above a floor into solid.
+    a few triangles facing the wrong way does not turn the air above a floor into solid; and a
+    point behind a face that looks down is inside only with surface above it within
+    ``enclosed_m`` (a solid above a face has a top; air above a turned-over floor has none).
     """
 
     #: Cell edge (metres) of the area-weighted normal sums the side vote reads.
     CELL_M = 0.03
 
-    def __init__(self, vertices: NDArray, faces: NDArray, side_radius_m: float = 0.3, side_sheet_m: float = 0.01) -> None:
+    def __init__(self, vertices: NDArray, faces: NDArray, side_radius_m: float = 0.3, side_sheet_m: float = 0.01,
+                 enclosed_m: float = np.inf) -> None:
         import open3d as o3d
 
         self._o3d = o3d
@@ -90,6 +93,7 @@ class SceneQuery:
         self._centroid = tri.mean(axis=1)  # (F, 3)
         self.side_radius_m = float(side_radius_m)
         self.side_sheet_m = float(side_sheet_m)
+        self.enclosed_m = float(enclosed_m)
         self._side = np.zeros(len(f), dtype=np.int8)  # +1 / -1 once voted, 0 = not yet
         self._cells = None
 
@@ -155,7 +159,21 @@ class SceneQuery:
         # edge or corner (diff far from the normal, e.g. a hand above a table's edge whose closest
         # triangle is the table's side) means outside, whatever the side of that triangle.
         inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
+        # Behind a face that looks down means inside a solid above it (a table top from below, a
+        # seat): such a solid has a top, so the point must have surface above it within
+        # ``enclosed_m``. Air above a scanned floor whose faces there are turned over has none:
+        # this holds whatever the sheet's majority says (a scan's open ceiling is the exception:
+        # a head pushed into it is not found).
+        check = np.flatnonzero(inside & (n[:, 2] < -0.5))
+        if len(check) and np.isfinite(self.enclosed_m):
+            inside[check] = self.up_gap(p[check]) < self.enclosed_m
         return np.where(inside, -dist, dist), n
+
+    def up_gap(self, points: NDArray) -> NDArray:
+        """(N,) distance straight up to the first surface (inf where none)."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        rays = np.concatenate([p, np.tile(np.float32([0, 0, 1]), (len(p), 1))], axis=1)
+        return self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
 
     def down_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight down to the first surface (inf where none)."""
@@ -254,7 +272,8 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
     part = _part_of_vertex(sq.body_model)[::stride]
     owner = np.asarray(sq.body_model.lbs_weights).argmax(axis=1)[::stride]
     T, V = verts.shape[:2]
-    query = SceneQuery(sq.scene_vertices, sq.scene_faces, cfg.side_radius_m, cfg.side_sheet_m)
+    query = SceneQuery(sq.scene_vertices, sq.scene_faces, cfg.side_radius_m, cfg.side_sheet_m,
+                       cfg.max_depth_m if cfg.side_radius_m > 0 else np.inf)
     sd, normals = query.signed_distance(verts.reshape(-1, 3))
     sd, normals = sd.reshape(T, V), normals.reshape(T, V, 3)
     gap = query.down_gap(verts.reshape(-1, 3)).reshape(T, V)
