@@ -70,8 +70,9 @@ class SceneQuery:
     outwards), but not from that one triangle alone: with ``side_radius_m > 0`` the closest
     triangle's normal is voted over the surface sheet around it (:meth:`face_side`), so a patch of
     a few triangles facing the wrong way does not turn the air above a floor into solid; and a
-    point behind a face that looks down is inside only with surface above it within
-    ``enclosed_m`` (a solid above a face has a top; air above a turned-over floor has none).
+    point behind a face that is not a wall is inside only with surface above it within
+    ``enclosed_m`` (a solid has a top; air above a turned-over floor or beside the rim of a hole
+    in a scanned floor has none).
     """
 
     #: Cell edge (metres) of the area-weighted normal sums the side vote reads.
@@ -159,12 +160,14 @@ class SceneQuery:
         # edge or corner (diff far from the normal, e.g. a hand above a table's edge whose closest
         # triangle is the table's side) means outside, whatever the side of that triangle.
         inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
-        # Behind a face that looks down means inside a solid above it (a table top from below, a
-        # seat): such a solid has a top, so the point must have surface above it within
-        # ``enclosed_m``. Air above a scanned floor whose faces there are turned over has none:
-        # this holds whatever the sheet's majority says (a scan's open ceiling is the exception:
-        # a head pushed into it is not found).
-        check = np.flatnonzero(inside & (n[:, 2] < -0.5))
+        # Behind a face that is not a wall is inside a solid with a top: under a floor or a seat
+        # (the face itself is the top), above a table top's underside (its upper face is). So the
+        # point must have surface above it within ``enclosed_m``. Air above a scanned floor whose
+        # faces there are turned over has none, nor has a foot beside the curled rim of a hole in
+        # the scanned floor: this holds whatever the faces' sheet says. Walls (|n_z| < 0.2) keep
+        # the closest face's word: their tops are rarely scanned. A scan's open ceiling is the
+        # exception: a head pushed into it is not found.
+        check = np.flatnonzero(inside & (np.abs(n[:, 2]) > 0.2))
         if len(check) and np.isfinite(self.enclosed_m):
             inside[check] = self.up_gap(p[check]) < self.enclosed_m
         return np.where(inside, -dist, dist), n
