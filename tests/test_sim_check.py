@@ -266,3 +266,27 @@ def test_side_of_a_table_top_and_of_a_floor_turned_over_entirely():
         # down) is read as a ceiling with nothing above it: the air above it stays air (and a
         # foot below it is missed: the mesh says nothing is there).
         assert list(sd < 0) == [True, True, False, False, False, below_floor_inside]
+
+
+def test_a_foot_beside_the_lip_of_a_hole_in_the_scanned_floor_is_not_inside():
+    # A scanned floor (y > 0) ends at a hole (y < 0) in a lip rising 2 cm toward the hole, as TSDF
+    # surfaces do at their edge. A foot at floor level 20 cm into the hole lies "behind" the tilted
+    # lip by the closest-face test; nothing is above it, so it is not inside anything.
+    from embodmocap.sim.check import SceneQuery
+
+    n = 20
+    x, y = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    f = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    lip = np.array([[-1, 0, 0], [1, 0, 0], [1, -0.03, 0.0193], [-1, -0.03, 0.0193]], float)
+    lf = np.array([[0, 2, 1], [0, 3, 2]]) + len(v)
+    v, f = np.concatenate([v, lip]), np.concatenate([f, lf])
+    assert (np.cross(*(lip[[2, 1]] - lip[0]))[1:] > 0).all()  # the lip faces up and out, into the hole
+    pts = np.array([[0.0, -0.2, 0.0],     # beside the lip, over the hole
+                    [0.0, 0.3, -0.03]])   # under the floor
+    old, _ = SceneQuery(v, f, side_radius_m=0.0).signed_distance(pts)
+    new, _ = SceneQuery(v, f, enclosed_m=0.3).signed_distance(pts)
+    assert old[0] < -0.1 and new[0] > 0.1
+    assert old[1] == pytest.approx(-0.03, abs=1e-4) and new[1] == pytest.approx(-0.03, abs=1e-4)
