@@ -19,6 +19,8 @@ figure only).
 
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_sim_side.py \
         --sessions /work/bench/16/s5/fits2/hard_{0,1,2,3,4} --json /work/bench/16/s5b/bench_sim_side.json
+    # the check's time on a 60 s sequence, old side rule vs new (one process):
+    ... bench_sim_side.py --time /work/bench/16/s5b/cli/hard_2 --json /work/bench/16/s5b/time60.json
 """
 
 from __future__ import annotations
@@ -82,11 +84,38 @@ def session_rows(session: Path) -> tuple[list[dict], dict]:
     return rows, floor
 
 
+def check_time_60s(session: Path) -> dict:
+    """Seconds of ``plausibility`` on the session's fit tiled to 60 s, old rule vs new, one process."""
+    from embodmocap.sim.check import plausibility
+    from embodmocap.sim.config import SimCheckConfig
+    from embodmocap.sim.session import load_sequence
+
+    sq = load_sequence(session)
+    p = sq.params
+    idx = np.tile(np.arange(len(p)), int(np.ceil(60.0 * p.fps / len(p))))[: int(round(60.0 * p.fps))]
+    long = sq.with_params(dataclasses.replace(p, global_orient=p.global_orient[idx], body_pose=p.body_pose[idx],
+                                              transl=p.transl[idx]))
+    out = {"session": session.name, "frames": int(len(idx)), "scene_faces": int(len(sq.scene_faces))}
+    for stride in (1, 4):
+        for name, radius in (("closest_alone", 0.0), ("new", 0.3)):
+            t0 = time.perf_counter()
+            plausibility(long, SimCheckConfig(vertex_stride=stride, side_radius_m=radius))
+            out[f"seconds_stride_{stride}_{name}"] = round(time.perf_counter() - t0, 2)
+            print(json.dumps(out), flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sessions", type=Path, nargs="+", required=True)
+    ap.add_argument("--sessions", type=Path, nargs="+", default=[])
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--time", type=Path, help="only time the check on this session's fit tiled to 60 s")
     a = ap.parse_args()
+    if a.time:
+        out = check_time_60s(a.time)
+        if a.json:
+            a.json.write_text(json.dumps(out, indent=1))
+        return
     res: dict = {"date": time.strftime("%Y-%m-%d"), "sessions": [str(s) for s in a.sessions], "check": [], "floor": {}}
     for s in a.sessions:
         rows, floor = session_rows(s)
