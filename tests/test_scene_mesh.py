@@ -91,3 +91,53 @@ def test_ply_round_trip_is_atomic(tmp_path):
     assert len(c3) == 0 and len(f3) == len(f)
     with pytest.raises(InputError, match="missing.ply: mesh file not found"):
         read_mesh_ply(tmp_path / "missing.ply")
+
+
+def _down_share(v, f):
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    a = np.linalg.norm(n, axis=1)  # 2 x area
+    return a[n[:, 2] < 0].sum() / a.sum()  # share of the area facing down
+
+
+def _floor_with_a_pocket(seed=0):
+    """A 2 m TSDF-like floor (2 cm cells, 3 mm noise) facing up, with a thin pocket under 1 m^2 of
+    it: a sheet 5 mm below facing down (the pocket's roof) and one 10 mm below facing up."""
+    rng = np.random.default_rng(seed)
+    v0, f0 = grid(100, 2.0)
+    v1, f1 = grid(50, 1.0, (0.5, 0.5, -0.005))
+    v2, f2 = grid(50, 1.0, (0.5, 0.5, -0.010))
+    f1 = f1[:, [0, 2, 1]]  # the roof faces down, into the pocket
+    v = np.concatenate([v0, v1, v2])
+    f = np.concatenate([f0, f1 + len(v0), f2 + len(v0) + len(v1)])
+    v = v + rng.normal(0.0, 0.003, v.shape) * [0.3, 0.3, 1.0]
+    return v, f
+
+
+def test_simplify_keeps_a_floor_facing_up_over_a_thin_pocket():
+    # Clustering collapses the three sheets into the same cells; the kept faces must face up like
+    # the surface they stand for (the product once kept either winding at random).
+    v, f = _floor_with_a_pocket()
+    down_in = _down_share(v, f)
+    assert 0.1 < down_in < 0.25  # the input: the pocket's roof
+    vs, fs, _ = simplify_mesh(v, f, voxel_m=0.05)
+    assert len(fs) < len(f) / 5
+    assert _down_share(vs, fs) < 0.005
+    assert mesh_stats(vs, fs)["area_m2"] == pytest.approx(4.0, rel=0.1)
+    # A plain floor with its faces wound the other way stays wound that way (the vote follows the
+    # input, it does not force +z).
+    vd, fd = grid(100, 2.0)
+    vs, fs, _ = simplify_mesh(vd, fd[:, [0, 2, 1]], voxel_m=0.05)
+    assert _down_share(vs, fs) > 0.995
+
+
+def test_simplify_outvotes_single_turned_over_faces():
+    # A TSDF's noise turns single faces over here and there (~1 % of a scanned floor); the faces
+    # around the cells outvote them, so the light mesh has fewer, not more, than its input.
+    rng = np.random.default_rng(1)
+    v, f = grid(100, 2.0)
+    flip = rng.random(len(f)) < 0.05
+    f[flip] = f[flip][:, [0, 2, 1]]
+    vs, fs, _ = simplify_mesh(v, f, voxel_m=0.05)
+    assert _down_share(v, f) > 0.04
+    assert _down_share(vs, fs) < 0.002

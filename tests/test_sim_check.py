@@ -12,6 +12,7 @@ import pytest
 pytest.importorskip("mujoco")
 
 from embodmocap.sim.check import foot_skating, plausibility  # noqa: E402
+from embodmocap.sim.config import SimCheckConfig  # noqa: E402
 from embodmocap.sim.session import load_sequence  # noqa: E402
 from sim_session import sim_session  # noqa: E402,F401
 
@@ -192,3 +193,100 @@ def test_frames_with_no_surface_under_them_are_counted_and_said_plainly(truth, s
     path.write_text(json.dumps(doc))
     _, md = write_report(copy)
     assert f"3 of {doc['summary']['frames']} frames" in md.read_text()
+
+
+def _floor_with_flipped_footprints(sq, cell=0.05, margin=0.03):
+    """A 4 m floor at z = 0 around the performer in 5 cm cells (a simplified scan's size), facing
+    up except under the feet: every triangle within ``margin`` (horizontally) of a foot vertex in
+    any frame faces down (a turned-over patch of ~30 x 15 cm per foot)."""
+    from embodmocap.sim.check import BODY_PARTS, _part_of_vertex
+    from embodmocap.sim.session import body_vertices
+
+    verts = body_vertices(sq.body_model, sq.params)
+    part = _part_of_vertex(sq.body_model)
+    feet = np.isin(part, [list(BODY_PARTS).index("left_foot"), list(BODY_PARTS).index("right_foot")])
+    foot_xy = verts[:, feet, :2].reshape(-1, 2)
+    c = np.round(foot_xy.mean(axis=0) / cell) * cell
+    n = int(round(4.0 / cell))
+    x, y = np.meshgrid(c[0] - 2.0 + cell * np.arange(n + 1), c[1] - 2.0 + cell * np.arange(n + 1), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    f = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    from scipy.spatial import cKDTree
+
+    centroid_xy = v[f].mean(axis=1)[:, :2]
+    under = np.isfinite(cKDTree(foot_xy).query(centroid_xy, distance_upper_bound=margin)[0])
+    f[under] = f[under][:, [0, 2, 1]]
+    return v, f, under
+
+
+def test_a_turned_over_floor_patch_under_the_feet_is_not_solid(truth):
+    # A scanned floor with the triangles under the feet facing down: the closest triangle alone
+    # says "behind the floor" for every sole vertex above it; the sheet around it says otherwise.
+    v, f, under = _floor_with_flipped_footprints(truth)
+    assert 20 < under.sum() < 0.05 * len(f)
+    floor_truth = truth.__class__(truth.session, truth.name, truth.params, truth.frames, truth.body_model, v, f)
+    base = plausibility(floor_truth, residual=False)["per_frame"]
+    lifted = plausibility(_shifted(floor_truth, dz=0.05), residual=False)
+    assert lifted["summary"]["penetration_max_cm"] == 0.0
+    assert np.allclose(lifted["per_frame"]["floating_cm"], 5.0 + np.array(base["floating_cm"]), atol=0.5)
+    pushed = plausibility(_shifted(floor_truth, dz=-0.05), residual=False)
+    assert np.allclose(pushed["per_frame"]["penetration_cm"], 5.0 + np.array(base["penetration_cm"]), atol=0.5)
+    # The closest triangle alone (side_radius_m = 0, the old rule) reads the lifted body as inside.
+    alone = plausibility(_shifted(floor_truth, dz=0.05), SimCheckConfig(side_radius_m=0.0), residual=False)
+    assert alone["summary"]["penetration_max_cm"] > 4.0
+
+
+def test_side_of_a_table_top_and_of_a_floor_turned_over_entirely():
+    import trimesh
+
+    from embodmocap.sim.check import SceneQuery
+
+    top = trimesh.creation.box(extents=(1.0, 0.6, 0.04))  # closed, faces outwards
+    top.apply_translation((0.0, 0.0, 0.72))
+    n = 40
+    x, y = np.meshgrid(np.linspace(-2, 2, n + 1), np.linspace(-2, 2, n + 1), indexing="ij")
+    fv = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    ff = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    pts = np.array([[0.1, 0.1, 0.72],   # inside the top, 2 cm from its faces
+                    [0.1, 0.1, 0.705],  # 5 mm above its underside (a knee pushed up into it)
+                    [0.1, 0.1, 0.66],   # under it
+                    [0.1, 0.1, 0.78],   # above it
+                    [1.5, 1.5, 0.05],   # above the floor
+                    [1.5, 1.5, -0.03]])  # below the floor
+    for floor_faces, below_floor_inside in ((ff, True), (ff[:, [0, 2, 1]], False)):
+        v = np.concatenate([top.vertices, fv])
+        f = np.concatenate([top.faces, floor_faces + len(top.vertices)])
+        sd, _ = SceneQuery(v, f, enclosed_m=0.3).signed_distance(pts)
+        np.testing.assert_allclose(np.abs(sd), [0.02, 0.005, 0.04, 0.04, 0.05, 0.03], atol=1e-4)
+        # The table top reads right either way; a floor turned over entirely (every face looking
+        # down) is read as a ceiling with nothing above it: the air above it stays air (and a
+        # foot below it is missed: the mesh says nothing is there).
+        assert list(sd < 0) == [True, True, False, False, False, below_floor_inside]
+
+
+def test_a_foot_beside_the_lip_of_a_hole_in_the_scanned_floor_is_not_inside():
+    # A scanned floor (y > 0) ends at a hole (y < 0) in a lip rising 2 cm toward the hole, as TSDF
+    # surfaces do at their edge. A foot at floor level 20 cm into the hole lies "behind" the tilted
+    # lip by the closest-face test; nothing is above it, so it is not inside anything.
+    from embodmocap.sim.check import SceneQuery
+
+    n = 20
+    x, y = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a = (i * (n + 1) + j).ravel()
+    f = np.concatenate([np.column_stack([a, a + n + 1, a + 1]), np.column_stack([a + 1, a + n + 1, a + n + 2])])
+    lip = np.array([[-1, 0, 0], [1, 0, 0], [1, -0.03, 0.0193], [-1, -0.03, 0.0193]], float)
+    lf = np.array([[0, 2, 1], [0, 3, 2]]) + len(v)
+    v, f = np.concatenate([v, lip]), np.concatenate([f, lf])
+    assert (np.cross(*(lip[[2, 1]] - lip[0]))[1:] > 0).all()  # the lip faces up and out, into the hole
+    pts = np.array([[0.0, -0.2, 0.0],     # beside the lip, over the hole
+                    [0.0, 0.3, -0.03]])   # under the floor
+    old, _ = SceneQuery(v, f, side_radius_m=0.0).signed_distance(pts)
+    new, _ = SceneQuery(v, f, enclosed_m=0.3).signed_distance(pts)
+    assert old[0] < -0.1 and new[0] > 0.1
+    assert old[1] == pytest.approx(-0.03, abs=1e-4) and new[1] == pytest.approx(-0.03, abs=1e-4)

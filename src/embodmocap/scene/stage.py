@@ -71,6 +71,10 @@ _MESH_FIELDS = ("min_confidence", "depth_", "voxel_", "sdf_", "integrate_every",
                 "confidence_", "fuse_", "structure_", "jump_")
 _SIMPLIFY_FIELDS = ("simplify_",)
 _SFM_FIELDS = ("sfm",)
+#: Version of the simplified mesh's recipe, part of its step's fingerprint: 2 = faces wound by the
+#: raw faces' vote, one face per triple of cells (1: Open3D's clustering kept either or both
+#: windings), so a session simplified before redoes that step (seconds) and nothing else.
+SIMPLIFY_VERSION = 2
 
 
 @tracked_stage
@@ -127,7 +131,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
 
     # 4. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
-        fp_simple = fingerprint("simplify", fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
+        fp_simple = fingerprint("simplify", SIMPLIFY_VERSION, fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
         with sm.step("simplify", fp_simple, force=force, label=label) as step:
             if step.run:
                 simple = solve.simplified(*read_mesh_ply(out.mesh_raw), cfg)

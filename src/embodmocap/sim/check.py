@@ -64,21 +64,94 @@ FEET: tuple[tuple[int, int], ...] = ((7, 10), (8, 11))
 
 
 class SceneQuery:
-    """Signed distance and downward gap of points to a triangle mesh (open3d ray casting)."""
+    """Signed distance and downward gap of points to a triangle mesh (open3d ray casting).
 
-    def __init__(self, vertices: NDArray, faces: NDArray) -> None:
+    The side of a triangle that is solid comes from its normal (scene meshes are oriented
+    outwards), but not from that one triangle alone: with ``side_radius_m > 0`` the closest
+    triangle's normal is voted over the surface sheet around it (:meth:`face_side`), so a patch of
+    a few triangles facing the wrong way does not turn the air above a floor into solid; and a
+    point behind a face that is not a wall is inside only with surface above it within
+    ``enclosed_m`` (a solid has a top; air above a turned-over floor or beside the rim of a hole
+    in a scanned floor has none).
+    """
+
+    #: Cell edge (metres) of the area-weighted normal sums the side vote reads.
+    CELL_M = 0.03
+
+    def __init__(self, vertices: NDArray, faces: NDArray, side_radius_m: float = 0.3, side_sheet_m: float = 0.01,
+                 enclosed_m: float = np.inf) -> None:
         import open3d as o3d
 
         self._o3d = o3d
+        v = np.asarray(vertices, np.float64).reshape(-1, 3)
+        f = np.asarray(faces, np.int64).reshape(-1, 3)
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                                 o3d.core.Tensor(np.asarray(faces, np.uint32)))
+        self.scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+        tri = v[f]  # (F, 3, 3)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        self._area = 0.5 * np.linalg.norm(cross, axis=1)  # (F,)
+        self._normal = cross / np.maximum(2.0 * self._area, 1e-12)[:, None]  # (F, 3) unit (0 if degenerate)
+        self._centroid = tri.mean(axis=1)  # (F, 3)
+        self.side_radius_m = float(side_radius_m)
+        self.side_sheet_m = float(side_sheet_m)
+        self.enclosed_m = float(enclosed_m)
+        self._side = np.zeros(len(f), dtype=np.int8)  # +1 / -1 once voted, 0 = not yet
+        self._cells = None
+
+    def _cell_sums(self):
+        """Per occupied ``CELL_M`` cell: area-weighted centroid (C, 3), area-weighted normal sum
+        (C, 3) and a KD-tree over the centroids (built once, on first use)."""
+        from scipy.spatial import cKDTree
+
+        key = np.floor(self._centroid / self.CELL_M).astype(np.int64)
+        _, cell = np.unique(key, axis=0, return_inverse=True)
+        cell = cell.reshape(-1)
+        a = self._area
+        area = np.bincount(cell, weights=a)
+        cen = np.stack([np.bincount(cell, weights=a * self._centroid[:, k]) for k in range(3)], 1)
+        cen /= np.maximum(area, 1e-18)[:, None]
+        nsum = np.stack([np.bincount(cell, weights=a * self._normal[:, k]) for k in range(3)], 1)
+        self._cells = (cen, nsum, cKDTree(cen))
+        return self._cells
+
+    def face_side(self, face_ids: NDArray) -> NDArray[np.int8]:
+        """(N,) +1 where a face's normal agrees with its sheet, -1 where the sheet says the face
+        is turned over.
+
+        The vote: the area-weighted normals of the surface within ``side_radius_m`` of the face's
+        centroid and within ``side_sheet_m`` of its plane (the same sheet: not the far face of a
+        table top, not a wall meeting the floor), projected on the face's normal and summed; a
+        negative sum means most of that sheet faces the other way. Each face is voted once.
+        """
+        ids = np.asarray(face_ids, np.int64).reshape(-1)
+        if self.side_radius_m <= 0 or len(ids) == 0:
+            return np.ones(len(ids), dtype=np.int8)
+        todo = np.unique(ids[self._side[ids] == 0])
+        if len(todo):
+            cen, nsum, tree = self._cells if self._cells is not None else self._cell_sums()
+            c, n = self._centroid[todo], self._normal[todo]
+            vote = np.zeros(len(todo))
+            for s in range(0, len(todo), 4096):  # chunks keep the pair lists small
+                e = min(s + 4096, len(todo))
+                hits = tree.query_ball_point(c[s:e], self.side_radius_m)
+                counts = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
+                if counts.sum() == 0:
+                    continue
+                q = np.repeat(np.arange(s, e), counts)
+                k = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])
+                on_sheet = np.abs(np.einsum("pc,pc->p", cen[k] - c[q], n[q])) < self.side_sheet_m
+                q, k = q[on_sheet], k[on_sheet]
+                vote[s:e] += np.bincount(q - s, weights=np.einsum("pc,pc->p", nsum[k], n[q]), minlength=e - s)
+            self._side[todo] = np.where(vote < 0, -1, 1)
+        return self._side[ids]
 
     def signed_distance(self, points: NDArray) -> tuple[NDArray, NDArray]:
-        """(N,) signed distance (negative inside) and (N, 3) outward normal of the closest triangle."""
+        """(N,) signed distance (negative inside) and (N, 3) outward normal of the closest triangle
+        (turned over where its sheet says so, :meth:`face_side`)."""
         p = np.asarray(points, np.float32).reshape(-1, 3)
         r = self.scene.compute_closest_points(self._o3d.core.Tensor(p))
-        n = r["primitive_normals"].numpy()
+        ids = r["primitive_ids"].numpy().astype(np.int64)
+        n = (self._normal[ids] * self.face_side(ids)[:, None]).astype(np.float32)
         diff = p - r["points"].numpy()
         dist = np.linalg.norm(diff, axis=1)
         # The distance to the closest point (the projection on the normal alone would call a point
@@ -87,7 +160,23 @@ class SceneQuery:
         # edge or corner (diff far from the normal, e.g. a hand above a table's edge whose closest
         # triangle is the table's side) means outside, whatever the side of that triangle.
         inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
+        # Behind a face that is not a wall is inside a solid with a top: under a floor or a seat
+        # (the face itself is the top), above a table top's underside (its upper face is). So the
+        # point must have surface above it within ``enclosed_m``. Air above a scanned floor whose
+        # faces there are turned over has none, nor has a foot beside the curled rim of a hole in
+        # the scanned floor: this holds whatever the faces' sheet says. Walls (|n_z| < 0.2) keep
+        # the closest face's word: their tops are rarely scanned. A scan's open ceiling is the
+        # exception: a head pushed into it is not found.
+        check = np.flatnonzero(inside & (np.abs(n[:, 2]) > 0.2))
+        if len(check) and np.isfinite(self.enclosed_m):
+            inside[check] = self.up_gap(p[check]) < self.enclosed_m
         return np.where(inside, -dist, dist), n
+
+    def up_gap(self, points: NDArray) -> NDArray:
+        """(N,) distance straight up to the first surface (inf where none)."""
+        p = np.asarray(points, np.float32).reshape(-1, 3)
+        rays = np.concatenate([p, np.tile(np.float32([0, 0, 1]), (len(p), 1))], axis=1)
+        return self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
 
     def down_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight down to the first surface (inf where none)."""
@@ -186,7 +275,8 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
     part = _part_of_vertex(sq.body_model)[::stride]
     owner = np.asarray(sq.body_model.lbs_weights).argmax(axis=1)[::stride]
     T, V = verts.shape[:2]
-    query = SceneQuery(sq.scene_vertices, sq.scene_faces)
+    query = SceneQuery(sq.scene_vertices, sq.scene_faces, cfg.side_radius_m, cfg.side_sheet_m,
+                       cfg.max_depth_m if cfg.side_radius_m > 0 else np.inf)
     sd, normals = query.signed_distance(verts.reshape(-1, 3))
     sd, normals = sd.reshape(T, V), normals.reshape(T, V, 3)
     gap = query.down_gap(verts.reshape(-1, 3)).reshape(T, V)

@@ -93,6 +93,18 @@ class SimCheckConfig:
     repair_smooth: float = 10.0
     """``--repair``: weight of the vertical correction's second difference between frames (larger =
     smoother, less exact contact on abrupt changes; a steady drift is corrected exactly)."""
+    side_radius_m: float = 0.3
+    """Which side of the scene is solid is read from the closest triangle's normal, voted over the
+    scene's surface sheet within this radius of that triangle (area-weighted): a few triangles
+    facing the wrong way (a scanned floor patch turned over) are outvoted by the sheet around
+    them. Also, a point behind a face that is not a wall (``|n_z| > 0.2``: a floor, a seat, a
+    table top's underside) counts as inside only with surface above it within ``max_depth_m`` (a
+    solid has a top; the air above a turned-over floor or beside the curled rim of a hole in a
+    scanned floor has none). 0 = trust the closest triangle alone (the check's rule before
+    both), metres."""
+    side_sheet_m: float = 0.01
+    """Only surface within this distance of the closest triangle's plane votes (the same sheet;
+    the far face of a 4 cm table top or a wall meeting the floor does not), metres."""
 
 
 @dataclass(frozen=True)
