@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TextIO
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -54,3 +56,16 @@ def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None) -> 
     logger.addHandler(handler)
     logger.setLevel(logging.DEBUG if debug else logging.INFO)
     return handler
+
+
+@contextmanager
+def quiet_colmap(pycolmap, log: logging.Logger) -> Iterator[None]:
+    """Keep COLMAP's own logging (glog, straight to stderr) to errors unless ``log`` is at DEBUG:
+    its INFO line per image and its routine "many threads" warning would drown the package's log."""
+    old = pycolmap.logging.minloglevel
+    if not log.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = max(old, 2)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old

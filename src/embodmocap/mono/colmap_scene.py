@@ -30,31 +30,18 @@ from __future__ import annotations
 
 import logging
 import tempfile
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import binary_dilation
 from scipy.spatial.transform import Rotation, Slerp
 
+from embodmocap.logs import quiet_colmap
 from embodmocap.mono.config import ColmapSceneConfig
 from embodmocap.mono.files import ChunkPrediction
 
 log = logging.getLogger(__name__)
-
-
-@contextmanager
-def _quiet(pycolmap) -> Iterator[None]:
-    """COLMAP logs (glog, to stderr) at INFO per image; keep it to errors unless we log at DEBUG."""
-    old = pycolmap.logging.minloglevel
-    if not log.isEnabledFor(logging.DEBUG):
-        pycolmap.logging.minloglevel = max(old, 2)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
 
 
 def interpolate_poses(t_known: NDArray, T_known: NDArray, t: NDArray) -> NDArray[np.float64]:
@@ -121,7 +108,7 @@ class ColmapScene:
         if len(sel) < 3:  # a short last chunk: keep its frames all
             sel = frames
         stride = self.cfg.stride
-        with _quiet(pycolmap):
+        with quiet_colmap(pycolmap, log):
             while True:
                 with tempfile.TemporaryDirectory(prefix="embodmocap_mono_sfm_") as tmp:
                     rec, failure = self._sfm(pycolmap, Path(tmp), sel)

@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import logging
 import shutil
-from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +15,7 @@ from numpy.typing import NDArray
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.colmap import colmap_camera_params
+from embodmocap.logs import quiet_colmap
 from embodmocap.types import Intrinsics
 
 if TYPE_CHECKING:
@@ -116,17 +116,9 @@ def _drop_short_tracks(rec, min_track_length: int) -> None:
 
 
 
-@contextmanager
-def _quiet_colmap(pycolmap) -> Iterator[None]:
-    """Keep COLMAP's own logging (glog, straight to stderr) to errors unless our logger is at DEBUG:
-    its INFO lines and its routine "many threads" warning would drown the package's log."""
-    old = pycolmap.logging.minloglevel
-    if not log.isEnabledFor(logging.DEBUG):
-        pycolmap.logging.minloglevel = max(old, 2)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = old
+def _quiet_colmap(pycolmap):
+    """COLMAP's own logging kept to errors unless this module logs at DEBUG (:func:`embodmocap.logs.quiet_colmap`)."""
+    return quiet_colmap(pycolmap, log)
 
 
 #: Bytes per SIFT feature in COLMAP's database (128-byte descriptor, 6 float keypoint, row overhead).
