@@ -211,3 +211,72 @@ def test_disk_full_is_one_line_and_leaves_no_partial_file(inputs, tmp_path):
     # With space again, the same command finishes.
     res = cli("scene", str(work), *STAGE_OPTIONS["scene"])
     assert res.returncode == 0, res.stdout
+
+
+# Downstream commands: each reads the four stages' outputs and writes its own folder; each must
+# resume after a SIGKILL anywhere and end with the bytes of an uninterrupted run (the guide's
+# "resume anywhere" covers every command a user runs, not only the four stages).
+DOWNSTREAM = {
+    "mono": (("mono", "{s}", "--scene-model", "vio"), ("sequences/seq0/mono",)),
+    "skills": (("skills", "{s}"), ("sequences/seq0/skills",)),
+    "training_export": (("export", "{s}", "--to", "training", "--out", "{s}/training"), ("training",)),
+    "robot": (("robot:retarget", "{s}"), ("sequences/seq0/robot",)),
+    "sim_check": (("sim:check", "{s}"), ("sequences/seq0/sim",)),
+}
+
+
+def _records(root: Path) -> dict[str, object]:
+    """The step records of every manifest under ``root`` (a stage manifest's ``steps``; another
+    command's own manifest whole)."""
+    out = {}
+    for p in sorted(Path(root).rglob("*manifest*.json")):
+        data = json.loads(p.read_text())
+        out[p.relative_to(root).as_posix()] = data.get("steps", data) if isinstance(data, dict) else data
+    return out
+
+
+def _downstream_args(name: str, session: Path) -> list[str]:
+    return [a.replace("{s}", str(session)) for a in DOWNSTREAM[name][0]]
+
+
+@pytest.fixture(scope="module")
+def downstream(reference, tmp_path_factory) -> tuple[Path, dict, dict]:
+    """Every downstream command run to the end on a copy of the reference: (session, snapshot of
+    the outputs under ``sequences`` and ``training``, seconds per command)."""
+    ref, _, _ = reference
+    done = _copy(ref, tmp_path_factory.mktemp("downstream") / "s")
+    seconds = {}
+    for name in DOWNSTREAM:
+        t0 = time.monotonic()
+        res = cli(*_downstream_args(name, done))
+        assert res.returncode == 0, (name, res.stdout)
+        seconds[name] = time.monotonic() - t0
+    return done, snapshot(done, under=("sequences", "training")), seconds
+
+
+@pytest.mark.parametrize("name", list(DOWNSTREAM))
+def test_downstream_kill_9_then_rerun_gives_the_same_outputs(downstream, tmp_path, name):
+    done, outputs, seconds = downstream
+    work = _copy(done, tmp_path / "s")
+    for rel in DOWNSTREAM[name][1]:
+        shutil.rmtree(work / rel)
+    proc = popen(*_downstream_args(name, work))
+    first = proc.stdout.readline()  # the command is up (imports done, logging started)
+    delay = random.Random(f"kill-{name}").uniform(0.1, 0.9) * seconds[name] * 0.5
+    time.sleep(delay)
+    proc.kill()
+    proc.wait()
+    res = cli(*_downstream_args(name, work))
+    assert res.returncode == 0, res.stdout
+    assert differences(outputs, snapshot(work, under=("sequences", "training"))) == [], f"killed {delay:.1f} s after {first!r}"
+    assert stale_temps(work) == []
+    # And once finished, the same command again redoes nothing: no output file is rewritten and
+    # no step record changes (the stage manifest itself notes the run).
+    mtimes = {p: p.stat().st_mtime_ns for rel in DOWNSTREAM[name][1] for p in (work / rel).rglob("*")
+              if p.is_file() and "manifest" not in p.name}
+    steps = {rel: _records(work / rel) for rel in DOWNSTREAM[name][1]}
+    res = cli(*_downstream_args(name, work))
+    assert res.returncode == 0, res.stdout
+    assert {p: p.stat().st_mtime_ns for p in mtimes} == mtimes
+    assert {rel: _records(work / rel) for rel in DOWNSTREAM[name][1]} == steps
+    print(f"{name}: killed {delay:.1f} s in (of {seconds[name]:.1f} s); the rerun's outputs equal the reference's")
