@@ -4,7 +4,7 @@ How a motion is made (read :func:`script_motion` top to bottom):
 
 1. **Plan.** A list of pieces, each a few seconds long with a name (``idle``, ``turn``, ``walk``,
    ``sit_down``, ``sit``, ``stand_up``, ``step_up``, ``stand_on_box``, ``step_down``,
-   ``lean_in``, ``lean_table``, ``lean_out``, ``step_back``). Each piece gives, per frame, the planned pelvis
+   ``lean_in``, ``lean_table``, ``lean_out``, ``step_back``, ``step_away``). Each piece gives, per frame, the planned pelvis
    position on the floor (x, y), the heading (yaw about +Z) and a few scalar *channels* in
    [0, 1] (gait amplitude and phase, how far seated, how far leaning, how far each leg is lifted
    ...). Every piece starts where the previous one ended and eases in and out (quintic
@@ -336,12 +336,12 @@ class _Planner:
         xy = self.xy + _ease(u)[:, None] * (end - self.xy)
         self._add("turn", xy, self.yaw + d * _ease(u))
 
-    def shuffle_to(self, end_xy: NDArray, seconds: float) -> None:
+    def shuffle_to(self, end_xy: NDArray, seconds: float, name: str = "step_back") -> None:
         """Move the pelvis to ``end_xy`` keeping the heading, with an ease over ``seconds`` (small
         steps, no gait: for a few tens of centimetres, e.g. backwards)."""
         u = self._u(seconds)
         xy = self.xy + _ease(u)[:, None] * (np.asarray(end_xy, dtype=np.float64) - self.xy)
-        self._add("step_back", xy, np.full(len(u), self.yaw))
+        self._add(name, xy, np.full(len(u), self.yaw))
 
     def walk_to(self, target: NDArray) -> None:
         """Turn toward ``target``, then walk there in a straight line (ease in and out)."""
@@ -414,6 +414,11 @@ class _Planner:
         self.channel_piece("stand_up", T, True, sit=lambda u: 1.0 - _ease(u), sit_hip=hip, sit_knee=knee)
         self.marks.append(("sit", seat.name, (i, 0.0), (i + 2, 1.0), (i + 1, i + 1)))
         self.on_furniture = False
+        if seat.name in ("sofa", "bed"):
+            # Solid down to the floor, with the calves at its front edge: the first walking step's
+            # trailing heel rises behind the body, into it (3.3 cm on a bed, seed 12). One pushes
+            # off such a seat with a small step forward first.
+            self.shuffle_to(self.xy + fwd * 0.2, 0.6, name="step_away")
         # Walk straight away from the seat first, so that no later turn swings a heel over it.
         self.walk_to(self.xy + fwd * 0.5)
 

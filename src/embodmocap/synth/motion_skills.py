@@ -13,8 +13,9 @@ from numpy.typing import NDArray
 from embodmocap.synth.spec import Furniture
 
 #: Pieces that are part of walking along a path (:attr:`MotionScript.clips` ``follow``): the
-#: step back from the table moves over the ground like a walk (a shuffle of 30 cm).
-_WALKING: tuple[str, ...] = ("walk", "turn", "follow", "step_back")
+#: step back from the table and the step away from a sofa or bed move over the ground like a walk
+#: (shuffles of 30 and 20 cm).
+_WALKING: tuple[str, ...] = ("walk", "turn", "follow", "step_back", "step_away")
 
 #: Thickness of the bed's headboard (:func:`embodmocap.synth.scene._piece_parts`), metres.
 _HEADBOARD_M = 0.08
@@ -28,7 +29,7 @@ class ScriptedClip:
         start, end: the clip: sit / lie / prone from the start of sitting (lying) down to the end
             of standing up; climb from the lead foot's lift-off to the trailing foot's touch-down
             back on the floor; support from the start of leaning in to the end of leaning out;
-            follow: a run of walking pieces (``walk``, ``follow``, ``step_back``, turns between
+            follow: a run of walking pieces (``walk``, ``follow``, ``step_back``, ``step_away``, turns between
             them), from the first piece that moves (a walk of 15 cm or more, a turn stepping 5 cm
             or more) to the last.
         contact_start, contact_end: the hold (seated, lying, standing on the box, leaning);
