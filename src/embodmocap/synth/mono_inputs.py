@@ -73,7 +73,8 @@ class MonoInputConfig:
     holes: int = 2
     """Missing rectangles per frame (confidence 0, junk points), each up to a quarter of the map."""
     prior: PriorNoiseConfig = PriorNoiseConfig()
-    """Errors of the camera-space body (used when ``noise``)."""
+    """Errors of the camera-space body (used when ``noise``); named presets in :data:`PRIOR_PRESETS`
+    (``realistic``, ``hard`` = with a persistent, size-consistent shape error)."""
 
 
 def write_mono_inputs(session: str | Path, seq: str | None = None, view: str = "v1",
