@@ -17,6 +17,11 @@ length), after a similarity (stitching alone), the overlap residuals, the mono_*
 and the seconds mono took.
 
     OMP_NUM_THREADS=1 nice -n 19 python benchmarks/bench_mono.py --seeds 0 1 2 --seconds 20
+
+Each row runs once per ``--human-depth`` (``model``: the human model's own translation, the code
+before the keypoint refinement, and what exact recovery needs: the studio's Stage II keypoints
+carry detector noise; ``keypoints``: refined against them, the default). ``--copies`` puts the
+per-variant session copies elsewhere than ``--work`` (the reused studio sessions stay read-only).
 """
 
 from __future__ import annotations
@@ -65,6 +70,8 @@ def main() -> None:
     ap.add_argument("--overlap", type=int, default=16)
     ap.add_argument("--work", type=Path, default=Path("/work/bench/15"))
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--copies", type=Path, default=None, help="folder of the per-variant copies (default --work)")
+    ap.add_argument("--human-depth", nargs="+", default=["model", "keypoints"], choices=["model", "keypoints"])
     args = ap.parse_args()
     rows = []
     for seed in args.seeds:
@@ -80,41 +87,54 @@ def main() -> None:
                                                          prior=PriorNoiseConfig(0, 0, 0, 0, 0)),
         }
         for name, icfg in variants.items():
-            work = args.work / f"mono_s{seed}_{args.seconds:g}s_{name.split(',')[0]}{'_oracle' if 'oracle' in name else ''}"
+            work = (args.copies or args.work) / f"mono_s{seed}_{args.seconds:g}s_{name.split(',')[0]}{'_oracle' if 'oracle' in name else ''}"
             if work.exists():
                 shutil.rmtree(work)
             shutil.copytree(base, work, symlinks=True)
             truth = write_mono_inputs(work, cfg=icfg, seed=100 + seed)
-            cfg = MonoConfig(scene_model="precomputed", chunk=args.chunk, overlap=args.overlap, human_model="precomputed")
-            t0 = time.perf_counter()
-            out = stage.run(cfg, work, force=True)
-            secs = time.perf_counter() - t0
-            P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
-            row = {"seed": seed, "inputs": name, "frames": out.figures["frames"], "mono_s": round(secs, 2),
-                   "segments": out.figures["segments"],
-                   "overlap_residual_rel_median": out.figures["overlap_residual_rel_median"],
-                   "scale_mad_rel": out.figures["metric_scale"]["0"]["mad_rel"],
-                   **centre_figures(P, truth["T_scene_cam"][:, :3, 3]),
-                   **{k: v for k, v in mono_metrics(SessionLayout(work), "scene0", "seq0").items() if k.startswith("v1_mono_")}}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-            if name == "noisy":  # the vio ablation on the same session
-                t0 = time.perf_counter()
-                out = stage.run(replace(cfg, scene_model="vio", human_model="prior"), work, force=True)
-                secs = time.perf_counter() - t0
-                P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
-                row = {"seed": seed, "inputs": "vio (phone poses + LiDAR), Stage II prior", "frames": out.figures["frames"],
-                       "mono_s": round(secs, 2), "segments": out.figures["segments"],
-                       "overlap_residual_rel_median": out.figures["overlap_residual_rel_median"],
-                       "body_scale_check": out.figures["metric_scale"]["0"]["scale"],
-                       **centre_figures(P, truth["T_scene_cam"][:, :3, 3]),
-                       **{k: v for k, v in mono_metrics(SessionLayout(work), "scene0", "seq0").items() if k.startswith("v1_mono_")}}
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+            for depth in args.human_depth:
+                rows += _run(stage, mono_metrics, read_mono_cameras, SessionLayout, MonoConfig, args, seed, name, depth,
+                             work, truth)
             shutil.rmtree(work)
     out_path = args.out or args.work / f"bench_mono_{args.seconds:g}s.json"
     out_path.write_text(json.dumps(rows, indent=1))
     print(f"wrote {out_path}")
+
+
+def _run(stage, mono_metrics, read_mono_cameras, SessionLayout, MonoConfig, args, seed, name, depth, work, truth):
+    """mono on ``work`` with ``--human-depth depth`` (and, on the noisy inputs, the vio ablation): rows."""
+    rows = []
+    cfg = MonoConfig(scene_model="precomputed", chunk=args.chunk, overlap=args.overlap, human_model="precomputed",
+                     human_depth=depth)
+    name = f"{name}, human depth {depth}"
+    t0 = time.perf_counter()
+    out = stage.run(cfg, work, force=True)
+    secs = time.perf_counter() - t0
+    P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
+    row = {"seed": seed, "inputs": name, "frames": out.figures["frames"], "mono_s": round(secs, 2),
+           "segments": out.figures["segments"],
+           "overlap_residual_rel_median": out.figures["overlap_residual_rel_median"],
+           "scale_mad_rel": out.figures["metric_scale"]["0"]["mad_rel"],
+           "human_depth": out.figures.get("human_depth"),
+           **centre_figures(P, truth["T_scene_cam"][:, :3, 3]),
+           **{k: v for k, v in mono_metrics(SessionLayout(work), "scene0", "seq0").items() if k.startswith("v1_mono_")}}
+    rows.append(row)
+    print(json.dumps(row), flush=True)
+    if name.startswith("noisy, human"):  # the vio ablation on the same session
+        t0 = time.perf_counter()
+        out = stage.run(replace(cfg, scene_model="vio", human_model="prior"), work, force=True)
+        secs = time.perf_counter() - t0
+        P = read_mono_cameras(out.layout.cameras_world)["T_world_cam"][:, :3, 3]
+        row = {"seed": seed, "inputs": f"vio (phone poses + LiDAR), Stage II prior, human depth {depth}",
+               "frames": out.figures["frames"],
+               "mono_s": round(secs, 2), "segments": out.figures["segments"],
+               "overlap_residual_rel_median": out.figures["overlap_residual_rel_median"],
+               "body_scale_check": out.figures["metric_scale"]["0"]["scale"],
+               **centre_figures(P, truth["T_scene_cam"][:, :3, 3]),
+               **{k: v for k, v in mono_metrics(SessionLayout(work), "scene0", "seq0").items() if k.startswith("v1_mono_")}}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
 
 
 if __name__ == "__main__":

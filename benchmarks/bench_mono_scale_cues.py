@@ -14,6 +14,13 @@ times the combined run's signed similarity scale to the true camera centres).
         --cues combined --copies /work/bench/15/s5b --out /work/bench/15/s5b/combined_20s.json
     OMP_NUM_THREADS=1 nice -n 10 python benchmarks/bench_mono_scale_cues.py --seeds 0 1 2 --seconds 20 --cues feet \\
         --feet-max-speed 0.5 1.0 --feet-max-height 0.08 0.15 --copies /work/bench/15/s5b --out /work/bench/15/s5b/feet_20s.json
+
+``--prior hard`` gives the body the studio's ``hard`` prior ("realistic+shape bias": a per-session
+shape error, height ~3 % off, with a size-consistent depth) on the same scene inputs (copies
+``cues_hard_s<seed>_<seconds>s``; only ``mono_human.npz`` differs, written with the same seed).
+``--human-depth model keypoints`` runs ``mono`` with each ``--human-depth`` (``model`` = the code
+before the keypoint refinement); ``--height oracle`` adds rows that give ``--scale.height-m`` the
+studio's TRUE stature (a simulated oracle: the row's name says so).
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ def main() -> None:
     from embodmocap.mono import stage
     from embodmocap.mono.config import MonoConfig
     from embodmocap.mono.evaluate import mono_metrics
-    from embodmocap.synth.mono_inputs import MonoInputConfig, write_mono_inputs
+    from embodmocap.synth.mono_inputs import PRIOR_PRESETS, MonoInputConfig, write_mono_inputs
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -43,11 +50,18 @@ def main() -> None:
                     help="feet contact speed bound(s) to try (m/s; default: FeetScaleConfig's)")
     ap.add_argument("--feet-max-height", type=float, nargs="+", default=[None],
                     help="feet contact height bound(s) to try (m; default: FeetScaleConfig's)")
+    ap.add_argument("--prior", choices=["realistic", "hard"], default="realistic",
+                    help="the studio's body-prior preset (synth.mono_inputs.PRIOR_PRESETS)")
+    ap.add_argument("--human-depth", nargs="+", default=[None], choices=[None, "model", "keypoints"],
+                    help="MonoConfig.human_depth value(s) to run (default: the config's default)")
+    ap.add_argument("--height", nargs="+", default=["none"], choices=["none", "oracle"],
+                    help="oracle: also give --scale.height-m the studio's true stature (simulated oracle)")
     args = ap.parse_args()
     rows = []
     for seed in args.seeds:
         base = args.work / f"mono_s{seed}_{args.seconds:g}s"
-        work = (args.copies or args.work / "s5") / f"cues_s{seed}_{args.seconds:g}s"
+        tag = "cues" if args.prior == "realistic" else f"cues_{args.prior}"
+        work = (args.copies or args.work / "s5") / f"{tag}_s{seed}_{args.seconds:g}s"
         if not (base / "sequences").is_dir():  # a new seed: the studio session as bench_mono.py makes it
             from embodmocap.sequence import stage as sequence_stage
             from embodmocap.sequence.config import SequenceConfig
@@ -61,17 +75,34 @@ def main() -> None:
             if work.exists():
                 shutil.rmtree(work)
             shutil.copytree(base, work, symlinks=True, ignore=shutil.ignore_patterns("mono"))
-            write_mono_inputs(work, cfg=MonoInputConfig(), seed=100 + seed)
-        variants = [(cue, v, h) for cue in args.cues for v in args.feet_max_speed for h in args.feet_max_height]
-        for cue, max_speed, max_height in variants:
+            write_mono_inputs(work, cfg=MonoInputConfig(prior=PRIOR_PRESETS[args.prior]), seed=100 + seed)
+            (work / "mono_inputs_prior.txt").write_text(args.prior)
+        marker = work / "mono_inputs_prior.txt"
+        if (marker.read_text() if marker.is_file() else "realistic") != args.prior:
+            # a copy of the realistic inputs: the same scene chunks, the body rewritten with this prior
+            write_mono_inputs(work, cfg=MonoInputConfig(prior=PRIOR_PRESETS[args.prior]), seed=100 + seed,
+                              human_only=True)
+            marker.write_text(args.prior)
+        variants = [(cue, v, h, d, o) for cue in args.cues for v in args.feet_max_speed for h in args.feet_max_height
+                    for d in args.human_depth for o in args.height]
+        for cue, max_speed, max_height, depth, height in variants:
             cfg = MonoConfig(scene_model="precomputed", human_model="precomputed")
             feet = cfg.scale.feet
             feet = replace(feet, max_speed=feet.max_speed if max_speed is None else max_speed,
                            max_height=feet.max_height if max_height is None else max_height)
-            out = stage.run(replace(cfg, scale=replace(cfg.scale, cue=cue, feet=feet)), work, force=True)
+            scale = replace(cfg.scale, cue=cue, feet=feet)
+            if height == "oracle":
+                scale = replace(scale, height_m=_true_stature(work))
+            if depth is not None:
+                cfg = replace(cfg, human_depth=depth)
+            out = stage.run(replace(cfg, scale=scale), work, force=True)
             mm = mono_metrics(SessionLayout(work), "scene0", "seq0")
-            row = {"seed": seed, "seconds": args.seconds, "cue": cue, "feet_max_speed": feet.max_speed,
+            name = f"{args.prior} prior, human depth {depth or 'default'}" + (
+                ", oracle height (true stature)" if height == "oracle" else "")
+            row = {"row": name, "prior": args.prior, "human_depth": depth, "height": height,
+                   "seed": seed, "seconds": args.seconds, "cue": cue, "feet_max_speed": feet.max_speed,
                    "feet_max_height": feet.max_height, **out.figures["metric_scale"]["0"],
+                   "human_depth_stats": out.figures.get("human_depth"),
                    "scale_err_pct": mm["v1_mono_scale_err_pct"], "camera_err_cm": mm["v1_mono_camera_err_cm"],
                    "w_mpjpe_mm": mm["v1_mono_w_mpjpe_mm"], "segments": out.figures["segments"]}
             if cue == "combined" and out.figures["segments"] == 1:
@@ -79,6 +110,17 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     args.out.write_text(json.dumps(rows, indent=1))
+
+
+def _true_stature(work: Path) -> float:
+    """The studio performer's true rest-pose height (ground truth: only for the oracle rows)."""
+    import numpy as np
+
+    from embodmocap.body.model import load_body_model
+    from embodmocap.body.stature import stature
+
+    betas = np.load(work / "ground_truth" / "seq_seq0.npz")["betas"]
+    return float(stature(load_body_model(work / "body_model.npz"), betas))
 
 
 def _per_cue_errors(work: Path, out, row: dict) -> dict:

@@ -26,7 +26,11 @@ from embodmocap.synth.mono_inputs import MonoInputConfig, write_mono_inputs
 
 SYNTH = SynthConfig(seed=3, seconds=3.0, scene_seconds=1.0, width=320, height=240, depth_width=64, depth_height=48)
 CHUNK, OVERLAP = 32, 8
-CFG = MonoConfig(scene_model="precomputed", chunk=CHUNK, overlap=OVERLAP, human_model="precomputed")
+# human_depth="model": the exact-recovery tests need the body as the (noise-free) model gives it; the
+# studio's Stage II keypoints carry detector noise, so the keypoint refinement (the default) would
+# move a noise-free body by their error (tests/test_mono_refine.py and the tests at the end cover it).
+CFG = MonoConfig(scene_model="precomputed", chunk=CHUNK, overlap=OVERLAP, human_model="precomputed",
+                 human_depth="model")
 
 
 @pytest.fixture(scope="module")
@@ -254,3 +258,46 @@ def test_evaluate_adds_the_mono_keys(exact):
     for k in ("w_mpjpe_mm", "wa_mpjpe_mm", "rte_pct", "camera_err_cm", "scale_err_pct"):
         assert np.isfinite(res[f"v1_mono_{k}"])
     assert res["v1_mono_reference"] == "ground truth" and "v2_mono_w_mpjpe_mm" not in res
+
+
+def test_keypoint_depth_refinement_on_the_studio(noisy, tmp_path):
+    """``--human-depth keypoints`` (the default) on the noisy studio inputs: the refined body is
+    closer to the truth (W-MPJPE: the prior's depth error dominates it) and the manifest says what
+    the refinement did; the noise-free view's figures (human_depth model) are untouched by it."""
+    from embodmocap.mono.evaluate import mono_metrics
+
+    root, truth, out = noisy
+    lay = SessionLayout(root)
+    before = mono_metrics(lay, SYNTH.scene_name, SYNTH.sequence_name)
+    assert out.figures["human_depth"]["source"] == "model"
+    work = _copy(root, tmp_path / "kp")
+    ref = stage.run(replace(CFG, human_depth="keypoints"), work)
+    assert ref.skipped == ()  # another human_depth: both steps redone (fingerprints)
+    st = ref.figures["human_depth"]
+    T = len(truth["T_scene_cam"])
+    assert st["source"] == "keypoints" and st["frames_refined"] >= 0.8 * T
+    assert st["reproj_px_after_median"] < st["reproj_px_before_median"]
+    assert 0.7 < st["depth_factor_p10"] <= st["depth_factor_median"] <= st["depth_factor_p90"] < 1.4
+    after = mono_metrics(SessionLayout(work), SYNTH.scene_name, SYNTH.sequence_name)
+    assert after["v1_mono_w_mpjpe_mm"] < 0.8 * before["v1_mono_w_mpjpe_mm"]
+    params, _ = read_smpl_npz(ref.layout.smpl_world)
+    assert np.array_equal(params.betas.shape, (10,))
+
+
+def test_missing_keypoints_fall_back_to_the_model_depth_with_a_warning(noisy):
+    """Without a keypoints file (``kp_path`` None: ``mono`` finds no ``<view>/keypoints2d.npz``;
+    Stage II always writes one, so a session without it is refused by the upstream check before
+    this) the camera-space body is the model's, with one warning."""
+    from embodmocap.body.model import load_body_model
+    from embodmocap.mono.roles import PrecomputedHuman
+
+    root, truth, out = noisy
+    lay = SessionLayout(root)
+    cams = read_cameras(lay.sequence(SYNTH.sequence_name).view("v1").cameras)
+    human = PrecomputedHuman(lay.perception(SYNTH.sequence_name, "v1").mono_human)
+    T = cams.num_frames
+    hum, st, warn = stage._camera_body(replace(CFG, human_depth="keypoints"), human, load_body_model(
+        lay.root / "body_model.npz"), cams, None, T)
+    assert len(warn) == 1 and "keypoints2d.npz is missing" in warn[0] and st["source"] == "model"
+    ref = human.estimate(T)
+    assert np.array_equal(hum.transl, ref.transl) and np.array_equal(hum.betas, ref.betas)

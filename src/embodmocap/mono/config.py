@@ -146,6 +146,43 @@ class ScaleConfig:
     drifts over ~0.5 s), and the blocks' medians spread gives the error of their median."""
     feet: FeetScaleConfig = field(default_factory=FeetScaleConfig)
     """Settings of the feet cue."""
+    height_m: float | None = None
+    """The performer's real height (rest-pose stature, metres), if the user knows it: the
+    sequence's one shape is moved along the shape direction that changes stature (the smallest
+    change) until its height matches, before the depth refinement. The body's size is what no
+    image shows (a regressor that thinks the person 3 % smaller places them 3 % nearer), so this
+    is the one input that corrects the metric scale's remaining error. None = the model's shape."""
+
+    def __post_init__(self) -> None:
+        from embodmocap.errors import InputError
+
+        if self.height_m is not None and not 0.5 <= self.height_m <= 2.5:
+            raise InputError(None, f"--scale.height-m {self.height_m}: not a person's height in metres",
+                             "give the performer's height in metres, e.g. --scale.height-m 1.78")
+
+
+@dataclass(frozen=True)
+class DepthRefineConfig:
+    """The camera-space body's translation refined against Stage II's 2D keypoints
+    (:mod:`embodmocap.mono.refine`)."""
+
+    min_conf: float = 0.3
+    """Keypoints below this confidence are not used."""
+    min_keypoints: int = 6
+    """A frame with fewer usable keypoints keeps an interpolated correction (not solved)."""
+    iterations: int = 10
+    """Gauss-Newton / Cauchy re-weighting rounds per frame."""
+    cauchy_rel: float = 0.05
+    """Cauchy scale of the reprojection error, as a share of the person's size in the image: a
+    joint whose pose the regressor got wrong, or a detector outlier, weighs little beyond it."""
+    max_factor: float = 1.5
+    """A frame whose solved depth is more than this factor away from the model's (either way) is
+    not trusted (interpolated from its neighbours)."""
+    median_frames: int = 5
+    """Median filter (frames) over the solved corrections before the smoothing (outlier frames)."""
+    smooth_s: float = 0.1
+    """Gaussian smoothing (sigma, seconds) of the corrections over time: the solve's noise is
+    frame to frame, a regressor's depth error drifts over ~0.5 s."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +196,14 @@ class MonoConfig:
     human_model: HumanModelName = "prior"
     """Camera-space body: ``prior`` (Stage II's body prior) or ``precomputed``
     (``perception/<seq>/<view>/mono_human.npz``)."""
+    human_depth: Literal["keypoints", "model"] = "keypoints"
+    """Where the body's per-frame translation (its depth above all) comes from: ``keypoints``
+    (one shape for the sequence, each frame's translation refined so the body's joints reproject
+    onto Stage II's 2D keypoints, ``<view>/keypoints2d.npz``; without that file the model's depth
+    is used, with a warning) or ``model`` (the human model's own translation, as it is). The
+    refined body feeds the metric scale and ``smpl_world.npz``."""
+    depth_refine: DepthRefineConfig = field(default_factory=DepthRefineConfig)
+    """Settings of ``--human-depth keypoints``."""
     chunk: int = 64
     """Frames per chunk given to the scene model."""
     overlap: int = 16

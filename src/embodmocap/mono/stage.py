@@ -103,7 +103,8 @@ def run(cfg: MonoConfig, session: str | Path, seq: str | None = None, view: str 
     ml = sl.mono(view)
     cams = read_cameras(vl.cameras)
     scene, human, model_inputs = _models(cfg, lay, entry.name, view, cams)
-    inputs = [vl.cameras, vl.masks, *model_inputs]
+    kp_path = vl.keypoints if cfg.human_depth == "keypoints" and vl.keypoints.is_file() else None
+    inputs = [vl.cameras, vl.masks, *([kp_path] if kp_path else []), *model_inputs]
     sm = StageManifest(ml.manifest, "mono", {"view": view, **_plain(cfg)}, inputs=inputs, root=lay.root,
                        upstream=[Upstream(sl.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")])
     label = f"mono {entry.name} {view}"
@@ -111,14 +112,16 @@ def run(cfg: MonoConfig, session: str | Path, seq: str | None = None, view: str 
     fp_in = [path_fingerprint(p) for p in inputs]
     with sm.step("stitch", fingerprint("stitch", cfg, view, fp_in), force=force, label=label) as step:
         if step.run:
-            figs = _stitch_step(cfg, lay, entry, view, cams, scene, human, ml)
+            figs = _stitch_step(cfg, lay, entry, view, cams, scene, human, ml, kp_path)
             step.record([ml.cameras_world, ml.points], figs)
     body_path = manifest.body_model
     with sm.step("body", fingerprint("body", cfg.human_model, fp_in[-1], path_fingerprint(ml.cameras_world),
-                                     path_fingerprint(body_path) if body_path else None),
+                                     path_fingerprint(body_path) if body_path else None,
+                                     cfg.human_depth, cfg.depth_refine, cfg.scale.height_m,
+                                     path_fingerprint(kp_path) if kp_path else None),
                  force=force, label=label) as step:
         if step.run:
-            figs = _body_step(cams, human, ml, body_path, sequence_fps(sl.root))
+            figs = _body_step(cfg, cams, human, ml, body_path, sequence_fps(sl.root), kp_path)
             step.record([ml.smpl_world], figs)
     return MonoOutputs(entry.name, view, ml, sm.figures(), tuple(sm.skipped))
 
@@ -129,8 +132,37 @@ def _plain(cfg: MonoConfig) -> dict:
     return asdict(cfg)
 
 
+def _camera_body(cfg: MonoConfig, human: HumanModel, model, cams, kp_path: Path | None, T: int):
+    """The human model's camera-space body, its depth refined against the 2D keypoints
+    (``--human-depth keypoints``, :mod:`~embodmocap.mono.refine`) and/or its shape set to the
+    user's height. Returns the :class:`~embodmocap.mono.files.HumanSeq`, the refinement's
+    statistics and warnings."""
+    from embodmocap.io.stage_files import read_keypoints2d
+    from embodmocap.mono.refine import refine_human
+
+    hum = human.estimate(T)
+    warnings = []
+    kp, layout = None, "COCO17"
+    if cfg.human_depth == "keypoints":
+        if kp_path is None:
+            warnings.append("--human-depth keypoints: Stage II's keypoints2d.npz is missing for this view: the human "
+                            "model's own depth is used (rerun `embodmocap sequence` with keypoints to refine it)")
+        else:
+            f = read_keypoints2d(kp_path)
+            if len(f.keypoints) != T or (cams.raw_frames is not None
+                                         and not np.array_equal(np.asarray(f.raw_frames), np.asarray(cams.raw_frames))):
+                raise InputError(kp_path, f"its {len(f.keypoints)} rows are not the {T} sequence frames of cameras.npz",
+                                 "rerun `embodmocap sequence` for this sequence so both files come from one run")
+            kp, layout = np.where(np.asarray(f.seen, bool)[:, None, None], np.asarray(f.keypoints, np.float64), 0.0), \
+                str(f.layout)
+    fps = float(cams.fps) if cams.fps is not None and np.isfinite(cams.fps) else 30.0
+    res = refine_human(hum, model, kp, np.asarray(cams.K, dtype=np.float64), fps, cfg.depth_refine,
+                       cfg.scale.height_m, layout)
+    return res.human, res.stats, warnings
+
+
 def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, scene: SceneModel, human: HumanModel,
-                 ml: MonoLayout) -> dict:
+                 ml: MonoLayout, kp_path: Path | None = None) -> dict:
     import torch
 
     from embodmocap.body.model import load_body_model
@@ -144,8 +176,8 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
     T = cams.num_frames
     W_rgb, H_rgb = int(cams.width), int(cams.height)
     K = np.asarray(cams.K, dtype=np.float64)
-    hum = human.estimate(T)
     model = load_body_model(load_manifest(lay.manifest).body_model)
+    hum, depth_stats, depth_warnings = _camera_body(cfg, human, model, cams, kp_path, T)
     if not vl.masks.is_file():
         raise InputError(vl.masks, "the metric scale needs Stage II's person masks",
                          f"give the view masks and rerun `embodmocap sequence {lay.root} --seq {entry.name}`")
@@ -199,7 +231,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             pts_acc.append((segment, P, rgb[vr][:, ur][c]))
 
     res = stitch(scene, plan_chunks(T, cfg.chunk, cfg.overlap), cfg.stitch, visit)
-    warnings = list(res.warnings)
+    warnings = list(res.warnings) + depth_warnings
     n_seg = int(res.segment.max()) + 1
     T_world_cam = np.array(res.T_stitch_cam)
     metric_scale = np.ones(T)
@@ -280,7 +312,7 @@ def _stitch_step(cfg: MonoConfig, lay: SessionLayout, entry, view: str, cams, sc
             "overlap_residual_rel_median": round(float(np.median(res_rel)), 5) if res_rel else None,
             "overlap_residual_rel_max": round(float(np.max(res_rel)), 5) if res_rel else None,
             "metric_scale": scales, "scale_from": "scene model (metric)" if res.metric else "body",
-            "gravity": up_sources, "points": int(len(P)), "warnings": warnings}
+            "gravity": up_sources, "points": int(len(P)), "human_depth": depth_stats, "warnings": warnings}
 
 
 _UNITS = {"body": "body samples", "feet": "feet contact frames", "combined": "cues with enough samples"}
@@ -308,7 +340,8 @@ def _combined(body: dict, feet: dict | None, cfg: MonoConfig) -> dict:
     return out
 
 
-def _body_step(cams, human: HumanModel, ml: MonoLayout, body_path, fps: float) -> dict:
+def _body_step(cfg: MonoConfig, cams, human: HumanModel, ml: MonoLayout, body_path, fps: float,
+               kp_path: Path | None = None) -> dict:
     from embodmocap.body.model import load_body_model
     from embodmocap.io.smpl_file import write_smpl_npz
     from embodmocap.mono.body import world_motion
@@ -316,10 +349,11 @@ def _body_step(cams, human: HumanModel, ml: MonoLayout, body_path, fps: float) -
 
     mc = read_mono_cameras(ml.cameras_world)
     T = len(mc["T_world_cam"])
-    hum = human.estimate(T)
+    model = load_body_model(body_path)
+    hum, _, _ = _camera_body(cfg, human, model, cams, kp_path, T)
     hum = replace(hum, valid=hum.valid & np.isfinite(mc["metric_scale"]))  # unscaled segments: not metric
     try:
-        params, valid = world_motion(hum, mc["T_world_cam"], load_body_model(body_path), fps)
+        params, valid = world_motion(hum, mc["T_world_cam"], model, fps)
     except ValueError as err:
         raise InputError(getattr(human, "path", None), f"{err}", "check the human model's file") from None
     write_smpl_npz(ml.smpl_world, params, frames=np.arange(T), valid=valid)

@@ -38,8 +38,14 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.mesh_file import read_mesh_ply
 from embodmocap.io.stage_files import read_cameras
 from embodmocap.mono.files import HumanSeq, chunk_file_name, plan_chunks, write_chunk, write_human_npz
-from embodmocap.synth.perception import PriorNoiseConfig, body_prior
+from embodmocap.synth.perception import HARD_PRIOR_NOISE, PriorNoiseConfig, body_prior
 from embodmocap.types import SmplParams
+
+#: Named body-prior settings for the studio's camera-space body (benchmarks' ``--prior``):
+#: ``realistic`` (7 deg per joint, depth 10 % off along the ray with 0.5 s correlation, the body's
+#: size unchanged) and ``hard`` ("realistic+shape bias": plus a per-session shape error whose
+#: height is ~3 % off, the depth made size-consistent with it).
+PRIOR_PRESETS: dict[str, PriorNoiseConfig] = {"realistic": PriorNoiseConfig(), "hard": HARD_PRIOR_NOISE}
 
 
 @dataclass(frozen=True)
@@ -67,12 +73,18 @@ class MonoInputConfig:
     holes: int = 2
     """Missing rectangles per frame (confidence 0, junk points), each up to a quarter of the map."""
     prior: PriorNoiseConfig = PriorNoiseConfig()
-    """Errors of the camera-space body (used when ``noise``)."""
+    """Errors of the camera-space body (used when ``noise``); named presets in :data:`PRIOR_PRESETS`
+    (``realistic``, ``hard`` = with a persistent, size-consistent shape error)."""
 
 
 def write_mono_inputs(session: str | Path, seq: str | None = None, view: str = "v1",
-                      cfg: MonoInputConfig = MonoInputConfig(), seed: int = 0) -> dict:
+                      cfg: MonoInputConfig = MonoInputConfig(), seed: int = 0, human_only: bool = False) -> dict:
     """Write ``perception/<seq>/<view>/mono_scene/chunk_*.npz`` and ``mono_human.npz``.
+
+    ``human_only``: write only ``mono_human.npz`` (no ray casting; the chunk files stay as they
+    are). The random draws are the same as a full run's, so with the same seed the body gets the
+    same errors as a full run with this ``cfg`` would give it (e.g. another ``prior`` on the same
+    scene inputs).
 
     Returns the truth the tests need: ``T_scene_cam`` (T, 4, 4) true cameras of the sequence
     frames, ``chunk_similarity`` (list of (4, 4): true scene frame -> chunk frame).
@@ -105,9 +117,9 @@ def write_mono_inputs(session: str | Path, seq: str | None = None, view: str = "
     u = ((np.arange(W) + 0.5) / sx - 0.5 - K[0, 2]) / K[0, 0]
     v = ((np.arange(H) + 0.5) / sy - 0.5 - K[1, 2]) / K[1, 1]
     d_cam = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((H, W))), axis=-1).reshape(-1, 3)
-    z = np.empty((T, H, W))
+    z = np.empty((T, H, W)) if not human_only else np.ones((T, H, W))
     faces = np.asarray(model.faces)
-    for t in range(T):
+    for t in range(T if not human_only else 0):
         R, c = T_sc[t, :3, :3], T_sc[t, :3, 3]
         zs = cast_rays(scene_bvh, c, d_cam @ R.T)["t_hit"]
         zb = cast_rays(raycasting_scene((verts[t] - c) @ R, faces), np.zeros(3), d_cam)["t_hit"]
@@ -117,7 +129,7 @@ def write_mono_inputs(session: str | Path, seq: str | None = None, view: str = "
 
     folder = lay.perception(entry.name, view).mono_scene_dir
     folder.mkdir(parents=True, exist_ok=True)
-    for old in folder.glob("chunk_*.npz"):
+    for old in folder.glob("chunk_*.npz") if not human_only else ():
         old.unlink()
     sims = []
     for a, b in plan_chunks(T, cfg.chunk, cfg.overlap):
@@ -142,7 +154,8 @@ def write_mono_inputs(session: str | Path, seq: str | None = None, view: str = "
                     r0, c0 = rng.integers(0, H - h + 1), rng.integers(0, W - w + 1)
                     conf[i, r0:r0 + h, c0:c0 + w] = 0.0
                     pts[i, r0:r0 + h, c0:c0 + w] = rng.uniform(0.1, 10.0, size=(h, w, 3))
-        write_chunk(folder / chunk_file_name(a), np.arange(a, b), transform_poses(G, poses), s * pts, conf)
+        if not human_only:
+            write_chunk(folder / chunk_file_name(a), np.arange(a, b), transform_poses(G, poses), s * pts, conf)
 
     if cfg.noise:
         prior = body_prior(truth, T_sc, model, rng, cfg.prior, frame_ids=np.arange(T))

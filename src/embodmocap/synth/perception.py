@@ -362,7 +362,20 @@ class PriorNoiseConfig:
     corr_s: float = 0.5
     """Correlation time of all errors, seconds (Gaussian smoothing of white noise): regressors run
     on short windows, so their errors drift slowly rather than jitter."""
+    betas_bias_std: float = 0.0
+    """Std of a per-session constant offset added to every frame's betas (one person, one wrong
+    shape: a real regressor's persistent shape error). The body it believes in is then placed
+    where it looks as large as in the image: the pelvis depth is multiplied by
+    ``stature(betas + offset) / stature(betas)``, so this error cannot be seen in 2D (it is the
+    metric scale error no image can correct). 0 = off (no random draw: the other errors stay the
+    same for a given seed)."""
 
+
+#: The realistic regressor plus a persistent, size-consistent shape error ("realistic+shape bias"):
+#: a per-session betas offset of std 0.52, whose rest-pose height error has a std of 3.0 % on the
+#: studio's body model (20000 draws around a studio performer's shape: std 0.5 gives 2.9 %, 0.8
+#: gives 4.6 %; checked in tests/test_mono_refine.py), the depth scaled with it.
+HARD_PRIOR_NOISE = PriorNoiseConfig(betas_bias_std=0.52)
 
 #: A poor regressor (``embodmocap synth --body-prior poor``): depth 20 % off, 15 degrees per joint.
 POOR_PRIOR_NOISE = PriorNoiseConfig(pose_std_deg=15.0, orient_std_deg=10.0, betas_std=0.6, depth_rel_std=0.2,
@@ -418,7 +431,15 @@ def body_prior(
     go = (Rotation.from_rotvec(d_orient) * Rotation.from_matrix(R_go_c)).as_rotvec()
     pose = Rotation.from_rotvec(d_pose.reshape(-1, 3)) * Rotation.from_rotvec(np.array(params.body_pose).reshape(-1, 3))
     betas_t = betas[None] + d_betas
-    pelvis_noisy = pelvis_c * np.maximum(depth_scale, 0.2)[:, None]
+    size = 1.0
+    if cfg.betas_bias_std > 0:
+        from embodmocap.body.stature import stature
+
+        bias = rng.normal(size=len(betas)) * cfg.betas_bias_std
+        betas_t = betas_t + bias[None]
+        # the body it believes in (its size) placed where it looks as large as in the image
+        size = float(stature(body, betas + bias) / stature(body, betas))
+    pelvis_noisy = pelvis_c * (np.maximum(depth_scale, 0.2) * size)[:, None]
     pelvis_noisy[:, :2] += d_xy
     transl_c = pelvis_noisy - (J0 + betas_t @ dJ0)
     ids = np.arange(T) if frame_ids is None else np.asarray(frame_ids)
