@@ -77,3 +77,35 @@ def test_tables_show_flagged_frames():
     # A row without flags (older results) counts 0 frames and its own W-MPJPE.
     line = next(x for x in md.splitlines() if x.startswith("| monocular |"))
     assert line.rstrip(" |").endswith("0.00 | 30.00"), line
+
+
+def test_tables_are_written_after_every_session(tmp_path):
+    """A long benchmark stopped early keeps the rows it finished: benchmark.json and .md hold
+    every session done so far when the next one starts (a failed seed is a row too)."""
+    import json
+    import logging
+
+    from embodmocap.evaluate.benchmark import BenchmarkConfig, run_benchmark
+
+    seen: list[int] = []
+
+    class AtEachSession(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.getMessage().startswith("benchmark seed"):
+                seen.append(len(json.loads((tmp_path / "benchmark.json").read_text())["rows"]))
+
+    handler = AtEachSession(logging.INFO)
+    logger = logging.getLogger("embodmocap.evaluate.benchmark")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        # seconds = 0 is refused by the studio at once, so each seed fails fast with a clear error.
+        result = run_benchmark(tmp_path, BenchmarkConfig(seeds=3, seconds=0.0, ablation=False))
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    assert seen == [1, 2, 3]
+    assert [r["seed"] for r in result["rows"]] == [0, 1, 2]
+    assert all("seconds and scene_seconds must be > 0" in r["error"] for r in result["rows"])
+    assert "Seeds: 0 of 3 succeeded" in (tmp_path / "benchmark.md").read_text()

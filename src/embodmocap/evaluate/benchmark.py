@@ -114,7 +114,13 @@ def run_benchmark(out: str | Path, cfg: BenchmarkConfig = BenchmarkConfig()) -> 
                 row = {"seed": seed, "preset": preset, "perception": perception, "error": f"{type(err).__name__}: {err}"}
             row["seconds"] = round(time.perf_counter() - t0, 1)
             rows.append(row)
+            # The tables so far after every session: a long run stopped early still leaves its rows.
+            _write_tables(out, cfg, rows)
             log.info("benchmark seed %d (%s, %s) done in %.0f s", seed, preset, perception, row["seconds"])
+    return _write_tables(out, cfg, rows)
+
+
+def _write_tables(out: Path, cfg: BenchmarkConfig, rows: list[dict]) -> dict:
     result = {"version": 1, "config": cfg.__dict__, "rows": rows}
     write_json(out / "benchmark.json", result)
     write_text(out / "benchmark.md", tables_markdown(rows))
