@@ -56,8 +56,9 @@ ABLATIONS = ("no_track", "no_chamfer", "no_reproj", "no_smooth", "no_kp3d", "all
 _ERR_KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500", "w_mpjpe_mm_c1000",
              "wa_mpjpe_mm_c1000", "rte_pct")
 # The frames the dual fit flagged unplaceable (left out of the figures above, as `evaluate` does) and
-# W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged).
-_FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid")
+# W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged); and
+# the error in the session's world with no alignment (:func:`scored`; not for the mono rows).
+_FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid", "world_mpjpe_mm")
 _QUALITY_KEYS = ("mask_iou_pct", "reproj_err_px", "depth_err_m2", "jitter", "w_mpjpe_mm")
 
 
@@ -149,22 +150,22 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     # is scored on the same frames, so the rows compare like with like.
     dual_params, frames = ctx.final_params()
     dual_valid = ctx.final_valid()
-    methods["dual"] = motion_errors(ctx.joints(dual_params), frames, truth, dual_valid)
+    methods["dual"] = scored(ctx.joints(dual_params), frames, truth, dual_valid)
     # Monocular: v1's prior through v1's calibrated cameras.
     mono = ctx.prior_in_world("v1", ctx.cameras("v1"))
-    methods["monocular"] = motion_errors(ctx.joints(mono), np.arange(len(mono)), truth,
-                                         same_frames(frames, dual_valid, len(mono)))
+    methods["monocular"] = scored(ctx.joints(mono), np.arange(len(mono)), truth,
+                                  same_frames(frames, dual_valid, len(mono)))
     for v in VIEWS:
         cams = ctx.single_view_cameras(v)
         params = ctx.fit(single_view=v, cameras={v: cams})
-        methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth,
-                                               same_frames(frames, dual_valid, len(params)))
+        methods[f"single_{v}"] = scored(ctx.joints(params), np.arange(len(params)), truth,
+                                        same_frames(frames, dual_valid, len(params)))
     for name in MONO_METHODS:
         methods[name] = mono_errors(session, seq, name.split("_", 1)[1], truth, frames, dual_valid, ctx)
     result = {"methods": methods}
     if cfg.fit_without_prior:
         params, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
-        result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth, valid)}
+        result["methods_no_prior"] = {"dual": scored(ctx.joints(params), np.arange(len(params)), truth, valid)}
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -175,6 +176,22 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
             ablation[name] = {k: q.get(k) for k in _QUALITY_KEYS}
         result["ablation"] = ablation
     return result
+
+
+def scored(joints: np.ndarray, frames: np.ndarray, truth, valid: np.ndarray | None = None) -> dict:
+    """:func:`~embodmocap.evaluate.session.motion_errors` plus ``world_mpjpe_mm``: the mean joint
+    error in the session's own world (Stage I's, where the truth is expressed) with no alignment at
+    all, on the same frames. W-MPJPE re-anchors each chunk on its first two frames, so a few mm of
+    pose error in those two frames turns the whole chunk (W-MPJPE at chunk 1000 of a 6 s session
+    is set by two frames); the unaligned error says how far the output really is from the truth.
+    joints: (T, 24, 3) at sequence ``frames`` (T,); ``valid`` (T,) bool as motion_errors."""
+    from embodmocap.evaluate.session import motion_errors
+
+    out = motion_errors(joints, frames, truth, valid)
+    ok = truth.valid[frames] & (np.ones(len(frames), dtype=bool) if valid is None else np.asarray(valid, dtype=bool))
+    err = np.linalg.norm(np.asarray(joints)[ok] - truth.joints[frames][ok], axis=-1)
+    out["world_mpjpe_mm"] = round(1000 * float(err.mean()), 2) if err.size else float("nan")
+    return out
 
 
 def mono_errors(session: Path, seq: str, scene_model: str, truth, frames: np.ndarray, dual_valid: np.ndarray,
@@ -373,6 +390,8 @@ def _err(x: dict, k: str) -> float:
     invalid frames, and W-MPJPE with the flagged frames kept is W-MPJPE when none was flagged."""
     if k == "w_mpjpe_mm_incl_invalid":
         return x.get(k, x["w_mpjpe_mm"])
+    if k == "world_mpjpe_mm":  # rows written before it was scored (and the mono rows) have none
+        return x.get(k, float("nan"))
     return x.get(k, 0) if k == "invalid_frames" else x[k]
 
 
