@@ -257,10 +257,11 @@ class _Context:
     def _T(self) -> int:
         return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
 
-    def _priors(self, min_fraction: float) -> dict:
+    def _priors(self, min_fraction: float, T: int | None = None) -> dict:
         from embodmocap.io.body_prior import body_priors_by_frame
 
-        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T(), min_fraction, self.seq)
+        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T() if T is None else T,
+                                    min_fraction, self.seq)
 
     def prior_in_world(self, v: str, T_world_cam: np.ndarray):
         from embodmocap.motion.init import init_from_prior
@@ -333,8 +334,15 @@ class _Context:
         kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
         cams = {v: {"K": read_cameras(self.sl.view(v).cameras).K, "T_world_cam": cameras[v]} for v in views}
         if not single_view:
+            from embodmocap.sequence.subframe import synced_views
+
+            # As Stage IV: view 2's keypoints and cameras resampled at view 1's instants (the
+            # sub-frame sync of sync.json), so a variant differs from the pipeline only in its term.
+            kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints for v in views}
+            cams, kps = synced_views(self.sl, cams, kps)
+            T = min(len(kps[v]) for v in VIEWS)
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
-            priors = self._priors(mcfg.min_prior_fraction) if prior else {}
+            priors = self._priors(mcfg.min_prior_fraction, T) if prior else {}
             fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
             return (fitted.params, fitted.valid) if flagged else fitted.params
         if not prior:
