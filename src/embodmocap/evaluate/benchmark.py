@@ -56,8 +56,9 @@ ABLATIONS = ("no_track", "no_chamfer", "no_reproj", "no_smooth", "no_kp3d", "all
 _ERR_KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500", "w_mpjpe_mm_c1000",
              "wa_mpjpe_mm_c1000", "rte_pct")
 # The frames the dual fit flagged unplaceable (left out of the figures above, as `evaluate` does) and
-# W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged).
-_FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid")
+# W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged); and
+# the error in the session's world with no alignment (:func:`scored`; not for the mono rows).
+_FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid", "world_mpjpe_mm")
 _QUALITY_KEYS = ("mask_iou_pct", "reproj_err_px", "depth_err_m2", "jitter", "w_mpjpe_mm")
 
 
@@ -114,7 +115,13 @@ def run_benchmark(out: str | Path, cfg: BenchmarkConfig = BenchmarkConfig()) -> 
                 row = {"seed": seed, "preset": preset, "perception": perception, "error": f"{type(err).__name__}: {err}"}
             row["seconds"] = round(time.perf_counter() - t0, 1)
             rows.append(row)
+            # The tables so far after every session: a long run stopped early still leaves its rows.
+            _write_tables(out, cfg, rows)
             log.info("benchmark seed %d (%s, %s) done in %.0f s", seed, preset, perception, row["seconds"])
+    return _write_tables(out, cfg, rows)
+
+
+def _write_tables(out: Path, cfg: BenchmarkConfig, rows: list[dict]) -> dict:
     result = {"version": 1, "config": cfg.__dict__, "rows": rows}
     write_json(out / "benchmark.json", result)
     write_text(out / "benchmark.md", tables_markdown(rows))
@@ -143,22 +150,22 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     # is scored on the same frames, so the rows compare like with like.
     dual_params, frames = ctx.final_params()
     dual_valid = ctx.final_valid()
-    methods["dual"] = motion_errors(ctx.joints(dual_params), frames, truth, dual_valid)
+    methods["dual"] = scored(ctx.joints(dual_params), frames, truth, dual_valid)
     # Monocular: v1's prior through v1's calibrated cameras.
     mono = ctx.prior_in_world("v1", ctx.cameras("v1"))
-    methods["monocular"] = motion_errors(ctx.joints(mono), np.arange(len(mono)), truth,
-                                         same_frames(frames, dual_valid, len(mono)))
+    methods["monocular"] = scored(ctx.joints(mono), np.arange(len(mono)), truth,
+                                  same_frames(frames, dual_valid, len(mono)))
     for v in VIEWS:
         cams = ctx.single_view_cameras(v)
         params = ctx.fit(single_view=v, cameras={v: cams})
-        methods[f"single_{v}"] = motion_errors(ctx.joints(params), np.arange(len(params)), truth,
-                                               same_frames(frames, dual_valid, len(params)))
+        methods[f"single_{v}"] = scored(ctx.joints(params), np.arange(len(params)), truth,
+                                        same_frames(frames, dual_valid, len(params)))
     for name in MONO_METHODS:
         methods[name] = mono_errors(session, seq, name.split("_", 1)[1], truth, frames, dual_valid, ctx)
     result = {"methods": methods}
     if cfg.fit_without_prior:
         params, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
-        result["methods_no_prior"] = {"dual": motion_errors(ctx.joints(params), np.arange(len(params)), truth, valid)}
+        result["methods_no_prior"] = {"dual": scored(ctx.joints(params), np.arange(len(params)), truth, valid)}
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -169,6 +176,22 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
             ablation[name] = {k: q.get(k) for k in _QUALITY_KEYS}
         result["ablation"] = ablation
     return result
+
+
+def scored(joints: np.ndarray, frames: np.ndarray, truth, valid: np.ndarray | None = None) -> dict:
+    """:func:`~embodmocap.evaluate.session.motion_errors` plus ``world_mpjpe_mm``: the mean joint
+    error in the session's own world (Stage I's, where the truth is expressed) with no alignment at
+    all, on the same frames. W-MPJPE re-anchors each chunk on its first two frames, so a few mm of
+    pose error in those two frames turns the whole chunk (W-MPJPE at chunk 1000 of a 6 s session
+    is set by two frames); the unaligned error says how far the output really is from the truth.
+    joints: (T, 24, 3) at sequence ``frames`` (T,); ``valid`` (T,) bool as motion_errors."""
+    from embodmocap.evaluate.session import motion_errors
+
+    out = motion_errors(joints, frames, truth, valid)
+    ok = truth.valid[frames] & (np.ones(len(frames), dtype=bool) if valid is None else np.asarray(valid, dtype=bool))
+    err = np.linalg.norm(np.asarray(joints)[ok] - truth.joints[frames][ok], axis=-1)
+    out["world_mpjpe_mm"] = round(1000 * float(err.mean()), 2) if err.size else float("nan")
+    return out
 
 
 def mono_errors(session: Path, seq: str, scene_model: str, truth, frames: np.ndarray, dual_valid: np.ndarray,
@@ -234,10 +257,11 @@ class _Context:
     def _T(self) -> int:
         return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
 
-    def _priors(self, min_fraction: float) -> dict:
+    def _priors(self, min_fraction: float, T: int | None = None) -> dict:
         from embodmocap.io.body_prior import body_priors_by_frame
 
-        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T(), min_fraction, self.seq)
+        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T() if T is None else T,
+                                    min_fraction, self.seq)
 
     def prior_in_world(self, v: str, T_world_cam: np.ndarray):
         from embodmocap.motion.init import init_from_prior
@@ -310,8 +334,15 @@ class _Context:
         kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
         cams = {v: {"K": read_cameras(self.sl.view(v).cameras).K, "T_world_cam": cameras[v]} for v in views}
         if not single_view:
+            from embodmocap.sequence.subframe import synced_views
+
+            # As Stage IV: view 2's keypoints and cameras resampled at view 1's instants (the
+            # sub-frame sync of sync.json), so a variant differs from the pipeline only in its term.
+            kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints for v in views}
+            cams, kps = synced_views(self.sl, cams, kps)
+            T = min(len(kps[v]) for v in VIEWS)
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
-            priors = self._priors(mcfg.min_prior_fraction) if prior else {}
+            priors = self._priors(mcfg.min_prior_fraction, T) if prior else {}
             fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
             return (fitted.params, fitted.valid) if flagged else fitted.params
         if not prior:
@@ -367,6 +398,8 @@ def _err(x: dict, k: str) -> float:
     invalid frames, and W-MPJPE with the flagged frames kept is W-MPJPE when none was flagged."""
     if k == "w_mpjpe_mm_incl_invalid":
         return x.get(k, x["w_mpjpe_mm"])
+    if k == "world_mpjpe_mm":  # rows written before it was scored (and the mono rows) have none
+        return x.get(k, float("nan"))
     return x.get(k, 0) if k == "invalid_frames" else x[k]
 
 
