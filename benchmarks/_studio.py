@@ -1,6 +1,7 @@
 """Studio preset names shared by the benchmarks: ``indoor``, ``outdoor``, the harder indoor rooms
 (``large``, ``high_ceiling``, ``low_texture``, ``repetitive``), each optionally with ``+light`` (the
-sequence filmed under other light than the scene scan), e.g. ``large+light``."""
+sequence filmed under other light than the scene scan), e.g. ``large+light``, and ``+outward`` (the
+scene scan before session 6, looking only outwards: ``SynthConfig.scan_turns_per_lap=0``)."""
 
 from __future__ import annotations
 
@@ -13,13 +14,14 @@ def synth_config(seed: int, preset: str, seconds: float, scene_seconds: float):
     """The :class:`SynthConfig` of a benchmark preset name."""
     from embodmocap.synth.config import SynthConfig
 
-    name, _, extra = preset.partition("+")
-    if extra not in ("", "light"):
-        raise ValueError(f"unknown preset modifier {extra!r} in {preset!r} (only '+light')")
+    name, *extra = preset.split("+")
+    if set(extra) - {"light", "outward"}:
+        raise ValueError(f"unknown preset modifier in {preset!r} (only '+light', '+outward')")
     room = name if name in ROOMS else "standard"
     kind = "indoor" if name in ROOMS else name
-    return SynthConfig(seed=seed, preset=kind, room=room, lighting_change=extra == "light",
-                       seconds=seconds, scene_seconds=scene_seconds)
+    # "+outward": the scene scan of before session 6, which only looks outwards at the walls.
+    return SynthConfig(seed=seed, preset=kind, room=room, lighting_change="light" in extra,
+                       seconds=seconds, scene_seconds=scene_seconds, scan_turns_per_lap=0.0 if "outward" in extra else 1.0)
 
 
 def ensure_session(path: Path, seed: int, preset: str, seconds: float, scene_seconds: float) -> Path:

@@ -22,7 +22,8 @@ completeness and accuracy relative to it (completeness of both over the true sur
 frames see within 5 m). With ``--plain``, ``--old-src DIR`` also runs the key-frame + mesh steps of another checkout
 (e.g. the code before issue 13) on the same capture, in a child process, for a before/after row.
 ``--zip`` pairs ``--presets`` and ``--seeds`` one to one (preset names: benchmarks/_studio.py).
-``--old-stage`` times the whole stage of ``--old-src`` too (a hard-linked copy of the session), in
+``--floor`` (session 6, scans that look at the floor) adds the walk area's floor seen by the scan
+and kept in the Stage I meshes (:func:`walk_area_floor`). ``--old-stage`` times the whole stage of ``--old-src`` too (a hard-linked copy of the session), in
 the same run, for the time ratio. ``--eval-only`` measures the Stage I outputs already in each
 session (e.g. written by bench_calibrate.py's run of the stage) without running the stage, and
 reuses a ``plain_tsdf.ply`` / ``old_mesh.ply`` already there (same capture, same reference).
@@ -120,6 +121,44 @@ def plain_tsdf(session: Path, out: Path) -> dict:
     return {"fused_frames": int(len(traj)), "seconds": time.perf_counter() - t0}
 
 
+def walk_area_floor(session: Path) -> dict:
+    """Issue "scans that look at the floor" (session 6): how much of the walk area's floor (where
+    the performer walks; 5 cm grid on z = 0) the scan saw and Stage I kept, in percent:
+    ``floor_frustum_pct`` inside the depth frustum of some scan frame (true poses, every 3rd frame,
+    67 deg x 4:3, 5 m, occlusion ignored); ``floor_mesh_pct`` / ``floor_simplified_pct`` within
+    5 cm of a vertex of ``mesh_raw.ply`` / ``mesh_simplified.ply`` (through the true ``T_scene_vio``)."""
+    from scipy.spatial import cKDTree
+
+    from embodmocap.geometry.transforms import apply_T
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.scene import build_scene
+    from embodmocap.synth.studio import _rng
+
+    lay = SessionLayout(session)
+    info = json.loads(lay.ground_truth.info.read_text())
+    c = info["config"]
+    spec = build_scene(c["preset"], _rng(int(c["seed"]), 1), c.get("room", "standard")).spec
+    lo, hi = np.asarray(spec.walk_area_min_xy, float), np.asarray(spec.walk_area_max_xy, float)
+    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.05), np.arange(lo[1], hi[1], 0.05), indexing="ij"), -1)
+    P = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
+    dev = np.load(lay.ground_truth.scene_device("scene0"))
+    tx = np.tan(np.radians(SynthConfig().hfov_deg / 2))
+    seen = np.zeros(len(P), bool)
+    for Tk in dev["T_scene_cam"][::3]:
+        pc = (P - Tk[:3, 3]) @ Tk[:3, :3]
+        z = pc[:, 2]
+        seen |= (z > 0.05) & (z < 5.0) & (np.abs(pc[:, 0]) < tx * z) & (np.abs(pc[:, 1]) < 0.75 * tx * z)
+    out = {"floor_frustum_pct": round(100 * float(seen.mean()), 1)}
+    for key, path in (("floor_mesh_pct", lay.scene("scene0").mesh_raw), ("floor_simplified_pct", lay.scene("scene0").mesh_simplified)):
+        if path.is_file():
+            v, _, _ = read_mesh_ply(path)
+            d, _ = cKDTree(apply_T(dev["T_scene_vio"], v)).query(P, distance_upper_bound=0.05)
+            out[key] = round(100 * float(np.isfinite(d).mean()), 1)
+    return out
+
+
 def evaluate(session: Path) -> dict:
     import trimesh
 
@@ -175,6 +214,8 @@ def evaluate(session: Path) -> dict:
             if OLD_SRC:
                 extra["old_completeness_vs_plain_pct"] = round(100 * extra["old_all_completeness_pct"]
                                                                / max(extra["plain_all_completeness_pct"], 1e-9), 2)
+    if FLOOR:
+        extra.update(walk_area_floor(session))
     by_frame = {int(i): T for i, T in zip(kf["frame_ids"], kf["T_world_cam"])}
     pose_change = max(float(np.abs(invert_T(by_frame[int(Path(n).stem.split("_")[1])]) @ T - np.eye(4)).max())
                       for n, T in image_poses(out.sfm_dir).items())
@@ -205,9 +246,11 @@ def main() -> None:
     ap.add_argument("--old-stage", action="store_true", help="time the whole stage of --old-src too (same run)")
     ap.add_argument("--eval-only", action="store_true",
                     help="measure the Stage I outputs already in the sessions (no synthesis, no stage run)")
+    ap.add_argument("--floor", action="store_true",
+                    help="also measure the walk area's floor in the scan's frustums and in the Stage I meshes")
     args = ap.parse_args()
-    global PLAIN, OLD_SRC, EVAL_ONLY
-    PLAIN, OLD_SRC, EVAL_ONLY = args.plain, args.old_src, args.eval_only
+    global PLAIN, OLD_SRC, EVAL_ONLY, FLOOR
+    PLAIN, OLD_SRC, EVAL_ONLY, FLOOR = args.plain, args.old_src, args.eval_only, args.floor
     pairs = list(zip(args.presets, args.seeds)) if args.zip else [(p, s) for p in args.presets for s in args.seeds]
     rows = []
     for preset, seed in pairs:
@@ -244,7 +287,7 @@ def main() -> None:
                         "--json", str(args.out / "bench_tsdf.json")], check=True)
 
 
-PLAIN, OLD_SRC, EVAL_ONLY = False, None, False
+PLAIN, OLD_SRC, EVAL_ONLY, FLOOR = False, None, False, False
 
 if __name__ == "__main__":
     main()

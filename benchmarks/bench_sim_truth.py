@@ -5,9 +5,9 @@ without rendering a session (fast; the studio's own random draws, so the same mo
 1. ``sim check`` figures of the true motion (7.2 s at 30 fps: the 6 s sequence plus the studio's
    lead and tail) in the true scene mesh, per seed: target penetration and floating < 1 cm.
 2. Fraction of the walk area's floor (5 cm grid) inside the depth frustum (hfov 67 deg, 4:3,
-   range 5 m; occlusion ignored) of some frame of the 15 s empty-scene scan, with the scan's look
-   back at the floor (default) and without it (``SceneWalkConfig(glance_every_s=0)``: exactly the
-   earlier outward-only scan).
+   range 5 m; occlusion ignored) of some frame of the 15 s empty-scene scan: the default scan
+   (session 6: turning in across the walk area), session 5's stop-and-turn glance, and the earlier
+   outward-only scan (``SceneWalkConfig(turns_per_lap=0)``).
 
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_sim_truth.py --seeds 0 1 2 3 4 \\
         --json /work/bench/16/s5/bench_sim_truth.json
@@ -66,7 +66,11 @@ def coverage_row(seed: int) -> dict:
 
     spec = build_scene("indoor", np.random.default_rng([seed, 1]), "standard").spec
     out = {"seed": seed}
-    for name, cfg in (("with_glance", tr.SceneWalkConfig()), ("outward_only", tr.SceneWalkConfig(glance_every_s=0.0))):
+    # Session 6: the default scan turns in across the walk area while walking (turns_per_lap=1);
+    # "with_glance" is session 5's stop-and-turn glance on the outward scan.
+    for name, cfg in (("default", tr.SceneWalkConfig()),
+                      ("with_glance", tr.SceneWalkConfig(glance_every_s=15.0, turns_per_lap=0.0)),
+                      ("outward_only", tr.SceneWalkConfig(turns_per_lap=0.0))):
         T = tr.scene_walk(spec, 15.0, 30.0, np.random.default_rng([seed, 5]), cfg)
         out[name] = floor_coverage(spec, T)
     return out

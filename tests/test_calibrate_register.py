@@ -280,3 +280,25 @@ def test_building_the_index_leaves_stage_one_files_untouched(session, tmp_path):
         for image_id in (1, 2, 3):
             np.testing.assert_array_equal(read(image_id), np.asarray(db.read_keypoints(image_id)))
     assert snapshot() == before
+
+
+def test_scene_mesh_has_the_walk_area_floor(session):
+    """The studio's default scan (session 6) looks in across the walk area as well as out at the
+    walls: Stage I's mesh of this same 15 s scan (whose view frames register above) has the floor
+    where the performer walks. The outward-only scan left 0.5-19 % of it (5 cm grid points within
+    5 cm of a mesh vertex, in the true scene frame)."""
+    from scipy.spatial import cKDTree
+
+    from embodmocap.geometry.transforms import apply_T
+    from embodmocap.scene.mesh import read_mesh_ply
+    from embodmocap.synth.scene import build_scene
+
+    lay = SessionLayout(session)
+    spec = build_scene(SYNTH.preset, np.random.default_rng([SYNTH.seed, 1]), SYNTH.room).spec
+    lo, hi = np.asarray(spec.walk_area_min_xy), np.asarray(spec.walk_area_max_xy)
+    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.05), np.arange(lo[1], hi[1], 0.05), indexing="ij"), -1)
+    floor = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
+    T_scene_vio = np.load(lay.ground_truth.scene_device("scene0"))["T_scene_vio"]
+    v, _, _ = read_mesh_ply(lay.scene("scene0").mesh_raw)
+    d, _ = cKDTree(apply_T(T_scene_vio, v)).query(floor, distance_upper_bound=0.05)
+    assert np.isfinite(d).mean() > 0.6

@@ -41,10 +41,10 @@ NUM_FRAMES = 24
 def keyframes():
     """24 rendered key frames along a 14 s walk around a furnished room, with the room's mesh."""
     built = build_scene("indoor", np.random.default_rng(21))
-    # The outward-looking walk without the look back at the floor (glances): 24 key frames of walls
+    # The outward-looking walk (no glances, no turning in across the room): 24 key frames of walls
     # and furniture, as this test was written for.
     T_all = trajectory.scene_walk(built.spec, 14.0, 30.0, np.random.default_rng(21),
-                                  trajectory.SceneWalkConfig(glance_every_s=0.0))
+                                  trajectory.SceneWalkConfig(glance_every_s=0.0, turns_per_lap=0.0))
     T = T_all[np.linspace(0, len(T_all) - 1, NUM_FRAMES).round().astype(int)]
     renderer = Renderer(built)
     images = [(f"kf_{k:03d}", renderer.render(K, T[k]).rgb) for k in range(NUM_FRAMES)]

@@ -174,6 +174,26 @@ def test_confidence_weights_are_exact_shares_of_the_frames():
     assert np.array_equal(weigh_by_confidence(depth, conf, np.ones(3), 7), depth)
 
 
+def test_range_weight_is_the_inverse_square_share_beyond_the_range():
+    """``depth_weight_range_m``: a pixel beyond the range is fused in ``(range / depth)^2`` of the
+    frames (times its confidence weight); nearer pixels and invalid ones are unchanged; off (0)
+    is the confidence weighting alone."""
+    from embodmocap.scene.depth import weigh_by_confidence
+
+    depth = np.array([[1.0, 2.0, 4.0, 0.0], [1.0, 2.0, 4.0, 5.0]], np.float32)
+    conf = np.array([[2, 2, 2, 2], [0, 0, 0, 1]])
+    w = np.array([0.25, 0.5, 1.0])
+    kept = np.stack([weigh_by_confidence(depth, conf, w, n, range_m=2.0) > 0 for n in range(400)])
+    expect = np.array([[1.0, 1.0, 0.25, 0.0], [0.25, 0.25, 0.0625, 0.5 * 0.16]])
+    np.testing.assert_allclose(kept.mean(axis=0), expect, atol=1 / 400)
+    # No confidence map: the range alone.
+    alone = np.stack([weigh_by_confidence(depth, None, w, n, range_m=2.0) > 0 for n in range(400)]).mean(axis=0)
+    np.testing.assert_allclose(alone[0], [1.0, 1.0, 0.25, 0.0], atol=1 / 400)
+    np.testing.assert_array_equal(weigh_by_confidence(depth, None, w, 3), depth)
+    np.testing.assert_array_equal(weigh_by_confidence(depth, conf, w, 5, range_m=0.0),
+                                  weigh_by_confidence(depth, conf, w, 5))
+
+
 def test_prefetch_keeps_order_and_raises_where_the_reader_failed():
     from embodmocap.scene.depth import prefetch
 

@@ -70,6 +70,10 @@ class SceneConfig:
     confidence and are down-weighted (``confidence_weights``) rather than cut."""
     depth_trunc_m_outdoor: float = 5.0
     """Outdoor: as ``depth_trunc_m_indoor``."""
+    depth_weight_range_m: float = 0.0
+    """Depth (metres) beyond which a pixel's fusion weight (its share of the fused frames, times
+    its confidence weight) falls as ``(range / depth)^2``: LiDAR noise grows with range, and a
+    scan that looks across the room sees near surfaces from far too. 0 = off."""
     depth_refine: Literal["none", "promptda"] = "none"
     """Learned depth refinement backend: ``"none"`` (confidence-filtered LiDAR depth) or
     ``"promptda"`` (Prompt Depth Anything through transformers; needs ``depth_refine_model``)."""
@@ -140,6 +144,7 @@ class SceneConfig:
             (self.fuse_step_m >= 0 and self.fuse_step_deg >= 0, "fuse steps must be >= 0"),
             (self.structure_min_extent_m >= 0, "structure_min_extent_m must be >= 0"),
             (self.depth_trunc_m_indoor > 0 and self.depth_trunc_m_outdoor > 0, "depth truncation must be > 0"),
+            (self.depth_weight_range_m >= 0, "depth_weight_range_m must be >= 0 (0 = off)"),
             (self.depth_refine in ("none", "promptda"), "depth_refine must be 'none' or 'promptda'"),
             (self.voxel_m_indoor > 0 and self.voxel_m_outdoor > 0, "voxel sizes must be > 0"),
             (self.sdf_trunc_voxels >= 1, "sdf_trunc_voxels must be >= 1"),

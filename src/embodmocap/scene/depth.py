@@ -149,26 +149,37 @@ def prefetch(items: Iterator, depth: int = 6) -> Iterator:
         th.join(timeout=5)
 
 
-def weigh_by_confidence(depth: NDArray[np.float32], confidence: NDArray, weights: NDArray, n: int) -> NDArray[np.float32]:
-    """Depth of the ``n``-th fused frame with the pixels whose confidence is not due this frame set
-    to 0.
+def weigh_by_confidence(depth: NDArray[np.float32], confidence: NDArray | None, weights: NDArray, n: int,
+                        range_m: float = 0.0) -> NDArray[np.float32]:
+    """Depth of the ``n``-th fused frame with the pixels that are not due this frame set to 0.
 
-    The TSDF weighs every observation 1, so a confidence weight ``w`` is applied as a share of
-    frames: pixels of confidence ``c`` are fused in frame ``n`` when ``floor((n + 1) w_c) >
-    floor(n w_c)``, i.e. in exactly ``w_c`` of the frames, evenly spread (no randomness). Weight 1
-    keeps them in every frame.
+    The TSDF weighs every observation 1, so a pixel's weight ``w`` is applied as a share of
+    frames: it is fused in frame ``n`` when ``floor((n + 1) w) > floor(n w)``, i.e. in exactly
+    ``w`` of the frames, evenly spread (no randomness). Weight 1 keeps it in every frame. ``w`` is
+    the weight of its confidence level, times ``min(1, (range_m / depth)^2)`` when ``range_m`` > 0:
+    LiDAR noise grows with range, so a surface seen both from near and from across the room is
+    fused mostly from the near views (a surface seen only from far still gets fused).
 
     Args:
         depth: (h, w) filtered depth, 0 = invalid.
-        confidence: (h, w) integer confidence 0, 1, 2.
+        confidence: (h, w) integer confidence 0, 1, 2, or None (every pixel weighs 1 before range).
         weights: (3,) weight per confidence level, in (0, 1].
         n: index of the frame among the fused frames.
+        range_m: depth (metres) beyond which the weight falls as the inverse square; 0 = off.
     """
-    due = np.floor((n + 1) * weights) > np.floor(n * weights)  # (3,) which levels fuse this frame
-    if due.all():
-        return depth
-    c = np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)
-    return np.where(due[c], depth, np.float32(0.0)).astype(np.float32)
+    if range_m <= 0:
+        if confidence is None:
+            return depth
+        due = np.floor((n + 1) * weights) > np.floor(n * weights)  # (3,) which levels fuse this frame
+        if due.all():
+            return depth
+        c = np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)
+        return np.where(due[c], depth, np.float32(0.0)).astype(np.float32)
+    w = np.ones(depth.shape) if confidence is None else weights[np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)]
+    with np.errstate(divide="ignore"):
+        w = w * np.minimum(1.0, (range_m / np.where(depth > 0, depth, np.inf)) ** 2)
+    due = np.floor((n + 1) * w) > np.floor(n * w)
+    return np.where(due, depth, np.float32(0.0)).astype(np.float32)
 
 
 def check_depth(capture: Capture, cfg: SceneConfig, indoor: bool, samples: int = 30) -> float:
@@ -230,8 +241,8 @@ def fusion_frames(capture: Capture, frame_ids: Sequence[int], T_world_cam: NDArr
         stats.add(raw, conf, depth, cfg.min_confidence)
         if stats.per_frame_kept[-1] < cfg.fuse_min_valid_fraction * depth.size:
             continue  # (the colour is decoded only for frames that are fused)
-        if conf is not None:
-            depth = weigh_by_confidence(depth, conf, weights, stats.fused_frames)
+        if conf is not None or cfg.depth_weight_range_m > 0:
+            depth = weigh_by_confidence(depth, conf, weights, stats.fused_frames, cfg.depth_weight_range_m)
         stats.fused_frames += 1
         stats.fused += int((depth > 0).sum())
         rgb = capture.frames.rgb(f) if rgb is None else rgb

@@ -82,6 +82,11 @@ class SynthConfig:
     """Length of the performance after the sync event, seconds (views record about this long)."""
     scene_seconds: float = 20.0
     """Length of the empty-scene capture, seconds."""
+    scan_turns_per_lap: float = 1.0
+    """Turns of the empty-scene scan's view per lap walked, relative to the walk
+    (:attr:`embodmocap.synth.trajectory.SceneWalkConfig.turns_per_lap`): 1 looks out at the walls,
+    along the loop and in across the walk area at its floor; 0 = the earlier scan that only looks
+    outwards and never sees the floor where the performer walks."""
     fps: float = 30.0
     """Frame rate of every capture and of the motion."""
     width: int = 640

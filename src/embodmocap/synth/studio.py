@@ -155,7 +155,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
 
     # 3. Scene capture.
     frames_rendered = 0
-    scene_T = trajectory.scene_walk(built.spec, cfg.scene_seconds, cfg.fps, _rng(cfg.seed, 5))
+    scene_T = trajectory.scene_walk(built.spec, cfg.scene_seconds, cfg.fps, _rng(cfg.seed, 5),
+                                    trajectory.SceneWalkConfig(turns_per_lap=cfg.scan_turns_per_lap))
     scene_T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 6))
     scene_T_vio_cam = trajectory.add_drift(
         invert_T(scene_T_scene_vio) @ scene_T, cfg.fps, _rng(cfg.seed, 7), trajectory.DriftConfig()

@@ -4,7 +4,8 @@ All poses are ``T_scene_cam`` (or ``T_vio_cam``): (T, 4, 4) camera-to-world, Z-u
 camera axes (x right, y down, z forward). Every function is deterministic given its generator.
 
 - :func:`scene_walk`: one handheld phone walking a loop around the free centre of the empty scene,
-  looking out at the walls and furniture (for the scene capture: TSDF + SfM).
+  looking out at the walls and furniture and in across the floor the performer will walk on (for
+  the scene capture: TSDF + SfM).
 - :func:`follow_views`: two operators walking around the performer, 60-120 degrees apart, aiming
   at the pelvis with a small lag.
 - :func:`random_T_scene_vio`, :func:`add_drift`: each recording's own gravity-aligned VIO world and
@@ -94,12 +95,25 @@ class SceneWalkConfig:
     """Period of that sweep, seconds."""
     max_pitch_deg: float = 40.0
     """The view never points more than this far below the horizon, degrees."""
+    turns_per_lap: float = 1.0
+    """Turns of the view about the vertical, relative to the loop's outward normal, per lap
+    walked (the same way round as the walk; the sweep still rides on it). With 1 the phone looks
+    out at the walls near it, then along the loop, then in across the walk area (its floor in the
+    lower part of the frame, the far walls and furniture in the upper part: ``across_pitch_deg``),
+    then along the loop again: every wall is seen from near and from across the room, the way the
+    performers' phones see it, and the floor where the performer walks is seen without stopping.
+    0 = always outwards (the earlier scan, which never sees the middle of the room)."""
+    across_pitch_deg: float = 28.0
+    """How far below the horizon the view points while looking in across the loop, degrees (with
+    a 4:3 frame at 67 deg across, 28 puts the horizon near the top edge: floor from ~1.2 m out,
+    walls and furniture up to about the phone's height)."""
     glance_every_s: float = 0.0
     """One look back across the loop at the floor inside it per this many seconds (at least one
     per capture; 15 is a good value): looking outwards only, the phone never sees the middle of the
-    room, where the performer walks. 0 = never (the default for now: in a 15 s scan the glance
-    takes 9 s from the walls and furniture, and Stage III then registered only 7 of 16 view frames
-    of tests/test_calibrate_register.py's session, which needs >= 90 %)."""
+    room, where the performer walks. 0 = never (the default: in a 15 s scan the stop takes 9 s
+    from the walls and furniture, and Stage III then registered only 7 of 16 view frames of
+    tests/test_calibrate_register.py's session, which needs >= 90 %; ``turns_per_lap`` sees that
+    floor while walking instead)."""
     glance_turn_s: float = 3.0
     """Time to turn round for a glance, and to turn back, seconds (slow: a handheld phone's turn
     rate stays under ~120 deg/s with the loop's own turning)."""
@@ -193,10 +207,13 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     """A handheld phone walking loops around the free centre of the scene: (T, 4, 4) ``T_scene_cam``.
 
     The phone follows a rounded rectangle just inside the walk area (away from furniture and
-    walls), at 1.25-1.55 m, looking outwards at the walls and furniture (1-4 m away) with a slow
-    left-right sweep and a slowly changing pitch (floor, furniture tops, walls), plus hand shake.
-    Once per ``glance_every_s`` the operator stops, turns round and looks at the floor inside
-    the loop (where the performer will walk), then turns back. ``T = round(seconds * fps)``.
+    walls), at 1.25-1.55 m, looking at the walls and furniture with a slow left-right sweep and a
+    slowly changing pitch (floor, furniture tops, walls), plus hand shake. The view turns round
+    relative to the walk ``turns_per_lap`` times per lap: out at the walls near it (1-4 m away),
+    along the loop, in across the walk area (pitched down ``across_pitch_deg``: the floor where
+    the performer will walk below, the far walls above), along again. With ``turns_per_lap=0`` it
+    only looks outwards. Once per ``glance_every_s`` (off by default) the operator stops, turns
+    round and looks at the floor inside the loop, then turns back. ``T = round(seconds * fps)``.
     """
     n = max(int(round(seconds * fps)), 2)
     t = np.arange(n) / fps
@@ -223,7 +240,10 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     glance, back, still = _glances(n, fps, cfg, rng, sweep)
     s = spin * (s0 + np.cumsum(speed * (1.0 - still)) / fps)
     xy, outward = _rounded_rect(lo, hi, r, s)
-    turn = (1.0 - glance) * sweep + back
+    # Turning the view round relative to the walk (turns_per_lap): out, along, in across the loop.
+    rel = 2 * np.pi * cfg.turns_per_lap * (s - s[0]) / loop
+    turn = (1.0 - glance) * (sweep + rel) + back
+    inward = 0.5 * (1.0 - np.cos(rel + sweep)) * (1.0 - glance)  # 0 looking out, 1 looking in
     c, sn = np.cos(turn), np.sin(turn)
     look = np.stack([c * outward[:, 0] - sn * outward[:, 1], sn * outward[:, 0] + c * outward[:, 1]], axis=-1)
     floor_lo, floor_hi = np.asarray(spec.floor_min_xy, float), np.asarray(spec.floor_max_xy, float)
@@ -236,6 +256,10 @@ def scene_walk(spec: SceneSpec, seconds: float, fps: float, rng: np.random.Gener
     g0, g1 = cfg.target_height_m
     tz = (g0 + g1) / 2 + (g1 - g0) / 2 * np.sin(2 * np.pi * t / 6.5 + ph[2])
     tz = (1.0 - still) * tz  # a glance looks at the floor
+    # Looking in across the loop: pitched down so the floor fills the lower part of the frame.
+    if cfg.turns_per_lap:
+        pitch = (1.0 - inward) * np.arctan2(height - tz, dist) + inward * np.deg2rad(cfg.across_pitch_deg)
+        tz = height - np.tan(pitch) * dist
     tz = np.maximum(tz, height - np.tan(np.deg2rad(cfg.max_pitch_deg)) * dist)
     centres = np.column_stack([xy, height])
     targets = np.column_stack([xy + look * dist[:, None], tz])
