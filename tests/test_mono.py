@@ -19,7 +19,7 @@ from embodmocap.io.layout import SessionLayout
 from embodmocap.io.smpl_file import read_smpl_npz
 from embodmocap.io.stage_files import read_cameras
 from embodmocap.mono import stage
-from embodmocap.mono.config import MonoConfig
+from embodmocap.mono.config import MonoConfig, ScaleConfig
 from embodmocap.mono.files import plan_chunks, read_chunk, read_mono_cameras, read_points_ply, write_chunk
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.mono_inputs import MonoInputConfig, write_mono_inputs
@@ -29,8 +29,10 @@ CHUNK, OVERLAP = 32, 8
 # human_depth="model": the exact-recovery tests need the body as the (noise-free) model gives it; the
 # studio's Stage II keypoints carry detector noise, so the keypoint refinement (the default) would
 # move a noise-free body by their error (tests/test_mono_refine.py and the tests at the end cover it).
+# cue="body": these tests check the body-depth cue's own summary (the default, combined, averages it
+# with the feet's; test_combined_scale_cue covers that).
 CFG = MonoConfig(scene_model="precomputed", chunk=CHUNK, overlap=OVERLAP, human_model="precomputed",
-                 human_depth="model")
+                 human_depth="model", scale=ScaleConfig(cue="body"))
 
 
 @pytest.fixture(scope="module")

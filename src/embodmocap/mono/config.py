@@ -132,14 +132,17 @@ class ScaleConfig:
     """A frame whose person mask covers fewer point-map pixels than this does not vote."""
     min_samples: int = 50
     """Fewer (pixel, frame) samples in a segment than this: no metric scale from the body's depth
-    (the feet are tried next with ``cue = auto``; without either the segment stays in the model's
+    (the feet are tried next with ``cue = auto`` and used alone with ``combined``; without either the segment stays in the model's
     units, its frames flagged invalid)."""
-    cue: Literal["auto", "body", "feet", "combined"] = "auto"
-    """Metric cue: ``body`` (body depth / point-map depth inside the person mask: needs points on
-    the person, as Pi3-like dense maps have), ``feet`` (the body's feet in contact against the
-    scene's floor plane: works with sparse SfM), ``auto`` = ``body`` where it has ``min_samples``,
-    else ``feet``; ``combined`` = both where each has enough samples, averaged (in log scale) with
-    weights ``1 / se_rel^2`` from each cue's own block standard error."""
+    cue: Literal["auto", "body", "feet", "combined"] = "combined"
+    """Metric cue: ``body`` (body depth / point-map depth inside the person mask, the paper's: needs
+    points on the person, as Pi3-like dense maps have), ``feet`` (the body's feet in contact
+    against the scene's floor plane: works with sparse SfM), ``auto`` = ``body`` where it has
+    ``min_samples``, else ``feet``; ``combined`` (the default) = both where each has enough
+    samples, averaged (in log scale) with weights ``1 / se_rel^2`` from each cue's own block
+    standard error: the only cue within 2 % on all eleven studio views measured with the
+    realistic prior and the keypoint depth refinement (six used to develop it, five held out;
+    body 2.07 % on the 60 s one, feet 2.27 % on a held-out one; BENCHMARKS.md, session 6)."""
     block_s: float = 2.0
     """Block length (seconds) of the scale's standard error ``se_rel``: the per-frame votes are
     grouped into blocks this long, longer than the regressor's error correlation (its depth error
