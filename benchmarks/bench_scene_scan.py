@@ -28,16 +28,10 @@ import numpy as np
 
 
 def floor_seen(spec, T: np.ndarray) -> float:
-    lo, hi = np.asarray(spec.walk_area_min_xy), np.asarray(spec.walk_area_max_xy)
-    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.05), np.arange(lo[1], hi[1], 0.05), indexing="ij"), -1)
-    P = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
-    tx = np.tan(np.radians(67.0 / 2))
-    seen = np.zeros(len(P), bool)
-    for Tk in T[::3]:
-        pc = (P - Tk[:3, 3]) @ Tk[:3, :3]
-        z = pc[:, 2]
-        seen |= (z > 0.05) & (z < 5.0) & (np.abs(pc[:, 0]) < tx * z) & (np.abs(pc[:, 1]) < 0.75 * tx * z)
-    return float(seen.mean())
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.trajectory import walk_area_floor_seen
+
+    return walk_area_floor_seen(spec, T, SynthConfig().hfov_deg)
 
 
 def trajectories(seeds: list[int]) -> None:

@@ -22,19 +22,8 @@ HALF_HFOV = np.radians(SynthConfig().hfov_deg / 2)
 
 
 def _floor_seen(spec, T: np.ndarray) -> float:
-    """Share of the walk area's floor (5 cm grid) inside some frame's depth frustum (4:3, 5 m).
-    A plain loop over frames on purpose (the reference for the product's vectorised code is not
-    at stake here: only the studio's trajectory is)."""
-    lo, hi = np.asarray(spec.walk_area_min_xy), np.asarray(spec.walk_area_max_xy)
-    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], 0.05), np.arange(lo[1], hi[1], 0.05), indexing="ij"), -1)
-    P = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
-    tx = np.tan(HALF_HFOV)
-    seen = np.zeros(len(P), bool)
-    for Tk in T[::3]:
-        pc = (P - Tk[:3, 3]) @ Tk[:3, :3]
-        z = pc[:, 2]
-        seen |= (z > 0.05) & (z < 5.0) & (np.abs(pc[:, 0]) < tx * z) & (np.abs(pc[:, 1]) < 0.75 * tx * z)
-    return float(seen.mean())
+    """Share of the walk area's floor inside some frame's depth frustum (4:3, 5 m)."""
+    return tr.walk_area_floor_seen(spec, T, SynthConfig().hfov_deg)
 
 
 def _top_row_pitch_deg(T: np.ndarray) -> np.ndarray:

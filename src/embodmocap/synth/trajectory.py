@@ -519,3 +519,26 @@ def synth_imu(T_world_cam: NDArray, fps: float, rng: np.random.Generator, rate_h
     accel += rng.normal(0.0, accel_bias_sigma, 3) + rng.normal(0.0, accel_sigma, accel.shape)
     gyro += rng.normal(0.0, gyro_bias_sigma, 3) + rng.normal(0.0, gyro_sigma, gyro.shape)
     return t, accel, gyro
+
+
+def walk_area_floor_seen(spec, T_world_cam: NDArray, hfov_deg: float, max_depth_m: float = 5.0,
+                         stride: int = 3, cell_m: float = 0.05) -> float:
+    """Share of the walk area's floor (a ``cell_m`` grid at z = 0) inside the depth frustum (4:3,
+    ``hfov_deg`` wide, out to ``max_depth_m``) of some frame of a scan, every ``stride``-th frame.
+
+    The studio's own coverage measure of a scan path (tests and benchmarks), no rendering.
+
+    Args:
+        spec: the scene's :class:`~embodmocap.synth.spec.SceneSpec` (its walk area).
+        T_world_cam: (N, 4, 4) camera-to-world poses (OpenCV cameras, Z-up world).
+    """
+    lo, hi = np.asarray(spec.walk_area_min_xy), np.asarray(spec.walk_area_max_xy)
+    g = np.stack(np.meshgrid(np.arange(lo[0], hi[0], cell_m), np.arange(lo[1], hi[1], cell_m), indexing="ij"), -1)
+    P = np.column_stack([g.reshape(-1, 2), np.zeros(g.shape[0] * g.shape[1])])
+    tx = np.tan(np.radians(hfov_deg / 2))
+    seen = np.zeros(len(P), bool)
+    for Tk in np.asarray(T_world_cam)[::stride]:  # a loop over frames: (cells x frames) would not fit
+        pc = (P - Tk[:3, 3]) @ Tk[:3, :3]
+        z = pc[:, 2]
+        seen |= (z > 0.05) & (z < max_depth_m) & (np.abs(pc[:, 0]) < tx * z) & (np.abs(pc[:, 1]) < 0.75 * tx * z)
+    return float(seen.mean())
