@@ -167,18 +167,14 @@ def weigh_by_confidence(depth: NDArray[np.float32], confidence: NDArray | None, 
         n: index of the frame among the fused frames.
         range_m: depth (metres) beyond which the weight falls as the inverse square; 0 = off.
     """
-    if range_m <= 0:
-        if confidence is None:
-            return depth
-        due = np.floor((n + 1) * weights) > np.floor(n * weights)  # (3,) which levels fuse this frame
-        if due.all():
-            return depth
-        c = np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)
-        return np.where(due[c], depth, np.float32(0.0)).astype(np.float32)
-    w = np.ones(depth.shape) if confidence is None else weights[np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)]
-    with np.errstate(divide="ignore"):
-        w = w * np.minimum(1.0, (range_m / np.where(depth > 0, depth, np.inf)) ** 2)
+    c = None if confidence is None else np.clip(np.asarray(confidence, dtype=np.int64), 0, 2)
+    w = np.ones(depth.shape) if c is None else np.asarray(weights, dtype=np.float64)[c]  # (h, w)
+    if range_m > 0:
+        with np.errstate(divide="ignore"):
+            w = w * np.minimum(1.0, (range_m / np.where(depth > 0, depth, np.inf)) ** 2)
     due = np.floor((n + 1) * w) > np.floor(n * w)
+    if due.all():
+        return depth
     return np.where(due, depth, np.float32(0.0)).astype(np.float32)
 
 
