@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from embodmocap.errors import EmbodMocapError
-from embodmocap.io.captures import detect_format
+from embodmocap.io.captures import closest_layout, detect_format
 from embodmocap.io.inspect_capture import check_capture, format_report
 from embodmocap.io.layout import SessionLayout
 
@@ -24,7 +24,7 @@ def inspect_path(path: str | Path) -> tuple[str, list[str]]:
         return _inspect_session(path)
     if detect_format(path) is None:
         msg = (f"{path}: neither a session (no session.toml) nor a capture folder of a known format "
-               "(Stray Scanner, Spectacular AI, Record3D)")
+               f"(Stray Scanner, Spectacular AI, Record3D): {closest_layout(path)}")
         return msg, [msg]
     report = check_capture(path)
     return format_report(report), list(report.problems)

@@ -27,6 +27,8 @@ class CaptureReport:
     Attributes:
         path: the capture inspected.
         format: detected format, or None when none matched.
+        variant: the app version's export recognised, in words (e.g. "Record3D .r3d file, older
+            metadata (poses relative to the first camera, put in ARKit's world with initPose; ...)").
         num_frames: RGB frames (0 when the video/images could not be read).
         duration_s: num_frames / fps.
         fps: nominal frame rate.
@@ -42,6 +44,7 @@ class CaptureReport:
 
     path: Path
     format: str | None
+    variant: str = ""
     num_frames: int = 0
     duration_s: float = 0.0
     fps: float = 0.0
@@ -78,7 +81,7 @@ def check_capture(path: str | Path) -> CaptureReport:
         c = c[np.all(np.isfinite(c), axis=1)]
         length = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum()) if len(c) > 1 else 0.0
     return CaptureReport(
-        path=path, format=scan.format, num_frames=scan.num_frames,
+        path=path, format=scan.format, variant=scan.variant, num_frames=scan.num_frames,
         duration_s=scan.num_frames / scan.fps if scan.fps > 0 else 0.0, fps=scan.fps,
         rgb_size=(K.width, K.height) if K is not None else None, depth_size=scan.depth_size, intrinsics=K,
         pose_count=pose_count, path_length_m=length, timestamp_gaps=gaps,
@@ -93,6 +96,7 @@ def format_report(report: CaptureReport) -> str:
     lines = [
         f"capture   {r.path}",
         f"format    {r.format or 'unknown'}",
+        *([f"version   {r.variant}"] if r.variant else []),
         f"frames    {r.num_frames} at {r.fps:.2f} fps ({r.duration_s:.1f} s)",
         f"rgb       {size(r.rgb_size)}   depth {size(r.depth_size)}",
     ]

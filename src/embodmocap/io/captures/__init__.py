@@ -21,14 +21,24 @@ from embodmocap.types import Capture
 __all__ = [
     "open_capture", "detect_format", "scan_capture", "read_strayscanner", "read_spectacular", "read_record3d",
     "StrayScannerWriter", "SpectacularWriter", "write_record3d", "read_transforms_json",
-    "write_transforms_json", "read_depth_image", "depth_to_rgb_scale", "FORMATS",
+    "write_transforms_json", "read_depth_image", "depth_to_rgb_scale", "FORMATS", "LAYOUTS", "closest_layout",
 ]
 
 #: What each format needs, for the error message when nothing matches.
 FORMATS: dict[str, str] = {
     "strayscanner": "rgb.mp4 + odometry.csv (or depth/)",
     "spectacular": "data.jsonl + calibration.json (+ data.mov, frames2/, cameras_sai.jsonl)",
-    "record3d": "a .r3d file, or a folder with metadata + rgbd/",
+    "record3d": "a .r3d file, a folder with metadata + rgbd/, or metadata.json + rgb/ + depth/ (EXR + JPG export)",
+}
+
+#: The files and folders (trailing "/") each known export layout holds, to tell a user which
+#: layout an unknown folder is closest to and what it lacks.
+LAYOUTS: dict[str, tuple[str, ...]] = {
+    "Stray Scanner export": ("rgb.mp4", "odometry.csv", "camera_matrix.csv", "depth/", "confidence/", "imu.csv"),
+    "Spectacular AI recording": ("data.jsonl", "calibration.json", "data.mov", "frames2/", "metadata.json",
+                                 "cameras_sai.jsonl"),
+    "Record3D export folder (unzipped .r3d)": ("metadata", "rgbd/"),
+    "Record3D EXR + JPG export": ("metadata.json", "rgb/", "depth/"),
 }
 
 _DETECT = (("spectacular", is_spectacular), ("strayscanner", is_strayscanner), ("record3d", is_record3d))
@@ -45,13 +55,33 @@ def detect_format(path: str | Path) -> str | None:
     return None
 
 
+def _has(path: Path, item: str) -> bool:
+    return (path / item[:-1]).is_dir() if item.endswith("/") else (path / item).is_file()
+
+
+def closest_layout(path: str | Path) -> str:
+    """For a folder of no known format: which known layout it is closest to and what it lacks,
+    in words (e.g. "closest to a Stray Scanner export: has odometry.csv, depth/; lacks rgb.mp4, ...")."""
+    path = Path(path)
+    if not path.is_dir():
+        return "not a folder, nor a .r3d file"
+    # Share of each layout's items present; ties go to the layout with more items found.
+    score = {name: (sum(_has(path, i) for i in items) / len(items), sum(_has(path, i) for i in items))
+             for name, items in LAYOUTS.items()}
+    name = max(score, key=lambda n: score[n])
+    if score[name][1] == 0:
+        return "holds none of the files of a known layout (" + "; ".join(
+            f"{n}: {', '.join(items)}" for n, items in LAYOUTS.items()) + ")"
+    has = [i for i in LAYOUTS[name] if _has(path, i)]
+    lacks = [i for i in LAYOUTS[name] if not _has(path, i)]
+    return f"closest to a {name}: has {', '.join(has)}; lacks {', '.join(lacks)}"
+
+
 def _require_format(path: Path) -> str:
     fmt = detect_format(path)
     if fmt is None:
-        what = "does not exist" if not path.exists() else "is not a known capture"
-        expected = "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
-        raise InputError(path, f"{what} (expected one of {expected})",
-                         "point to the folder the phone app exported")
+        what = "does not exist" if not path.exists() else f"is not a capture of a known format ({closest_layout(path)})"
+        raise InputError(path, what, "point to the folder the phone app exported, with every file it wrote")
     return fmt
 
 

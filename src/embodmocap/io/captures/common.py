@@ -58,6 +58,8 @@ class CaptureScan:
     Attributes:
         path: the capture folder (or file).
         format: ``"strayscanner"``, ``"spectacular"`` or ``"record3d"``.
+        variant: which version of the app's export was recognised, in words (e.g. "Stray Scanner,
+            15-column odometry.csv with per-frame intrinsics"), for ``inspect`` and the logs.
         num_frames: RGB frames (video frames or images); 0 if unknown.
         fps: nominal frame rate; 0 if unknown.
         rgb_intrinsics: intrinsics at the RGB size the frames are returned in.
@@ -71,6 +73,7 @@ class CaptureScan:
 
     path: Path
     format: str
+    variant: str = ""
     num_frames: int = 0
     fps: float = 0.0
     rgb_intrinsics: Intrinsics | None = None
@@ -171,19 +174,22 @@ def depth_to_rgb_scale(rgb_size: tuple[int, int], depth_size: tuple[int, int]) -
 
 
 def depth_file_problems(paths: Sequence[Path], size: tuple[int, int] | None, dtype: str,
-                        thorough: bool) -> tuple[list[Problem], tuple[int, int] | None]:
+                        thorough: bool, app_writes: str = "") -> tuple[list[Problem], tuple[int, int] | None]:
     """Missing, mis-sized or wrongly typed depth/confidence PNGs.
 
     Checks that every file exists; reads the header of the first one (or of all with
-    ``thorough``). Returns the problems and the (width, height) of the first readable file.
+    ``thorough``). ``app_writes`` says what the app should have written (e.g. "Stray Scanner
+    writes one depth/NNNNNN.png per video frame"), for the message about missing files. Returns
+    the problems and the (width, height) of the first readable file.
     """
     problems: list[Problem] = []
     exists = np.array([p.is_file() for p in paths], dtype=bool)
     missing = np.nonzero(~exists)[0]
     if len(missing):
         first = paths[missing[0]]
+        what = f"; {app_writes}" if app_writes else ""
         problems.append(Problem(first, f"missing ({len(missing)} of {len(paths)} files missing in "
-                                       f"{first.parent.name}/, first at frame {missing[0]})",
+                                       f"{first.parent.name}/, first at frame {missing[0]}{what})",
                                 "copy the complete capture folder from the phone"))
     found = [p for p, e in zip(paths, exists) if e]
     for p in found if thorough else found[:1]:
@@ -418,3 +424,38 @@ def intrinsics_problems(path: Path, K: Intrinsics) -> list[Problem]:
                               f"do not fit the {K.width}x{K.height} video",
                         "the matrix is for another resolution or orientation; export it again")]
     return []
+
+
+#: Image widths (4:3 sensor modes, landscape) that iPhone apps write intrinsics for; a matrix whose
+#: principal point sits at the centre of one of these sizes (or its portrait turn) is taken to be
+#: for that size.
+KNOWN_WIDTHS_4_3 = (192, 256, 320, 480, 640, 720, 960, 1280, 1440, 1920, 2560, 2880, 3840, 4032, 4224)
+#: How far (relative) a principal point may sit from a candidate size's centre and still match it.
+CENTRE_MATCH_REL = 0.06
+
+
+def intrinsics_for_image(K3: NDArray, width: int, height: int) -> tuple[Intrinsics, tuple[int, int] | None]:
+    """``K3`` as :class:`Intrinsics` of a ``width`` x ``height`` image, rescaled when it was given for
+    another size of the same aspect.
+
+    Apps write one intrinsic matrix, not always for the size of the stored frames (e.g. a
+    960x720 matrix beside a 1920x1440 video). The principal point of a phone camera sits within a
+    few percent of the image centre, so the size a matrix is for is found by the centre: among the
+    frame size and the known 4:3 sizes of the frame's orientation, the one whose centre is
+    nearest (relative) to (cx, cy), within :data:`CENTRE_MATCH_REL`. Returns (intrinsics at
+    width x height, the other size it was rescaled from or None).
+    """
+    K3 = np.asarray(K3, dtype=np.float64).reshape(3, 3)
+    own = Intrinsics.from_K(K3, width, height)
+    portrait = height > width
+    sizes = {(width, height)}
+    if abs(width / height - (3 / 4 if portrait else 4 / 3)) < 1e-3:
+        sizes |= {((w * 3 // 4, w) if portrait else (w, w * 3 // 4)) for w in KNOWN_WIDTHS_4_3}
+
+    def off(size: tuple[int, int]) -> float:
+        return max(abs(K3[0, 2] + 0.5 - size[0] / 2) / size[0], abs(K3[1, 2] + 0.5 - size[1] / 2) / size[1])
+
+    best = min(sorted(sizes), key=off)
+    if off((width, height)) <= CENTRE_MATCH_REL or best == (width, height) or off(best) > CENTRE_MATCH_REL or off(best) >= off((width, height)):
+        return own, None
+    return Intrinsics.from_K(K3, *best).scaled(width, height), best

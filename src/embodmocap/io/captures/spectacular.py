@@ -140,10 +140,28 @@ def scan_spectacular(path: str | Path, thorough: bool = False) -> CaptureScan:
     timestamps = frame_times if len(frame_times) == num_frames and not np.isnan(frame_times).any() else (
         info.timestamps_s if info else np.zeros(0))
     return CaptureScan(
-        path=root, format=FORMAT, num_frames=num_frames, fps=fps, rgb_intrinsics=K, depth_size=depth_size,
+        path=root, format=FORMAT, variant=_variant(root, k_turns), num_frames=num_frames, fps=fps, rgb_intrinsics=K, depth_size=depth_size,
         timestamps_s=timestamps, trajectory=trajectory, imu=imu, make_frames=make_frames,
         problems=tuple(problems),
     )
+
+
+def _variant(root: Path, k_turns: int) -> str:
+    """The recording in words: the recorder named in ``metadata.json`` (when it says), orientation,
+    and whether the key frames of ``sai-cli process`` are there."""
+    head = "Spectacular AI recording"
+    try:
+        meta = json.loads((root / "metadata.json").read_text())
+        if isinstance(meta, dict):
+            who = " ".join(str(meta[k]) for k in ("platform", "device_model", "software", "version", "sdkVersion")
+                           if meta.get(k))
+            head += f" ({who})" if who else ""
+    except (OSError, ValueError):
+        pass
+    parts = [head, "portrait video" if k_turns else "landscape video", f"poses from {POSE_FILE}"]
+    if (root / "transforms.json").is_file():
+        parts.append("with sai-cli process key frames (transforms.json)")
+    return ", ".join(parts)
 
 
 # --------------------------------------------------------------------------- file parsers
