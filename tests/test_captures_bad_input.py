@@ -143,9 +143,9 @@ def test_malformed_old_headerless_odometry(stray):
 
 def test_unknown_folder_lists_expected_formats(tmp_path):
     (tmp_path / "x.txt").write_text("hi")
-    with pytest.raises(InputError, match="strayscanner: rgb.mp4") as e:
+    with pytest.raises(InputError, match="Stray Scanner export: rgb.mp4") as e:
         open_capture(tmp_path)
-    assert e.value.path == tmp_path and "record3d" in str(e.value)
+    assert e.value.path == tmp_path and "Record3D EXR + JPG export: metadata.json" in str(e.value)
 
 
 def test_inspect_lists_every_problem_at_once(stray):
