@@ -116,6 +116,13 @@ class SceneConfig:
     ``min_component_fraction`` says (a ceiling or far wall seen from a few frames, furniture seen
     from one side). 0 = off."""
 
+    # ------------------------------------------------------------------ gravity check
+    floor_tilt_warn_deg: float = 2.0
+    """The fused mesh's floor (its dominant low near-horizontal plane) tilted more than this from
+    horizontal, degrees, gives a warning (and ``floor_tilt_deg`` in the stage manifest): the
+    capture's gravity is wrong (e.g. poses read relative to the first camera) and everything
+    downstream (contacts, simulation) would inherit the tilt. 0 = no check."""
+
     # ------------------------------------------------------------------ simplified mesh
     simplify_voxel_m: float = 0.05
     """Vertex-clustering cell size (metres) of the simplified mesh for viewers and physics; 0 = do
@@ -136,6 +143,7 @@ class SceneConfig:
             (self.jump_speed_mps > 0 and self.jump_rate_dps > 0 and self.jump_ratio > 1, "jump thresholds must be > 0 (ratio > 1)"),
             (self.jump_neighbours >= 1, "jump_neighbours must be >= 1"),
             (self.min_keyframes >= 2, "min_keyframes must be >= 2"),
+            (self.floor_tilt_warn_deg >= 0, "floor_tilt_warn_deg must be >= 0"),
             (self.min_confidence in (0, 1, 2), "min_confidence must be 0, 1 or 2"),
             (len(self.confidence_weights) == 3 and all(0 < w <= 1 for w in self.confidence_weights),
              "confidence_weights must be three values in (0, 1]"),

@@ -13,7 +13,9 @@
    (optionally refined by a learned model) weighted by its confidence and truncated at the sensor's
    range, fused in an Open3D TSDF; colour mesh extracted and cleaned without dropping real
    structure (``mesh_raw.ply``);
-4. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``).
+4. ``floor``: the gravity check: the tilt of the mesh's floor (dominant low near-horizontal
+   plane) from horizontal, a manifest figure, with a warning above ``floor_tilt_warn_deg``;
+5. ``simplify``: a light mesh for viewers and physics (``mesh_simplified.ply``).
 
 The decisions are pure functions in :mod:`embodmocap.scene.solve` (the capture and the config in,
 arrays out); this module opens the capture, fingerprints each step, calls them and writes.
@@ -71,6 +73,9 @@ _MESH_FIELDS = ("min_confidence", "depth_", "voxel_", "sdf_", "integrate_every",
                 "confidence_", "fuse_", "structure_", "jump_")
 _SIMPLIFY_FIELDS = ("simplify_",)
 _SFM_FIELDS = ("sfm",)
+_FLOOR_FIELDS = ("floor_",)
+#: Version of the floor check (:func:`embodmocap.geometry.planes.find_floor`), part of its fingerprint.
+FLOOR_VERSION = 1
 #: Version of the simplified mesh's recipe, part of its step's fingerprint: 2 = faces wound by the
 #: raw faces' vote, one face per triple of cells (1: Open3D's clustering kept either or both
 #: windings), so a session simplified before redoes that step (seconds) and nothing else.
@@ -129,7 +134,15 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
             write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
             step.record([out.mesh_raw], mesh.figures)
 
-    # 4. Simplified mesh.
+    # 4. Gravity check: a Z-up world has a horizontal floor; a tilted one means wrong gravity.
+    if cfg.floor_tilt_warn_deg > 0:
+        fp_floor = fingerprint("floor", FLOOR_VERSION, fp_mesh, _cfg_part(cfg, _FLOOR_FIELDS))
+        with sm.step("floor", fp_floor, force=force, label=label) as step:
+            if step.run:
+                step.record([], floor_figures(*read_mesh_ply(out.mesh_raw)[:2], cfg))
+        _warn_floor(sm.figures(), cfg, name, capture.format)
+
+    # 5. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
         fp_simple = fingerprint("simplify", SIMPLIFY_VERSION, fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
         with sm.step("simplify", fp_simple, force=force, label=label) as step:
@@ -141,6 +154,30 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     if sm.skipped:
         log.info("scene %s: up to date, skipped: %s", name, ", ".join(sm.skipped))
     return SceneOutputs(name, out, sm.figures(), tuple(sm.skipped))
+
+
+def floor_figures(vertices: np.ndarray, faces: np.ndarray, cfg: SceneConfig) -> dict:
+    """``floor_tilt_deg`` (None when the mesh has no floor plane), ``floor_area_m2``, ``floor_z_m``
+    and ``floor_tilt_ok`` of a mesh (vertices (V, 3), faces (F, 3), Z-up metres)."""
+    from embodmocap.geometry.planes import find_floor
+
+    floor = find_floor(vertices, faces)
+    if floor is None:
+        return {"floor_tilt_deg": None, "floor_area_m2": 0.0, "floor_z_m": None, "floor_tilt_ok": None}
+    return {"floor_tilt_deg": round(floor.tilt_deg, 3), "floor_area_m2": round(floor.area_m2, 3),
+            "floor_z_m": round(floor.height_m, 4), "floor_tilt_ok": floor.tilt_deg <= cfg.floor_tilt_warn_deg}
+
+
+def _warn_floor(figures: dict, cfg: SceneConfig, name: str, fmt: str) -> None:
+    """One log line when the floor is tilted or missing (every run, skipped step or not)."""
+    tilt = figures.get("floor_tilt_deg")
+    if tilt is None:
+        log.warning("scene %s: no dominant floor plane in the mesh, so gravity could not be checked; look at "
+                    "the mesh before going on (a tilted world breaks contacts and simulation)", name)
+    elif tilt > cfg.floor_tilt_warn_deg:
+        log.warning("scene %s: the floor of the mesh is %.1f deg off horizontal (more than %.1f): the %s capture's "
+                    "gravity is wrong; check the export is complete (e.g. Record3D's initPose) and read it again",
+                    name, tilt, cfg.floor_tilt_warn_deg, fmt)
 
 
 def read_keyframes(out: SceneLayout) -> dict:

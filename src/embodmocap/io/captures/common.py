@@ -430,6 +430,9 @@ def intrinsics_problems(path: Path, K: Intrinsics) -> list[Problem]:
 #: principal point sits at the centre of one of these sizes (or its portrait turn) is taken to be
 #: for that size.
 KNOWN_WIDTHS_4_3 = (192, 256, 320, 480, 640, 720, 960, 1280, 1440, 1920, 2560, 2880, 3840, 4032, 4224)
+#: Scale factors between the frames and the size an app wrote intrinsics for, tried besides
+#: :data:`KNOWN_WIDTHS_4_3` (a video downscaled or a matrix kept at the sensor's full size).
+SIMPLE_SCALES = (1 / 4, 1 / 3, 1 / 2, 2 / 3, 3 / 4, 4 / 3, 3 / 2, 2, 3, 4)
 #: How far (relative) a principal point may sit from a candidate size's centre and still match it.
 CENTRE_MATCH_REL = 0.06
 
@@ -442,7 +445,8 @@ def intrinsics_for_image(K3: NDArray, width: int, height: int) -> tuple[Intrinsi
     960x720 matrix beside a 1920x1440 video). The principal point of a phone camera sits within a
     few percent of the image centre, so the size a matrix is for is found by the centre: among the
     frame size and the known 4:3 sizes of the frame's orientation, the one whose centre is
-    nearest (relative) to (cx, cy), within :data:`CENTRE_MATCH_REL`. Returns (intrinsics at
+    nearest (relative) to (cx, cy), within :data:`CENTRE_MATCH_REL` (with :data:`SIMPLE_SCALES` of
+    the frame size as further candidates). Returns (intrinsics at
     width x height, the other size it was rescaled from or None).
     """
     K3 = np.asarray(K3, dtype=np.float64).reshape(3, 3)
@@ -451,6 +455,8 @@ def intrinsics_for_image(K3: NDArray, width: int, height: int) -> tuple[Intrinsi
     sizes = {(width, height)}
     if abs(width / height - (3 / 4 if portrait else 4 / 3)) < 1e-3:
         sizes |= {((w * 3 // 4, w) if portrait else (w, w * 3 // 4)) for w in KNOWN_WIDTHS_4_3}
+    sizes |= {(round(width * f), round(height * f)) for f in SIMPLE_SCALES
+              if abs(width * f - round(width * f)) < 1e-6 and abs(height * f - round(height * f)) < 1e-6}
 
     def off(size: tuple[int, int]) -> float:
         return max(abs(K3[0, 2] + 0.5 - size[0] / 2) / size[0], abs(K3[1, 2] + 0.5 - size[1] / 2) / size[1])
