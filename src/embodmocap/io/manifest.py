@@ -507,7 +507,7 @@ def _semantic_problems(m: SessionManifest, declared_scenes: set[str]) -> list[st
     for name, scene in m.scenes.items():
         key = f"scenes.{name}"
         _check_name(name, key, add)
-        _check_path(scene.capture, f"{key}.capture", "folder", add)
+        _check_path(scene.capture, f"{key}.capture", "capture", add)
 
     for name, seq in m.sequences.items():
         key = f"sequences.{name}"
@@ -544,7 +544,9 @@ def _check_name(name: str, key: str, add: Callable[[str, str], None]) -> None:
 def _check_path(path: Path | None, key: str, kind: str, add: Callable[[str, str], None]) -> None:
     if path is None:
         return
-    exists = path.is_dir() if kind == "folder" else path.is_file()
+    # A capture is a folder, or a Record3D .r3d file (a zip of the same folder).
+    exists = (path.is_dir() or (kind == "capture" and path.is_file() and path.suffix.lower() == ".r3d")) \
+        if kind in ("folder", "capture") else path.is_file()
     if not exists:
         add(key, f"{kind} does not exist: {path}")
 
