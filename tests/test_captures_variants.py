@@ -173,3 +173,23 @@ def test_unknown_folder_names_the_closest_layout(tmp_path, walks):
     with pytest.raises(InputError, match="closest to a Record3D EXR \\+ JPG export: has rgb/, depth/; "
                                          "lacks metadata.json"):
         open_capture(exr)
+
+
+@pytest.mark.parametrize("matrix_size, frames, expect", [
+    ((960, 720), (1920, 1440), (960, 720)),     # a matrix for half the video's size
+    ((1920, 1440), (1920, 1440), None),         # for the video itself
+    ((4032, 3024), (1920, 1440), (4032, 3024)),  # for the sensor's full size
+    ((1440, 1920), (720, 960), (1440, 1920)),   # portrait
+])
+def test_intrinsics_written_for_another_size(matrix_size, frames, expect):
+    from embodmocap.io.captures.common import intrinsics_for_image
+    from embodmocap.types import Intrinsics
+
+    w, h = matrix_size
+    # A phone's principal point: a few pixels off the centre.
+    K_app = Intrinsics(1.1 * w, 1.1 * w, (w - 1) / 2 + 0.011 * w, (h - 1) / 2 - 0.008 * h, w, h)
+    K, other = intrinsics_for_image(K_app.K, *frames)
+    assert other == expect
+    truth = K_app.scaled(*frames)
+    np.testing.assert_allclose([K.fx, K.fy, K.cx, K.cy], [truth.fx, truth.fy, truth.cx, truth.cy], rtol=1e-12)
+    assert (K.width, K.height) == frames
