@@ -235,12 +235,15 @@ def write_record3d_exr(out: Path, walk: Walk, dropped: tuple[int, ...] = (3, 4, 
 # --------------------------------------------------------------------------- Spectacular AI
 
 
-def write_spectacular(out: Path, walk: Walk) -> Path:
-    """A Spectacular AI recording (data.jsonl, data.mov, frames2/, calibration.json, metadata.json)
-    with the smoothed poses of ``sai-cli smooth`` (cameras_sai.jsonl), landscape."""
+def write_spectacular(out: Path, walk: Walk, sdk: bool = False) -> Path:
+    """A Spectacular AI recording with the smoothed poses of ``sai-cli smooth`` (cameras_sai.jsonl),
+    landscape: the Spectacular Rec iOS app's (data.jsonl, data.mov, frames2/, calibration.json,
+    metadata.json; the paper's data) or, ``sdk``, the SDK recorder's (data.mp4, vio_config.yaml)."""
     out.mkdir(parents=True)
     K = walk.K
-    _video(out / "data.mov", walk.rgb, walk.fps)
+    _video(out / ("data.mp4" if sdk else "data.mov"), walk.rgb, walk.fps)
+    if sdk:
+        (out / "vio_config.yaml").write_text("useSlam: true\n")
     lines, poses = [], []
     for i, (T, t, d) in enumerate(zip(walk.T_vio_cam, walk.times, walk.depth_mm)):
         _png(out / "frames2" / f"{i:08d}.png", d)
@@ -256,7 +259,8 @@ def write_spectacular(out: Path, walk: Walk) -> Path:
            "imageWidth": K.width, "imageHeight": K.height, "model": "pinhole", "distortionCoefficients": [0, 0, 0],
            "imuToCamera": np.eye(4).tolist()}
     (out / "calibration.json").write_text(json.dumps({"cameras": [cam]}))
-    (out / "metadata.json").write_text(json.dumps({"platform": "ios", "device_model": "iPhone14,3"}))
+    if not sdk:
+        (out / "metadata.json").write_text(json.dumps({"platform": "ios", "device_model": "iPhone14,3"}))
     return out
 
 
@@ -274,8 +278,8 @@ def write_variant(name: str, out: Path, walk: Walk, big_video: tuple[int, int] |
     if name.startswith("r3d_"):
         older, zipped = "old" in name, name.endswith("zip")
         return write_record3d(out.with_suffix(".r3d") if zipped else out, walk, older=older, zipped=zipped)
-    if name == "spectacular":
-        return write_spectacular(out, walk)
+    if name in ("spectacular", "spectacular_sdk"):
+        return write_spectacular(out, walk, sdk=name.endswith("sdk"))
     raise KeyError(name)
 
 
@@ -289,5 +293,6 @@ VARIANTS = {
     "r3d_old_zip": ("Record3D .r3d, older metadata (initPose, no dw/dh, no frameTimestamps)", True),
     "r3d_old_dir": ("Record3D unzipped .r3d, older metadata", True),
     "r3d_exr": ("Record3D EXR + JPG export with dropped frames", True),
-    "spectacular": ("Spectacular AI recording with sai-cli smooth poses", False),
+    "spectacular": ("Spectacular AI recording (Spectacular Rec app) with sai-cli smooth poses", False),
+    "spectacular_sdk": ("Spectacular AI SDK recording (data.mp4) with sai-cli smooth poses", False),
 }

@@ -25,7 +25,8 @@ NAMED = {
     "stray15": "15-column odometry.csv with per-frame intrinsics", "r3d_new_zip": ".r3d file, newer metadata",
     "r3d_new_dir": "unzipped .r3d), newer metadata", "r3d_old_zip": "put in ARKit's world with initPose",
     "r3d_old_dir": "depth size from the depth data; times from fps", "r3d_exr": "EXR + JPG export (9 frames, 3 dropped",
-    "spectacular": "Spectacular AI recording (ios iPhone14,3)",
+    "spectacular": "Spectacular AI recording (ios iPhone14,3), data.mov (Spectacular Rec app)",
+    "spectacular_sdk": "Spectacular AI recording, data.mp4 (SDK recorder)",
 }
 
 
@@ -193,3 +194,15 @@ def test_intrinsics_written_for_another_size(matrix_size, frames, expect):
     truth = K_app.scaled(*frames)
     np.testing.assert_allclose([K.fx, K.fy, K.cx, K.cy], [truth.fx, truth.fy, truth.cx, truth.cy], rtol=1e-12)
     assert (K.width, K.height) == frames
+
+
+def test_a_zipped_recording_says_to_unzip_it(tmp_path, walks):
+    import zipfile
+
+    rec = write_variant("spectacular", tmp_path / "recording_1", walks[30])
+    zpath = tmp_path / "recording_1.zip"
+    with zipfile.ZipFile(zpath, "w") as z:
+        for f in rec.rglob("*"):
+            z.write(f, f.relative_to(tmp_path))
+    with pytest.raises(InputError, match="a zip archive: unzip it"):
+        open_capture(zpath)

@@ -59,6 +59,8 @@ def test_mesh_and_sparse_model_match_ground_truth(session, done):
     assert acc < 0.02, f"mesh accuracy {acc:.4f} m"
     assert done.layout.mesh_simplified.is_file()
     assert figs["simplified_faces"] < figs["mesh_faces"]
+    # The gravity check: the studio's VIO world is gravity-aligned, so its floor is horizontal.
+    assert figs["floor_tilt_deg"] < 1.0 and figs["floor_tilt_ok"] is True
     xyz, _, _, err = sparse_points(done.layout.sfm_dir)
     assert len(xyz) > 500 and figs["sfm_mean_reproj_error_px"] < 1.5
     from embodmocap.evaluate.mesh_metrics import surface_distances
@@ -126,7 +128,7 @@ def test_sparse_model_key_frames_are_the_capture_poses_or_their_drift_correction
 
 def test_second_run_skips_everything(session, done):
     again = stage.run(CFG, session)
-    assert set(again.skipped) == {"keyframes", "mesh", "simplify", "sfm"}
+    assert set(again.skipped) == {"keyframes", "mesh", "floor", "simplify", "sfm"}
 
 
 def test_interrupted_run_resumes_and_config_changes_redo_only_what_depends(session, tmp_path, monkeypatch):

@@ -37,6 +37,8 @@ LAYOUTS: dict[str, tuple[str, ...]] = {
     "Stray Scanner export": ("rgb.mp4", "odometry.csv", "camera_matrix.csv", "depth/", "confidence/", "imu.csv"),
     "Spectacular AI recording": ("data.jsonl", "calibration.json", "data.mov", "frames2/", "metadata.json",
                                  "cameras_sai.jsonl"),
+    "Spectacular AI SDK recording": ("data.jsonl", "calibration.json", "data.mp4", "vio_config.yaml", "frames2/",
+                                     "cameras_sai.jsonl"),
     "Record3D export folder (unzipped .r3d)": ("metadata", "rgbd/"),
     "Record3D EXR + JPG export": ("metadata.json", "rgb/", "depth/"),
 }
@@ -63,6 +65,8 @@ def closest_layout(path: str | Path) -> str:
     """For a folder of no known format: which known layout it is closest to and what it lacks,
     in words (e.g. "closest to a Stray Scanner export: has odometry.csv, depth/; lacks rgb.mp4, ...")."""
     path = Path(path)
+    if path.is_file() and path.suffix.lower() == ".zip":
+        return "a zip archive: unzip it (the Spectacular Rec app zips its recordings) and point to the folder"
     if not path.is_dir():
         return "not a folder, nor a .r3d file"
     # Share of each layout's items present; ties go to the layout with more items found.

@@ -4,7 +4,8 @@ Folder layout (see docs/formats.md)::
 
     data.jsonl          one JSON object per line: frame lines {"frames": [...], "number": n, "time": t},
                         IMU lines {"sensor": {"type": "accelerometer"|"gyroscope", "values": [...]}, "time": t}
-    data.mov            RGB video (frame i <-> data.jsonl frame number i)
+    data.mov            RGB video (frame i <-> data.jsonl frame number i); the Spectacular Rec iOS
+                        app (the paper's data) writes data.mov, the SDK's recorder data.mp4 or data.mkv
     frames2/%08d.png    uint16 depth in millimetres, one per frame number
     calibration.json    cameras[0]: focalLengthX/Y, principalPointX/Y, imageWidth/imageHeight, model, ...
     metadata.json       platform etc.
@@ -43,6 +44,8 @@ log = logging.getLogger(__name__)
 
 FORMAT = "spectacular"
 POSE_FILE = "cameras_sai.jsonl"
+#: The RGB video's name: the Spectacular Rec app's first, then the SDK recorder's.
+VIDEO_NAMES = ("data.mov", "data.mp4", "data.mkv")
 #: A pose matches a frame when their times differ by less than this fraction of a frame interval.
 TIME_TOLERANCE_FRAMES = 0.25
 
@@ -68,12 +71,17 @@ def scan_spectacular(path: str | Path, thorough: bool = False) -> CaptureScan:
     if not root.is_dir():
         return CaptureScan(root, FORMAT, problems=(Problem(root, "recording folder not found"),))
 
-    video = root / "data.mov"
-    try:
-        info = probe_video(video)
-    except InputError as err:
-        problems.append(Problem(video, err.problem, err.fix))
-        info = None
+    video = next((root / n for n in VIDEO_NAMES if (root / n).is_file()), root / VIDEO_NAMES[0])
+    info = None
+    if not video.is_file():
+        problems.append(Problem(video, "missing: a Spectacular AI recording holds its RGB video as data.mov "
+                                       "(Spectacular Rec app) or data.mp4 / data.mkv (SDK recorder)",
+                                "copy the whole recording folder (unzip the app's recording_*.zip)"))
+    else:
+        try:
+            info = probe_video(video)
+        except InputError as err:
+            problems.append(Problem(video, err.problem, err.fix))
     num_frames = info.num_frames if info else 0
     fps = info.fps if info else 0.0
 
@@ -140,15 +148,16 @@ def scan_spectacular(path: str | Path, thorough: bool = False) -> CaptureScan:
     timestamps = frame_times if len(frame_times) == num_frames and not np.isnan(frame_times).any() else (
         info.timestamps_s if info else np.zeros(0))
     return CaptureScan(
-        path=root, format=FORMAT, variant=_variant(root, k_turns), num_frames=num_frames, fps=fps, rgb_intrinsics=K, depth_size=depth_size,
+        path=root, format=FORMAT, variant=_variant(root, video, k_turns), num_frames=num_frames, fps=fps, rgb_intrinsics=K, depth_size=depth_size,
         timestamps_s=timestamps, trajectory=trajectory, imu=imu, make_frames=make_frames,
         problems=tuple(problems),
     )
 
 
-def _variant(root: Path, k_turns: int) -> str:
-    """The recording in words: the recorder named in ``metadata.json`` (when it says), orientation,
-    and whether the key frames of ``sai-cli process`` are there."""
+def _variant(root: Path, video: Path, k_turns: int) -> str:
+    """The recording in words: the recorder named in ``metadata.json`` (when it says), which
+    recorder the video's name comes from, orientation, and whether the key frames of
+    ``sai-cli process`` are there."""
     head = "Spectacular AI recording"
     try:
         meta = json.loads((root / "metadata.json").read_text())
@@ -158,7 +167,9 @@ def _variant(root: Path, k_turns: int) -> str:
             head += f" ({who})" if who else ""
     except (OSError, ValueError):
         pass
-    parts = [head, "portrait video" if k_turns else "landscape video", f"poses from {POSE_FILE}"]
+    recorder = "Spectacular Rec app" if video.name == "data.mov" else "SDK recorder"
+    parts = [head, f"{video.name} ({recorder})", "portrait video" if k_turns else "landscape video",
+             f"poses from {POSE_FILE}"]
     if (root / "transforms.json").is_file():
         parts.append("with sai-cli process key frames (transforms.json)")
     return ", ".join(parts)
