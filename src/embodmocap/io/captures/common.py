@@ -388,6 +388,19 @@ def rotate_camera_poses(T_world_cam: NDArray, k: int) -> NDArray[np.float64]:
     return T
 
 
+def probe_app_video(video: Path, missing: str, fix: str):
+    """(the video's :class:`~embodmocap.io.video.VideoInfo` or None, problems): a missing video is
+    one problem saying what the app writes (``missing``) and what to do (``fix``)."""
+    from embodmocap.io.video import probe_video
+
+    if not video.is_file():
+        return None, [Problem(video, f"missing: {missing}", fix)]
+    try:
+        return probe_video(video), []
+    except InputError as err:
+        return None, [Problem(video, err.problem, err.fix)]
+
+
 class LazyVideo:
     """Opens a :class:`~embodmocap.io.video.VideoReader` on first use (a Capture holds no decoder
     until a frame is read); ``rot90`` turns every frame by that many CCW quarter turns."""

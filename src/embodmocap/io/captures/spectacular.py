@@ -34,10 +34,10 @@ from embodmocap.geometry.transforms import gl_to_cv_cam, make_T, quat_to_matrix,
 from embodmocap.io.atomic import write_json, write_text
 from embodmocap.io.captures.common import (
     CaptureScan, LazyFrames, LazyVideo, Problem, capture_from_scan, depth_file_problems,
-    intrinsics_problems, pose_problems, quarter_turns_for, rotate_camera_poses, rotate_intrinsics,
+    intrinsics_problems, pose_problems, probe_app_video, quarter_turns_for, rotate_camera_poses, rotate_intrinsics,
     write_png,
 )
-from embodmocap.io.video import VideoWriter, probe_video
+from embodmocap.io.video import VideoWriter
 from embodmocap.types import Capture, CameraTrajectory, ImuSamples, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -72,16 +72,9 @@ def scan_spectacular(path: str | Path, thorough: bool = False) -> CaptureScan:
         return CaptureScan(root, FORMAT, problems=(Problem(root, "recording folder not found"),))
 
     video = next((root / n for n in VIDEO_NAMES if (root / n).is_file()), root / VIDEO_NAMES[0])
-    info = None
-    if not video.is_file():
-        problems.append(Problem(video, "missing: a Spectacular AI recording holds its RGB video as data.mov "
-                                       "(Spectacular Rec app) or data.mp4 / data.mkv (SDK recorder)",
-                                "copy the whole recording folder (unzip the app's recording_*.zip)"))
-    else:
-        try:
-            info = probe_video(video)
-        except InputError as err:
-            problems.append(Problem(video, err.problem, err.fix))
+    info, problems = probe_app_video(
+        video, "a Spectacular AI recording holds its RGB video as data.mov (Spectacular Rec app) or data.mp4 / "
+               "data.mkv (SDK recorder)", "copy the whole recording folder (unzip the app's recording_*.zip)")
     num_frames = info.num_frames if info else 0
     fps = info.fps if info else 0.0
 

@@ -35,9 +35,9 @@ from embodmocap.geometry.transforms import T_zup_from_yup, invert_T, make_T, mat
 from embodmocap.io.atomic import write_text
 from embodmocap.io.captures.common import (
     CaptureScan, LazyFrames, LazyVideo, Problem, accel_to_mps2, capture_from_scan,
-    depth_file_problems, intrinsics_for_image, intrinsics_problems, pose_problems, write_png,
+    depth_file_problems, intrinsics_for_image, intrinsics_problems, pose_problems, probe_app_video, write_png,
 )
-from embodmocap.io.video import VideoWriter, probe_video
+from embodmocap.io.video import VideoWriter
 from embodmocap.types import Capture, CameraTrajectory, ImuSamples, Intrinsics
 
 log = logging.getLogger(__name__)
@@ -112,16 +112,9 @@ def scan_strayscanner(path: str | Path, thorough: bool = False) -> CaptureScan:
         return CaptureScan(root, FORMAT, problems=(Problem(root, "capture folder not found"),))
 
     video = root / "rgb.mp4"
-    info = None
-    if not video.exists():
-        problems.append(Problem(video, "missing: a Stray Scanner export holds its RGB video as rgb.mp4 "
-                                       "beside odometry.csv and depth/",
-                                "copy the whole folder the app exported, rgb.mp4 included"))
-    else:
-        try:
-            info = probe_video(video)
-        except InputError as err:
-            problems.append(Problem(video, err.problem, err.fix))
+    info, problems = probe_app_video(video, "a Stray Scanner export holds its RGB video as rgb.mp4 beside "
+                                            "odometry.csv and depth/",
+                                     "copy the whole folder the app exported, rgb.mp4 included")
     num_frames = info.num_frames if info else 0
     fps = info.fps if info else 0.0
 
