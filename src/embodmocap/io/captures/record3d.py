@@ -178,7 +178,14 @@ def parse_metadata(data: bytes, where: Path) -> Record3dMetadata:
                          "expected JSON with K, w, h, fps and poses (Record3D writes it with every export)") from err
     if fps <= 0 and stamps is None:
         raise InputError(where, "metadata has neither fps nor frameTimestamps", "export the recording again")
-    return Record3dMetadata(w, h, K3, fps if fps > 0 else 30.0, poses, dsize, stamps, init)
+    if fps <= 0:  # only frame times: the rate is their median step
+        steps = np.diff(stamps) if stamps is not None else np.zeros(0)
+        steps = steps[steps > 0]
+        if not len(steps):
+            raise InputError(where, "metadata has no fps and its frameTimestamps do not increase",
+                             "export the recording again")
+        fps = 1.0 / float(np.median(steps))
+    return Record3dMetadata(w, h, K3, fps, poses, dsize, stamps, init)
 
 
 def world_poses(meta: Record3dMetadata, where: Path) -> tuple[NDArray[np.float64], str, list[Problem]]:
