@@ -128,7 +128,9 @@ def scan_spectacular(path: str | Path, thorough: bool = False) -> CaptureScan:
         problems.append(Problem(pose_path, err.problem, err.fix))
 
     depth_paths = [root / "frames2" / f"{i:08d}.png" for i in range(num_frames)]
-    dprob, raw_depth_size = depth_file_problems(depth_paths, None, "uint16", thorough)
+    dprob, raw_depth_size = depth_file_problems(
+        depth_paths, None, "uint16", thorough, "a Spectacular AI recording holds one frames2/NNNNNNNN.png (uint16 mm) "
+                                               "per video frame")
     problems += dprob
     depth_size = None
     if raw_depth_size is not None:
