@@ -206,3 +206,15 @@ def test_a_zipped_recording_says_to_unzip_it(tmp_path, walks):
             z.write(f, f.relative_to(tmp_path))
     with pytest.raises(InputError, match="a zip archive: unzip it"):
         open_capture(zpath)
+
+
+@pytest.mark.parametrize("name, depth_file, says", [
+    ("spectacular", "frames2/00000010.png", "one frames2/NNNNNNNN.png \\(uint16 mm\\) per video frame"),
+    ("r3d_new_dir", "rgbd/10.depth", "the app writes rgbd/N.depth beside every rgbd/N.jpg"),
+])
+def test_fewer_depth_frames_than_frames_names_what_the_app_writes(tmp_path, walks, name, depth_file, says):
+    path = write_variant(name, tmp_path / name, _walk_for(name, walks))
+    (path / depth_file).unlink()
+    with pytest.raises(InputError, match=says) as e:
+        open_capture(path)
+    assert e.value.path == path / depth_file
