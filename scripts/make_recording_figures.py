@@ -243,8 +243,9 @@ def _framing_panel(ax) -> None:
         ax.plot([d, d], [max(lo, 0), min(hi, tall)], color=colour, lw=5, alpha=0.8, solid_capstyle="butt")
         verdict = "feet and head cut" if need > PORTRAIT_VFOV_DEG else "whole body, room to move"
         far = d > 2
-        ax.text(d + (0.2 if far else 0.0), tall + (0.05 if far else 0.5), f"{d:g} m: body spans {need:.0f} deg\n{verdict}",
-                color=colour, fontsize=8, ha="left" if far else "center", va="bottom")
+        label = f"{d:g} m: body spans {need:.0f} deg\n{verdict}"
+        ax.text(d + (0.2 if far else 0.0), tall + (0.05 if far else 0.5), label, color=colour, fontsize=8,
+                ha="left" if far else "center", va="bottom")
     ax.plot(0, PHONE_HEIGHT_M, marker="s", ms=8, color="#2c3e50")
     ax.text(-0.15, 0.75, f"phone,\nupright,\n{PORTRAIT_VFOV_DEG:.0f} deg\nview", fontsize=8, va="center")
     ax.axhline(0, color="#555555", lw=1.5)

@@ -169,3 +169,39 @@ def test_default_model_ids_are_documented_where_users_look():
     assert model_or_default("my/own-model", "masks") == "my/own-model"
     with pytest.raises(ValueError, match="unknown model role 'pose3d'"):
         model_or_default("", "pose3d")
+
+
+def test_hub_unreachable_uses_the_cache_or_says_id_cache_and_fetch_command(tmp_path):
+    # Downloads on, but the Hub endpoint is a closed local port (a real connection that fails, as on
+    # a machine without network): a cached id still resolves, an uncached one is one clear line.
+    # huggingface_hub reads HF_ENDPOINT at import, hence a fresh interpreter.
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    pytest.importorskip("huggingface_hub")
+    from hub_cache import place_in_hub_cache
+
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text("{}")
+    (model / "model.safetensors").write_bytes(b"\0" * 64)
+    cache = tmp_path / "hf-cache"
+    snapshot = place_in_hub_cache(model, "tiny-org/present", cache)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again when the block ends: connections are refused
+    env = {k: v for k, v in os.environ.items() if k not in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")}
+    env.update(HF_HUB_CACHE=str(cache), HF_ENDPOINT=f"http://127.0.0.1:{port}")
+    code = ("from embodmocap.perception.hub import resolve_model_folder\n"
+            "from embodmocap.errors import InputError\n"
+            "print(resolve_model_folder('tiny-org/present', 'detector'))\n"
+            "try:\n    resolve_model_folder('tiny-org/absent', 'keypoints')\n"
+            "except InputError as err:\n    print(err)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, timeout=120)
+    found, error = out.stdout.strip().splitlines()[-2:]
+    assert found == str(snapshot)
+    assert error.startswith("tiny-org/absent: not a local folder, and it could not be downloaded into the Hugging Face "
+                            f"cache {cache}")
+    assert "ConnectError" in error and "`hf download tiny-org/absent`" in error

@@ -116,29 +116,38 @@ def _snapshot(repo_id: str, offline: bool) -> Path:
         folder = hub.snapshot_download(repo_id, cache_dir=cache, local_files_only=offline,
                                        allow_patterns=list(WEIGHT_PATTERNS))
     except Exception as err:  # noqa: BLE001 - every failure of the hub client becomes the one line below
-        reason = _reason(err)
+        reason = _reason(err, offline)
         if offline:
+            where = "only partly in" if type(err).__name__ == "IncompleteSnapshotError" else "not in"
             raise InputError(
-                repo_id, f"not a local folder, and not in the Hugging Face cache {cache} while downloads are off "
+                repo_id, f"not a local folder, and {where} the Hugging Face cache {cache} while downloads are off "
                 f"(--offline or HF_HUB_OFFLINE=1){reason}",
                 f"on a connected machine run `{fetch}` and copy its cache folder here (or point HF_HUB_CACHE at it), "
                 "run without --offline / HF_HUB_OFFLINE=1, or pass a local model folder",
             ) from err
         raise InputError(
             repo_id, f"not a local folder, and it could not be downloaded into the Hugging Face cache {cache}{reason}",
-            f"check the id and the network, then fetch it with `{fetch}` (gated or private models: `hf auth login` "
-            "first), or pass a local model folder",
+            f"check the id and the network, then fetch it with `{fetch}`; a gated or private model needs "
+            "`hf auth login` first; or pass a local model folder",
         ) from err
     log.info("model %s: %s", repo_id, folder)
     return Path(folder)
 
 
-def _reason(err: Exception) -> str:
-    """A short ``: why`` for a hub client error (first line of its message), or "" when it says nothing new."""
+def _reason(err: Exception, offline: bool) -> str:
+    """A short ``: why`` / `` (why)`` for a hub client error, or "" when the message already says it.
+
+    Offline, "not in the cache" needs no more words. Online, the hub client reports an unreachable
+    Hub as "not in the cache" too, with the network error as its cause: that cause is the reason.
+    """
     name = type(err).__name__
-    if name in ("LocalEntryNotFoundError", "OfflineModeIsEnabled"):
-        return ""  # "not in the cache and offline": the message already says so
     if name in ("RepositoryNotFoundError", "GatedRepoError"):
         return ": no such repository on the Hub, or it is gated/private"
-    first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-    return f" ({name}: {first[:200]})" if first else f" ({name})"
+    if name in ("LocalEntryNotFoundError", "OfflineModeIsEnabled"):
+        if offline or err.__cause__ is None:
+            return ""
+        err = err.__cause__
+        name = type(err).__name__
+    text = str(err).strip()
+    first = text.splitlines()[0][:200] if text else ""
+    return f" ({name}: {first})" if first else f" ({name})"
