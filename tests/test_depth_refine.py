@@ -232,14 +232,34 @@ def test_missing_model_folder_is_one_line_input_error(tmp_path):
     with pytest.raises(InputError) as err:
         PromptDepthAnything(model=missing)
     assert str(missing) in str(err.value) and "\n" not in str(err.value)
-    assert "cannot be downloaded" in str(err.value)
+    assert "no such model folder" in str(err.value)
 
 
-def test_uncached_hub_id_says_weights_cannot_be_downloaded():
+def test_uncached_hub_id_offline_names_id_cache_and_fetch_command(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hf-cache"))
     with pytest.raises(InputError) as err:
-        make_depth_refiner("promptda", model="nobody-here/no-such-promptda-model")
+        make_depth_refiner("promptda", model="nobody-here/no-such-promptda-model", offline=True)
     msg = str(err.value)
-    assert "nobody-here/no-such-promptda-model" in msg and "cannot be downloaded" in msg and "\n" not in msg
+    assert msg.startswith("nobody-here/no-such-promptda-model: ") and "\n" not in msg
+    assert str(tmp_path / "hf-cache") in msg and "`hf download nobody-here/no-such-promptda-model`" in msg
+
+
+def test_default_hub_id_loads_from_the_cache_offline(tiny_model_dir, refiner, frames, tmp_path, monkeypatch):
+    # The role's default id (no model given), placed in a fresh cache as a download leaves it, loads
+    # offline (HF_HUB_OFFLINE=1) and is the same network as the folder it came from.
+    from hub_cache import place_in_hub_cache
+
+    from embodmocap.perception.hub import DEFAULT_MODELS
+
+    cache = tmp_path / "hf-cache"
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    snapshot = place_in_hub_cache(tiny_model_dir, DEFAULT_MODELS["depth"], cache, extra_files={"promptda_vits.ckpt": 99})
+    by_id = PromptDepthAnything(batch_size=2, max_side=100)
+    assert by_id.model_dir == snapshot and by_id.options.model == DEFAULT_MODELS["depth"]
+    rgbs, depths = frames
+    for a, b in zip(by_id.refine(rgbs, depths), refiner.refine(rgbs, depths)):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_folder_that_is_not_a_promptda_model(tmp_path):

@@ -15,6 +15,8 @@ import json
 import numpy as np
 import pytest
 
+from hub_cache import place_in_hub_cache
+
 from embodmocap.errors import InputError
 from embodmocap.perception.hf_backends import HF_BACKENDS, make_backend, resize_rgb
 from embodmocap.types import Intrinsics
@@ -361,10 +363,13 @@ def test_wrong_model_type_and_unknown_backend(vitpose_dir, rtdetr_dir):
     assert isinstance(built, VitPoseKeypoints) and built.batch_size == 4
 
 
-def test_sequence_stage_runs_with_model_backends(rtdetr_dir, vitpose_dir, sam2_dir, tmp_path):
+def test_sequence_stage_runs_with_model_backends(rtdetr_dir, vitpose_dir, sam2_dir, tmp_path, monkeypatch):
     # The stage's model path end to end: RT-DETR boxes -> ViTPose keypoints -> tracking, and SAM 2
     # masks prompted by the performer's boxes. Random weights give arbitrary people, so only the
-    # plumbing (shapes, one output per sliced frame, manifest figures) is checked here.
+    # plumbing (shapes, one output per sliced frame, manifest figures) is checked here. The
+    # detector comes by its default hub id from the Hugging Face cache (offline), the others from
+    # local folders.
+    from embodmocap.perception.hub import DEFAULT_MODELS
     from embodmocap.sequence import stage
     from embodmocap.sequence.config import SequenceConfig
     from embodmocap.synth.config import SynthConfig
@@ -373,7 +378,9 @@ def test_sequence_stage_runs_with_model_backends(rtdetr_dir, vitpose_dir, sam2_d
     session = tmp_path / "s"
     synthesize(SynthConfig(seed=2, seconds=1.5, scene_seconds=0.5, width=320, height=240,
                            depth_width=64, depth_height=48), session)
-    cfg = SequenceConfig(detector="rtdetr", detector_model=str(rtdetr_dir), keypoints="vitpose",
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hf-cache"))
+    place_in_hub_cache(rtdetr_dir, DEFAULT_MODELS["detector"], tmp_path / "hf-cache")
+    cfg = SequenceConfig(detector="rtdetr", offline=True, keypoints="vitpose",
                          keypoints_model=str(vitpose_dir), masks="sam2", masks_model=str(sam2_dir),
                          body_prior="none", min_person_fraction=0.0)
     out = stage.run(cfg, session)
@@ -383,3 +390,96 @@ def test_sequence_stage_runs_with_model_backends(rtdetr_dir, vitpose_dir, sam2_d
         assert kp["keypoints"].shape == (T, 17, 3) and np.isfinite(kp["keypoints"]).all()
         assert np.load(out.layout.view(v).masks).shape[0] == T
         assert f"{v}_frames_with_person" in out.figures
+
+
+# ------------------------------------------------------------------------------------------------
+# Weights by hub id (embodmocap.perception.hub): the standard cache, offline, the errors
+
+
+@pytest.fixture()
+def hf_cache(tmp_path, monkeypatch):
+    """A fresh, empty Hugging Face cache selected the standard way (HF_HUB_CACHE), downloads allowed."""
+    cache = tmp_path / "hf-cache"
+    monkeypatch.setenv("HF_HUB_CACHE", str(cache))
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.delenv("TRANSFORMERS_OFFLINE", raising=False)
+    return cache
+
+
+# Backend name of each role's default model, as Stage II's settings choose it.
+_ROLE_BACKENDS = {"detector": "rtdetr", "keypoints": "vitpose", "masks": "sam2", "depth": "promptda"}
+
+
+@pytest.mark.parametrize("role", sorted(_ROLE_BACKENDS))
+def test_missing_default_model_offline_names_id_cache_and_fetch_command(role, hf_cache):
+    from embodmocap.perception import registry
+    from embodmocap.perception.hub import DEFAULT_MODELS
+    from embodmocap.sequence.config import SequenceConfig
+
+    cfg = SequenceConfig(**{role: _ROLE_BACKENDS[role]}, offline=True)  # no *_model: the role's default id
+    with pytest.raises(InputError) as err:
+        registry.make(role, _ROLE_BACKENDS[role], config=cfg)
+    msg, repo_id = str(err.value), DEFAULT_MODELS[role]
+    assert "\n" not in msg and msg.startswith(repo_id + ": ")
+    assert str(hf_cache) in msg and f"`hf download {repo_id}`" in msg and "--offline" in msg
+    assert not hf_cache.exists() or not any(hf_cache.rglob("*.safetensors"))  # nothing fetched, nothing faked
+
+
+def test_hf_hub_offline_in_the_environment_is_offline(hf_cache, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(InputError, match=r"downloads are off .*`hf download nobody-here/no-such-detector`"):
+        make_backend("detector", "rtdetr", model="nobody-here/no-such-detector")  # offline=False, env says off
+
+
+def test_hub_id_in_a_fresh_cache_loads_offline(rtdetr_dir, detector, frames, hf_cache, monkeypatch):
+    # The figure: a backend built from a hub id loads offline once the id is in the cache. The first
+    # run's download is replaced by the files a download writes (tests/hub_cache.py), including a
+    # repository file the download skips (an original checkpoint), so the offline look-up must ask
+    # for the same files the download fetched.
+    from huggingface_hub import scan_cache_dir
+
+    from embodmocap.perception import registry
+    from embodmocap.perception.hub import DEFAULT_MODELS
+    from embodmocap.sequence.config import SequenceConfig
+
+    repo_id = "tiny-org/tiny-rtdetr"
+    with pytest.raises(InputError, match="not in the Hugging Face cache"):  # fresh cache: not there yet
+        RtDetrPersonDetector(repo_id, offline=True)
+    snapshot = place_in_hub_cache(rtdetr_dir, repo_id, hf_cache, extra_files={"rtdetr_r50vd_original.pth": 4096})
+    info = scan_cache_dir(hf_cache)
+    assert not info.warnings and [r.repo_id for r in info.repos] == [repo_id]
+
+    by_id = RtDetrPersonDetector(repo_id, score_threshold=0.0, offline=True)
+    assert by_id.model_dir == snapshot
+    for a, b in zip(by_id.detect(frames, range(4)), detector.detect(frames, range(4))):
+        np.testing.assert_array_equal(a, b)  # the same weights as the folder it came from
+
+    # Through Stage II's settings, by the role's default id (empty detector_model), offline by flag...
+    place_in_hub_cache(rtdetr_dir, DEFAULT_MODELS["detector"], hf_cache)
+    built = registry.make("detector", "rtdetr", config=SequenceConfig(detector="rtdetr", offline=True))
+    assert built.model_dir.parent.parent.name == "models--PekingU--rtdetr_r50vd_coco_o365"
+    # ... and by the environment.
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    again = registry.make("detector", "rtdetr", config=SequenceConfig(detector="rtdetr", detector_model=repo_id))
+    assert again.model_dir == snapshot
+
+
+def test_partial_snapshot_offline_says_what_is_missing(rtdetr_dir, hf_cache):
+    place_in_hub_cache(rtdetr_dir, "tiny-org/cut-short", hf_cache, drop=("model.safetensors",))
+    with pytest.raises(InputError) as err:
+        RtDetrPersonDetector("tiny-org/cut-short", offline=True)
+    msg = str(err.value)
+    assert "\n" not in msg and "only partly in the Hugging Face cache" in msg and "model.safetensors" in msg
+    assert str(hf_cache) in msg
+
+
+def test_every_model_role_loads_its_hub_id_from_the_cache(vitpose_dir, sam2_dir, hf_cache):
+    for role, folder in (("keypoints", vitpose_dir), ("masks", sam2_dir)):
+        snapshot = place_in_hub_cache(folder, f"tiny-org/{role}", hf_cache)
+        built = make_backend(role, _ROLE_BACKENDS[role], model=f"tiny-org/{role}", offline=True)
+        assert built.model_dir == snapshot and built.model.config.model_type in ("vitpose", "sam2_video")
+
+
+def test_not_a_folder_and_not_a_hub_id(tmp_path):
+    with pytest.raises(InputError, match="no such model folder, and not a Hugging Face hub id"):
+        make_backend("detector", "rtdetr", model="./models/missing-detector")

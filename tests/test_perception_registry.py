@@ -127,3 +127,81 @@ def test_step_context_manager_times_records_skips_and_logs(tmp_path, caplog):
     late.record([out], {"placed": True})
     data = json.loads(Path(tmp_path / "manifest.json").read_text())
     assert data["steps"]["late"]["fingerprint"] == "fp2" and data["figures"]["placed"] is True
+
+
+@pytest.mark.parametrize("env", [
+    {},
+    {"HF_HOME": "/data/hf-home"},
+    {"XDG_CACHE_HOME": "/data/xdg", "HF_HUB_OFFLINE": "1"},
+    {"HF_HOME": "/data/hf-home", "HF_HUB_CACHE": "/data/hub-cache", "HF_HUB_OFFLINE": "0"},
+    {"HUGGINGFACE_HUB_CACHE": "/data/old-name", "TRANSFORMERS_OFFLINE": "yes"},
+])
+def test_cache_folder_and_offline_follow_the_environment_as_huggingface_hub_does(env):
+    # Reference: huggingface_hub's own constants, computed at its import in a fresh interpreter
+    # with the same environment; ours are read at call time.
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("huggingface_hub")
+    clean = {k: v for k, v in os.environ.items()
+             if k not in ("HF_HOME", "HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE", "XDG_CACHE_HOME", "HF_HUB_OFFLINE",
+                          "TRANSFORMERS_OFFLINE")}
+    code = ("import json, huggingface_hub.constants as c\n"
+            "from embodmocap.perception.hub import downloads_off, hub_cache_dir\n"
+            "print(json.dumps([c.HF_HUB_CACHE, str(hub_cache_dir()), c.HF_HUB_OFFLINE, downloads_off()]))")
+    out = subprocess.run([sys.executable, "-c", code], env={**clean, **env}, capture_output=True, text=True, check=True)
+    theirs_cache, ours_cache, theirs_off, ours_off = json.loads(out.stdout.strip().splitlines()[-1])
+    assert ours_cache == theirs_cache and ours_off == theirs_off
+
+
+def test_default_model_ids_are_documented_where_users_look():
+    # The ids of hub.DEFAULT_MODELS are interfaces: the option help (SequenceConfig's docstrings, which
+    # the CLI shows) and docs/formats.md must name the same ones.
+    from embodmocap.perception.hub import DEFAULT_MODELS, model_or_default
+
+    root = Path(__file__).resolve().parents[1]
+    config_src = (root / "src/embodmocap/sequence/config.py").read_text()
+    formats = (root / "docs/formats.md").read_text()
+    for role, repo_id in DEFAULT_MODELS.items():
+        assert repo_id in config_src and repo_id in formats, repo_id
+        assert model_or_default("", role) == repo_id and model_or_default(None, role) == repo_id
+    assert model_or_default("my/own-model", "masks") == "my/own-model"
+    with pytest.raises(ValueError, match="unknown model role 'pose3d'"):
+        model_or_default("", "pose3d")
+
+
+def test_hub_unreachable_uses_the_cache_or_says_id_cache_and_fetch_command(tmp_path):
+    # Downloads on, but the Hub endpoint is a closed local port (a real connection that fails, as on
+    # a machine without network): a cached id still resolves, an uncached one is one clear line.
+    # huggingface_hub reads HF_ENDPOINT at import, hence a fresh interpreter.
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    pytest.importorskip("huggingface_hub")
+    from hub_cache import place_in_hub_cache
+
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text("{}")
+    (model / "model.safetensors").write_bytes(b"\0" * 64)
+    cache = tmp_path / "hf-cache"
+    snapshot = place_in_hub_cache(model, "tiny-org/present", cache)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # closed again when the block ends: connections are refused
+    env = {k: v for k, v in os.environ.items() if k not in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE")}
+    env.update(HF_HUB_CACHE=str(cache), HF_ENDPOINT=f"http://127.0.0.1:{port}")
+    code = ("from embodmocap.perception.hub import resolve_model_folder\n"
+            "from embodmocap.errors import InputError\n"
+            "print(resolve_model_folder('tiny-org/present', 'detector'))\n"
+            "try:\n    resolve_model_folder('tiny-org/absent', 'keypoints')\n"
+            "except InputError as err:\n    print(err)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True, timeout=120)
+    found, error = out.stdout.strip().splitlines()[-2:]
+    assert found == str(snapshot)
+    assert error.startswith("tiny-org/absent: not a local folder, and it could not be downloaded into the Hugging Face "
+                            f"cache {cache}")
+    assert "ConnectError" in error and "`hf download tiny-org/absent`" in error

@@ -158,7 +158,9 @@ class PromptDAOptions:
 
     model: str
     """Local folder written by ``save_pretrained`` (``config.json`` + ``model.safetensors``), or a
-    Hugging Face hub id already in the local cache (nothing is downloaded)."""
+    Hugging Face hub id (taken from the standard cache, downloaded into it when missing unless
+    ``offline``); "" = the default ``depth-anything/prompt-depth-anything-vits-hf``
+    (:data:`embodmocap.perception.hub.DEFAULT_MODELS`)."""
     device: str = "cpu"
     """"cpu", "cuda", "cuda:N" or "auto" (= cuda when available). An unavailable CUDA device falls
     back to the CPU with a warning."""
@@ -174,6 +176,9 @@ class PromptDAOptions:
     mask_invalid: bool = False
     """Zero the result where the sensor had no depth (nearest-neighbour map of the invalid pixels).
     Off by default: filling holes is part of what refinement is for."""
+    offline: bool = False
+    """Never download: the model must be a local folder or already in the Hugging Face cache (also
+    when HF_HUB_OFFLINE=1 is set)."""
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -184,16 +189,6 @@ class PromptDAOptions:
             raise ValueError(f"output must be 'rgb' or 'depth', got {self.output!r}")
         if self.dtype not in ("float32", "float16", "bfloat16"):
             raise ValueError(f"dtype must be float32, float16 or bfloat16, got {self.dtype!r}")
-
-
-def resolve_model_dir(model: str | Path) -> Path:
-    """The local folder of ``model``: an existing folder, or a hub id's snapshot in the local cache.
-
-    Raises InputError (one line) when it is neither: weights cannot be downloaded here.
-    """
-    from embodmocap.perception.hf_backends import resolve_model_folder
-
-    return resolve_model_folder(model, "depth-anything/prompt-depth-anything-vits-hf")
 
 
 def _read_normalisation(model_dir: Path) -> tuple[float, NDArray[np.float32], NDArray[np.float32]]:
@@ -282,13 +277,17 @@ class PromptDepthAnything:
 
     name = "promptda"
 
-    def __init__(self, model: str | Path, *, device: str = "cpu", batch_size: int = 4, max_side: int = 1008,
-                 output: Literal["rgb", "depth"] = "rgb",
-                 dtype: Literal["float32", "float16", "bfloat16"] = "float32", mask_invalid: bool = False) -> None:
-        self.options = PromptDAOptions(str(model), device, batch_size, max_side, output, dtype, mask_invalid)
+    def __init__(self, model: str | Path | None = None, *, device: str = "cpu", batch_size: int = 4,
+                 max_side: int = 1008, output: Literal["rgb", "depth"] = "rgb",
+                 dtype: Literal["float32", "float16", "bfloat16"] = "float32", mask_invalid: bool = False,
+                 offline: bool = False) -> None:
+        from embodmocap.perception import hub
+
+        model = hub.model_or_default(model, "depth")
+        self.options = PromptDAOptions(str(model), device, batch_size, max_side, output, dtype, mask_invalid, offline)
         self._torch = require("torch", "perception")
         require("transformers", "perception")
-        self.model_dir = resolve_model_dir(model)
+        self.model_dir = hub.resolve_model_folder(model, "depth", offline=offline)
         self.device = _pick_device(self._torch, device)
         self._dtype = getattr(self._torch, dtype)
         self._rescale, self._mean, self._std = _read_normalisation(self.model_dir)

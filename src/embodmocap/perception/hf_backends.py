@@ -10,8 +10,9 @@ The backends themselves live in one module each:
   (role ``"masks"``, name ``"sam2"``): SAM 2 video masks prompted by the performer's box.
 
 Every backend takes ``model``: a local folder written by ``save_pretrained`` (``config.json`` +
-``model.safetensors``, optionally ``preprocessor_config.json``) or a Hugging Face hub id that is
-already in the local cache; nothing is ever downloaded. The image processors of ``transformers``
+``model.safetensors``, optionally ``preprocessor_config.json``), a Hugging Face hub id (downloaded
+into the standard cache unless ``offline``), or nothing for the role's default id; see
+:mod:`embodmocap.perception.hub`. The image processors of ``transformers``
 need torchvision for these models, which the package does not require, so each backend does its
 own pre- and post-processing with OpenCV / numpy / torch, reading the numbers (input size,
 rescale factor, mean, std) from the folder's ``preprocessor_config.json`` when it has one.
@@ -25,7 +26,6 @@ from __future__ import annotations
 import importlib
 import json
 import logging
-import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -43,38 +43,11 @@ IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 """RGB standard deviation used with :data:`IMAGENET_MEAN`."""
 
-_HUB_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
 _DTYPES = ("float32", "float16", "bfloat16")
 
 
 # ------------------------------------------------------------------------------------------------
-# Model folders
-
-
-def resolve_model_folder(model: str | Path, example: str) -> Path:
-    """The local folder of ``model``: an existing folder, or a hub id's snapshot in the local cache.
-
-    ``example`` is a hub id named in the error's fix. Raises a one-line InputError otherwise.
-    """
-    path = Path(model).expanduser()
-    if path.is_dir():
-        return path
-    if path.exists():
-        raise InputError(path, "is a file, not a model folder",
-                         "pass the folder written by save_pretrained (config.json + model.safetensors)")
-    text = str(model)
-    if _HUB_ID.match(text):
-        hub = require("huggingface_hub", "perception")
-        try:
-            return Path(hub.snapshot_download(text, local_files_only=True))
-        except (OSError, ValueError):
-            pass  # not cached: fall through to the error naming both possibilities
-    raise InputError(
-        text,
-        "no such model folder, and no cached Hugging Face model of that id (weights cannot be downloaded here)",
-        f"download the model elsewhere (e.g. huggingface-cli download {example} --local-dir DIR), "
-        "copy DIR here and pass its path",
-    )
+# Model folders (where they come from: embodmocap.perception.hub)
 
 
 def read_preprocessor_config(model_dir: Path, names: Sequence[str] = ("preprocessor_config.json",)) -> dict:

@@ -26,11 +26,12 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError, require
 from embodmocap.perception import hf_backends as hf
+from embodmocap.perception import hub
 
 log = logging.getLogger(__name__)
 
 _CLASSES = {"rt_detr": "RTDetrForObjectDetection", "rt_detr_v2": "RTDetrV2ForObjectDetection"}
-_EXAMPLE = "PekingU/rtdetr_r50vd_coco_o365"
+_EXAMPLE = hub.DEFAULT_MODELS["detector"]
 
 
 def normalized_cxcywh_to_xyxy(boxes: NDArray[np.floating], width: int, height: int) -> NDArray[np.float64]:
@@ -64,13 +65,14 @@ class RtDetrPersonDetector:
     """The ``"rtdetr"`` backend: person boxes from an RT-DETR (v1 or v2) object detector.
 
     Args:
-        model: local folder written by ``save_pretrained`` or a cached hub id
-            (e.g. ``PekingU/rtdetr_r50vd_coco_o365``).
+        model: local folder written by ``save_pretrained``, or a hub id (cached, else downloaded
+            into the Hugging Face cache); None or "" = the default ``PekingU/rtdetr_r50vd_coco_o365``.
         device: "cpu", "cuda", "cuda:N" or "auto"; an unavailable CUDA falls back to the CPU.
         batch_size: frames per forward pass.
         score_threshold: minimum person score in [0, 1] for a box to be kept.
         person_label: the class name of people in the model's ``id2label`` (case-insensitive).
         dtype: "float32", "float16" or "bfloat16" (half precision is meant for CUDA).
+        offline: never download (the model must be a folder or in the cache); HF_HUB_OFFLINE=1 does the same.
 
     Attributes:
         model_dir, model, device, input_hw (network input (h, w)), person_id (class index).
@@ -78,8 +80,9 @@ class RtDetrPersonDetector:
 
     name = "rtdetr"
 
-    def __init__(self, model: str | Path, device: str = "cpu", batch_size: int = 8, score_threshold: float = 0.5,
-                 person_label: str = "person", dtype: str = "float32") -> None:
+    def __init__(self, model: str | Path | None = None, device: str = "cpu", batch_size: int = 8,
+                 score_threshold: float = 0.5, person_label: str = "person", dtype: str = "float32",
+                 offline: bool = False) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if not 0.0 <= score_threshold <= 1.0:
@@ -87,7 +90,7 @@ class RtDetrPersonDetector:
         self._torch = require("torch", "perception")
         self.batch_size = int(batch_size)
         self.score_threshold = float(score_threshold)
-        self.model_dir = hf.resolve_model_folder(model, _EXAMPLE)
+        self.model_dir = hub.resolve_model_folder(model, "detector", offline=offline)
         self.device = hf.pick_device(self._torch, device, "RT-DETR")
         self._dtype = hf.torch_dtype(self._torch, dtype)
         cfg = hf.read_preprocessor_config(self.model_dir)

@@ -30,12 +30,13 @@ from scipy.ndimage import gaussian_filter
 
 from embodmocap.errors import InputError, require
 from embodmocap.perception import hf_backends as hf
+from embodmocap.perception import hub
 from embodmocap.types import COCO17_NAMES
 
 log = logging.getLogger(__name__)
 
 _CLASSES = {"vitpose": "VitPoseForPoseEstimation"}
-_EXAMPLE = "usyd-community/vitpose-base-simple"
+_EXAMPLE = hub.DEFAULT_MODELS["keypoints"]
 _DARK_SIGMA = 0.8
 """Standard deviation (heatmap pixels) of the blur before the DARK refinement (a 3x3 kernel)."""
 
@@ -118,13 +119,14 @@ class VitPoseKeypoints:
     """The ``"vitpose"`` backend: COCO-17 keypoints of given boxes with ViTPose (top-down).
 
     Args:
-        model: local folder written by ``save_pretrained`` or a cached hub id
-            (e.g. ``usyd-community/vitpose-base-simple``); its head must predict 17 heatmaps.
+        model: local folder written by ``save_pretrained``, or a hub id (cached, else downloaded
+            into the Hugging Face cache); None or "" = the default ``usyd-community/vitpose-base-simple``; its head must predict 17 heatmaps.
         device: "cpu", "cuda", "cuda:N" or "auto"; an unavailable CUDA falls back to the CPU.
         batch_size: person crops per forward pass (crops of all frames of a call are pooled).
         padding: crop window size relative to the aspect-corrected box (1.25 as in training).
         dataset_index: expert of ViTPose+ (mixture-of-experts) backbones; 0 = COCO.
         dtype: "float32", "float16" or "bfloat16".
+        offline: never download (the model must be a folder or in the cache); HF_HUB_OFFLINE=1 does the same.
 
     Attributes:
         model_dir, model, device, input_hw (network input (h, w), 256x192 by default).
@@ -132,15 +134,15 @@ class VitPoseKeypoints:
 
     name = "vitpose"
 
-    def __init__(self, model: str | Path, device: str = "cpu", batch_size: int = 16, padding: float = 1.25,
-                 dataset_index: int = 0, dtype: str = "float32") -> None:
+    def __init__(self, model: str | Path | None = None, device: str = "cpu", batch_size: int = 16,
+                 padding: float = 1.25, dataset_index: int = 0, dtype: str = "float32", offline: bool = False) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
         if padding < 1.0:
             raise ValueError(f"padding must be >= 1, got {padding}")
         self._torch = require("torch", "perception")
         self.batch_size, self.padding, self.dataset_index = int(batch_size), float(padding), int(dataset_index)
-        self.model_dir = hf.resolve_model_folder(model, _EXAMPLE)
+        self.model_dir = hub.resolve_model_folder(model, "keypoints", offline=offline)
         self.device = hf.pick_device(self._torch, device, "ViTPose")
         self._dtype = hf.torch_dtype(self._torch, dtype)
         self.model = hf.load_model(self.model_dir, _CLASSES, self.device, self._dtype,

@@ -36,11 +36,12 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import require
 from embodmocap.perception import hf_backends as hf
+from embodmocap.perception import hub
 
 log = logging.getLogger(__name__)
 
 _CLASSES = {"sam2_video": "Sam2VideoModel", "sam2": "Sam2VideoModel"}
-_EXAMPLE = "facebook/sam2.1-hiera-tiny"
+_EXAMPLE = hub.DEFAULT_MODELS["masks"]
 _OBJ_ID = 1
 """The performer's object id in the SAM 2 session (one object per view)."""
 
@@ -63,13 +64,14 @@ class Sam2VideoMasks:
     """The ``"sam2"`` backend: the performer's mask through a video with SAM 2.
 
     Args:
-        model: local folder written by ``save_pretrained`` or a cached hub id
-            (e.g. ``facebook/sam2.1-hiera-tiny``); a SAM 2 video (or image) checkpoint.
+        model: local folder written by ``save_pretrained``, or a hub id (cached, else downloaded
+            into the Hugging Face cache); None or "" = the default ``facebook/sam2.1-hiera-tiny``; a SAM 2 video (or image) checkpoint.
         device: "cpu", "cuda", "cuda:N" or "auto"; an unavailable CUDA falls back to the CPU.
         mask_threshold: logit above which a pixel is the person (0 = probability 1/2).
         reprompt_after: prompt again with the box when it is known after at least this many
             consecutive frames without one (>= 1).
         dtype: "float32", "float16" or "bfloat16".
+        offline: never download (the model must be a folder or in the cache); HF_HUB_OFFLINE=1 does the same.
 
     Attributes:
         model_dir, model, device, input_side (the square input's side in pixels),
@@ -78,14 +80,14 @@ class Sam2VideoMasks:
 
     name = "sam2"
 
-    def __init__(self, model: str | Path, device: str = "cpu", mask_threshold: float = 0.0,
-                 reprompt_after: int = 1, dtype: str = "float32") -> None:
+    def __init__(self, model: str | Path | None = None, device: str = "cpu", mask_threshold: float = 0.0,
+                 reprompt_after: int = 1, dtype: str = "float32", offline: bool = False) -> None:
         if reprompt_after < 1:
             raise ValueError(f"reprompt_after must be >= 1, got {reprompt_after}")
         self._torch = require("torch", "perception")
         self._transformers = require("transformers", "perception")
         self.mask_threshold, self.reprompt_after = float(mask_threshold), int(reprompt_after)
-        self.model_dir = hf.resolve_model_folder(model, _EXAMPLE)
+        self.model_dir = hub.resolve_model_folder(model, "masks", offline=offline)
         self.device = hf.pick_device(self._torch, device, "SAM 2")
         self._dtype = hf.torch_dtype(self._torch, dtype)
         self.model = hf.load_model(self.model_dir, _CLASSES, self.device, self._dtype,

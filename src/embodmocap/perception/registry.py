@@ -15,7 +15,10 @@ body_prior    :class:`~.roles.BodyPriorEstimator`  precomputed
 
 Precomputed backends read the view's files named in ``session.toml``; a view that names none is
 one :class:`~embodmocap.errors.InputError` saying which key to add or which backend to pick.
-Model backends import their libraries only when built. ``shared`` lets one call site reuse one
+Model backends import their libraries only when built; their weights come from the config's
+``*_model`` (a local folder or a hub id; empty = the role's default id of
+:data:`embodmocap.perception.hub.DEFAULT_MODELS`), downloaded into the Hugging Face cache unless
+``offline``. ``shared`` lets one call site reuse one
 instance for several roles (MediaPipe detects and estimates keypoints in one model).
 """
 
@@ -82,7 +85,7 @@ def _mediapipe(shared: dict) -> Any:
 def _hf(role: str, name: str, model: str, cfg) -> Any:
     from embodmocap.perception.hf_backends import make_backend
 
-    return make_backend(role, name, model=model, device=cfg.device)
+    return make_backend(role, name, model=model, device=cfg.device, offline=cfg.offline)
 
 
 def _precomputed_keypoints(view, role: str):
@@ -102,7 +105,8 @@ def _precomputed(cls_name: str, role: str) -> Callable:
 def _promptda(view, cfg, shared):
     from embodmocap.perception.depth_refine import make_depth_refiner
 
-    return RefinedDepth(make_depth_refiner("promptda", model=cfg.depth_model, device=cfg.device, output="rgb"))
+    return RefinedDepth(make_depth_refiner("promptda", model=cfg.depth_model, device=cfg.device, output="rgb",
+                                           offline=cfg.offline))
 
 
 def _precomputed_detector(view, cfg, shared):
@@ -142,7 +146,7 @@ def make(role: str, name: str, view=None, config=None, shared: dict | None = Non
         view: the view's manifest entry (:class:`~embodmocap.io.manifest.ViewEntry`): where the
             precomputed files are; None for model backends.
         config: the Stage II settings (:class:`~embodmocap.sequence.config.SequenceConfig`): model
-            paths and device; None = the defaults.
+            folders or hub ids, device, offline; None = the defaults.
         shared: instances to reuse across roles (one dict per view and call site).
 
     Raises:

@@ -34,13 +34,19 @@ class SequenceConfig:
     body_prior: Literal["precomputed", "none"] = "precomputed"
     """Camera-space body prior: the view's body_prior file, or none."""
     detector_model: str = ""
-    """Local folder or cached hub id of the RT-DETR model (detector = rtdetr)."""
+    """RT-DETR model (detector = rtdetr): a local folder or a Hugging Face hub id; empty = the default
+    PekingU/rtdetr_r50vd_coco_o365. Hub ids are downloaded into the Hugging Face cache unless offline."""
     keypoints_model: str = ""
-    """Local folder or cached hub id of the ViTPose model (keypoints = vitpose)."""
+    """ViTPose model (keypoints = vitpose): a local folder or a hub id; empty = the default
+    usyd-community/vitpose-base-simple."""
     masks_model: str = ""
-    """Local folder or cached hub id of the SAM 2 model (masks = sam2)."""
+    """SAM 2 model (masks = sam2): a local folder or a hub id; empty = the default facebook/sam2.1-hiera-tiny."""
     depth_model: str = ""
-    """Local folder or cached hub id of the Prompt Depth Anything model (depth = promptda)."""
+    """Prompt Depth Anything model (depth = promptda): a local folder or a hub id; empty = the default
+    depth-anything/prompt-depth-anything-vits-hf."""
+    offline: bool = False
+    """Never download model weights: hub ids must already be in the Hugging Face cache (HF_HUB_CACHE,
+    else ~/.cache/huggingface/hub; `hf download ID` fills it). HF_HUB_OFFLINE=1 does the same."""
     device: str = "cpu"
     """Device for model backends: cpu or cuda."""
     batch_size: int = 8
