@@ -502,62 +502,158 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     require_sequence_stages(lay, load_manifest(lay.manifest).sequence(seq))
 
 
-def _setup_logging(debug: bool):
-    from embodmocap import logs
+@dataclass
+class GlobalOptions:
+    """Options taken anywhere on the command line, before tyro sees it (see :func:`main`)."""
 
-    return logs.setup(log, debug)
+    debug: bool = False
+    """--debug: show the traceback of a failure."""
+    level: int = logging.INFO
+    """-q: WARNING (warnings and errors only); -v: DEBUG; default INFO."""
+    log_file: Path | None = None
+    """--log-file PATH: the log also appended there."""
+    config: Path | None = None
+    """--config FILE.toml: the command's settings (cli_settings); the command line wins."""
+    version: bool = False
+    """--version: print the version and stop."""
+
+
+def _global_options(argv: list[str]) -> tuple[list[str], GlobalOptions]:
+    """Take the global options out of ``argv``; an option missing its value is one clear error."""
+    opts, rest, i = GlobalOptions(), [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--":  # everything after is the command's
+            rest += argv[i:]
+            break
+        name, eq, value = a.partition("=")
+        if a == "--debug":
+            opts.debug = True
+        elif a in ("-q", "--quiet"):
+            opts.level = logging.WARNING
+        elif a in ("-v", "--verbose"):
+            opts.level = logging.DEBUG
+        elif a == "--version":
+            opts.version = True
+        elif name in ("--log-file", "--config"):
+            if not eq:
+                if i + 1 >= len(argv) or argv[i + 1].startswith("-"):
+                    raise EmbodMocapError(f"{name} needs a path (e.g. {name} "
+                                          f"{'run.log' if name == '--log-file' else 'settings.toml'})")
+                i += 1
+                value = argv[i]
+            setattr(opts, name[2:].replace("-", "_"), Path(value))
+        else:
+            rest.append(a)
+        i += 1
+    if opts.debug and opts.level == logging.INFO:
+        opts.level = logging.DEBUG
+    return rest, opts
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``embodmocap`` command. Exit status: 0 done, 1 the command's own failure (a failed stage,
+    problems found), 2 bad input or a file system error, 3 an unexpected error, 130 interrupted."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    debug = "--debug" in argv
-    argv = [a for a in argv if a != "--debug"]
+    try:
+        argv, opts = _global_options(argv)
+    except EmbodMocapError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if opts.version:
+        from embodmocap import __version__
+
+        print(f"embodmocap {__version__}")
+        return 0
     # "body make-test-model" and "session import" read naturally as two words.
     if len(argv) >= 2 and argv[0] in ("body", "session", "robot", "sim"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
-    handler = _setup_logging(debug)
+    from embodmocap import logs
+
+    handler = logs.setup(log, opts.debug, level=opts.level)
+    file_handler = None
     previous = watch_interrupts()
     try:
-        return _run(argv, debug)
+        if opts.log_file is not None:
+            try:
+                file_handler = logs.add_file(log, opts.log_file, min(opts.level, logging.INFO))
+            except OSError as err:
+                print(f"error: --log-file: {os_error_line(err)}", file=sys.stderr)
+                return 2
+        return _run(argv, opts)
     finally:
         stop_watching_interrupts(previous)
         handler.flush_repeats()  # a run of repeated lines at the very end is still counted
         log.removeHandler(handler)
+        if file_handler is not None:
+            log.removeHandler(file_handler)
+            file_handler.close()
 
 
-def _run(argv: list[str], debug: bool) -> int:
+def _fail(line: str) -> None:
+    """The one-line failure on stderr, and in the --log-file too (the console handler skips it)."""
+    print(line, file=sys.stderr)
+    for h in log.handlers:
+        if isinstance(h, logging.FileHandler):
+            h.emit(log.makeRecord(log.name, logging.ERROR, __file__, 0, line, (), None))
+
+
+def _parse(argv: list[str], settings: Path | None):
+    """The command object: tyro on ``argv``, with the settings file's values as defaults."""
+    kwargs = {}
+    if settings is not None:
+        from embodmocap.cli_settings import command_default, read_settings
+
+        data = read_settings(settings)
+        names = {_subcommand_name(t): _subcommand_class(t) for t in Commands.__args__}
+        name = next((a for a in argv if not a.startswith("-")), None)
+        if name not in names:
+            raise EmbodMocapError(f"--config {settings}: name the command too (e.g. embodmocap run SESSION "
+                                  f"--config {settings})")
+        kwargs["default"] = command_default(names[name], name, data, settings)
+    return tyro.cli(Commands, args=argv, prog="embodmocap",
+                    description="EmbodMocap: 4D human-scene capture from two handheld iPhones.", **kwargs)
+
+
+def _subcommand_class(annotated) -> type:
+    return annotated.__origin__
+
+
+def _subcommand_name(annotated) -> str:
+    return next(m.name for m in annotated.__metadata__ if hasattr(m, "name"))
+
+
+def _run(argv: list[str], opts: GlobalOptions) -> int:
+    debug = opts.debug
     try:
-        cmd = tyro.cli(
-            Commands, args=argv, prog="embodmocap",
-            description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
-        )
+        cmd = _parse(argv, opts.config)
         _preflight(cmd)
         return int(cmd.run())
     except EmbodMocapError as err:
         if interrupted(err):  # e.g. a missing-extra error made by an import that Ctrl-C cut short
-            print("interrupted: run the same command again to resume", file=sys.stderr)
+            _fail("interrupted: run the same command again to resume")
             return 130
         if debug:
             raise
-        print(f"error: {err}", file=sys.stderr)
+        _fail(f"error: {err}")
         return 2
     except KeyboardInterrupt:
-        print("interrupted: run the same command again to resume", file=sys.stderr)
+        _fail("interrupted: run the same command again to resume")
         return 130
     except OSError as err:  # disk full, permission denied, read-only file system, ...
         if debug:
             raise
-        print(f"error: {os_error_line(err)}", file=sys.stderr)
+        _fail(f"error: {os_error_line(err)}")
         return 2
     except Exception as err:  # noqa: BLE001 - a bug or an unforeseen input: still one line
         if interrupted(err):  # Ctrl-C during an import of a compiled module (see errors.watch_interrupts)
-            print("interrupted: run the same command again to resume", file=sys.stderr)
+            _fail("interrupted: run the same command again to resume")
             return 130
         if debug:
             raise
         first = (str(err).splitlines() or [""])[0][:300]
-        print(f"error: unexpected {type(err).__name__}: {first} (run the same command with --debug for the "
-              "traceback, and report it)", file=sys.stderr)
+        _fail(f"error: unexpected {type(err).__name__}: {first} (run the same command with --debug for the "
+              "traceback, and report it)")
         return 3
 
 

@@ -11,6 +11,7 @@ import logging
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TextIO
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -49,12 +50,28 @@ class FoldingHandler(logging.StreamHandler):
         super().close()
 
 
-def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None) -> FoldingHandler:
-    """Attach one folding handler to ``logger`` (the package logger): INFO, or DEBUG with ``debug``."""
+def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None, *,
+          level: int | None = None) -> FoldingHandler:
+    """Attach one folding handler to ``logger`` (the package logger): INFO, or DEBUG with ``debug``;
+    ``level`` overrides both (``-q``: WARNING, ``-v``: DEBUG)."""
+    level = level if level is not None else (logging.DEBUG if debug else logging.INFO)
     handler = FoldingHandler(stream)
     handler.setFormatter(logging.Formatter(FORMAT, "%H:%M:%S"))
+    handler.setLevel(level)
     logger.addHandler(handler)
-    logger.setLevel(logging.DEBUG if debug else logging.INFO)
+    logger.setLevel(level)
+    return handler
+
+
+def add_file(logger: logging.Logger, path: Path, level: int) -> logging.FileHandler:
+    """Also write ``logger``'s records at ``level`` and above to ``path`` (appended, full dates), so
+    a ``-q`` run still keeps its INFO lines in the file; the logger's own level is lowered to match."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setFormatter(logging.Formatter(FORMAT, "%Y-%m-%d %H:%M:%S"))
+    handler.setLevel(level)
+    logger.addHandler(handler)
+    logger.setLevel(min(logger.level, level))
     return handler
 
 
