@@ -265,11 +265,12 @@ class Benchmark:
 
 @dataclass(frozen=True)
 class Export:
-    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF)."""
+    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF,
+    OpenSim TRC, SMPL-X npz)."""
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training"]
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training", "trc", "smplx"]
     """Format to write (training: every sequence unless --seq; docs/training.md)."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
