@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from embodmocap import __version__
-from embodmocap.cli import GlobalOptions, _global_options, _parse, main
+from embodmocap.cli import _parse, main
+from embodmocap.cli_options import GlobalOptions, global_options
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "config.example.toml"
 
@@ -36,9 +37,9 @@ def test_quiet_silences_info_lines_and_verbose_shows_debug(tmp_path):
     assert (tmp_path / "b.npz").is_file()  # quiet, but the work is done
     assert " INFO embodmocap.body.testmodel: wrote test body model" in verbose.stderr
     # -v and -q are taken anywhere on the line; -v means DEBUG, --debug alone also DEBUG.
-    assert _global_options(["run", "-v", "S"]) == (["run", "S"], GlobalOptions(level=logging.DEBUG))
-    assert _global_options(["-q", "run"])[1].level == logging.WARNING
-    assert _global_options(["--debug", "run"])[1].level == logging.DEBUG
+    assert global_options(["run", "-v", "S"]) == (["run", "S"], GlobalOptions(level=logging.DEBUG))
+    assert global_options(["-q", "run"])[1].level == logging.WARNING
+    assert global_options(["--debug", "run"])[1].level == logging.DEBUG
 
 
 def test_log_file_keeps_the_lines_even_when_quiet(tmp_path):

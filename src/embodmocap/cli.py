@@ -16,6 +16,7 @@ from typing import Annotated, Literal, Union
 
 import tyro
 
+from embodmocap.cli_options import global_options
 from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_watching_interrupts, watch_interrupts
 from embodmocap.scene.config import SceneConfig
 from embodmocap.batch.commands import Batch, Catalog
@@ -503,61 +504,12 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     require_sequence_stages(lay, load_manifest(lay.manifest).sequence(seq))
 
 
-@dataclass
-class GlobalOptions:
-    """Options taken anywhere on the command line, before tyro sees it (see :func:`main`)."""
-
-    debug: bool = False
-    """--debug: show the traceback of a failure."""
-    level: int = logging.INFO
-    """-q: WARNING (warnings and errors only); -v: DEBUG; default INFO."""
-    log_file: Path | None = None
-    """--log-file PATH: the log also appended there."""
-    config: Path | None = None
-    """--config FILE.toml: the command's settings (cli_settings); the command line wins."""
-    version: bool = False
-    """--version: print the version and stop."""
-
-
-def _global_options(argv: list[str]) -> tuple[list[str], GlobalOptions]:
-    """Take the global options out of ``argv``; an option missing its value is one clear error."""
-    opts, rest, i = GlobalOptions(), [], 0
-    while i < len(argv):
-        a = argv[i]
-        if a == "--":  # everything after is the command's
-            rest += argv[i:]
-            break
-        name, eq, value = a.partition("=")
-        if a == "--debug":
-            opts.debug = True
-        elif a in ("-q", "--quiet"):
-            opts.level = logging.WARNING
-        elif a in ("-v", "--verbose"):
-            opts.level = logging.DEBUG
-        elif a == "--version":
-            opts.version = True
-        elif name in ("--log-file", "--config"):
-            if not eq:
-                if i + 1 >= len(argv) or argv[i + 1].startswith("-"):
-                    raise EmbodMocapError(f"{name} needs a path (e.g. {name} "
-                                          f"{'run.log' if name == '--log-file' else 'settings.toml'})")
-                i += 1
-                value = argv[i]
-            setattr(opts, name[2:].replace("-", "_"), Path(value))
-        else:
-            rest.append(a)
-        i += 1
-    if opts.debug and opts.level == logging.INFO:
-        opts.level = logging.DEBUG
-    return rest, opts
-
-
 def main(argv: list[str] | None = None) -> int:
     """The ``embodmocap`` command. Exit status: 0 done, 1 the command's own failure (a failed stage,
     problems found), 2 bad input or a file system error, 3 an unexpected error, 130 interrupted."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        argv, opts = _global_options(argv)
+        argv, opts = global_options(argv)
     except EmbodMocapError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -571,42 +523,35 @@ def main(argv: list[str] | None = None) -> int:
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
     from embodmocap import logs
 
-    handler = logs.setup(log, opts.debug, level=opts.level)
-    file_handler = None
+    try:  # a --log-file that cannot be written is refused before any work
+        if opts.log_file is not None:
+            opts.log_file.parent.mkdir(parents=True, exist_ok=True)
+            open(opts.log_file, "a").close()
+    except OSError as err:
+        print(f"error: --log-file: {os_error_line(err)}", file=sys.stderr)
+        return 2
     previous = watch_interrupts()
     try:
-        if opts.log_file is not None:
-            try:
-                file_handler = logs.add_file(log, opts.log_file, min(opts.level, logging.INFO))
-            except OSError as err:
-                print(f"error: --log-file: {os_error_line(err)}", file=sys.stderr)
-                return 2
-        return _run(argv, opts)
+        with logs.command_logging(log, opts.level, opts.log_file):
+            return _run(argv, opts)
     finally:
         stop_watching_interrupts(previous)
-        handler.flush_repeats()  # a run of repeated lines at the very end is still counted
-        log.removeHandler(handler)
-        if file_handler is not None:
-            log.removeHandler(file_handler)
-            file_handler.close()
 
 
 def _fail(line: str) -> None:
-    """The one-line failure on stderr, and in the --log-file too (the console handler skips it)."""
-    print(line, file=sys.stderr)
-    for h in log.handlers:
-        if isinstance(h, logging.FileHandler):
-            h.emit(log.makeRecord(log.name, logging.ERROR, __file__, 0, line, (), None))
+    from embodmocap.logs import say_error
+
+    say_error(log, line)
 
 
 def _parse(argv: list[str], settings: Path | None):
     """The command object: tyro on ``argv``, with the settings file's values as defaults."""
     kwargs = {}
     if settings is not None:
-        from embodmocap.cli_settings import command_default, read_settings
+        from embodmocap.cli_settings import command_default, read_settings, subcommands
 
         data = read_settings(settings)
-        names = {_subcommand_name(t): _subcommand_class(t) for t in Commands.__args__}
+        names = subcommands(Commands)
         name = next((a for a in argv if not a.startswith("-")), None)
         if name not in names:
             raise EmbodMocapError(f"--config {settings}: name the command too (e.g. embodmocap run SESSION "
@@ -616,15 +561,7 @@ def _parse(argv: list[str], settings: Path | None):
                     description="EmbodMocap: 4D human-scene capture from two handheld iPhones.", **kwargs)
 
 
-def _subcommand_class(annotated) -> type:
-    return annotated.__origin__
-
-
-def _subcommand_name(annotated) -> str:
-    return next(m.name for m in annotated.__metadata__ if hasattr(m, "name"))
-
-
-def _run(argv: list[str], opts: GlobalOptions) -> int:
+def _run(argv: list[str], opts) -> int:
     debug = opts.debug
     try:
         cmd = _parse(argv, opts.config)

@@ -44,6 +44,15 @@ def read_settings(path: Path) -> dict[str, Any]:
         raise InputError(path, f"not valid TOML: {err}", "see docs/config.example.toml") from None
 
 
+def subcommands(commands: Any) -> dict[str, type]:
+    """Subcommand name -> command dataclass of the CLI's ``Union[Annotated[cls, subcommand(name)], ...]``."""
+    out = {}
+    for annotated in typing.get_args(commands):
+        name = next(m.name for m in annotated.__metadata__ if getattr(m, "name", None))
+        out[name] = typing.get_args(annotated)[0]
+    return out
+
+
 def command_default(cls: type, name: str, data: dict[str, Any], path: Path) -> Any:
     """An instance of the command dataclass ``cls`` (subcommand ``name``) holding the file's values;
     fields the file does not set keep their defaults, required ones stay ``tyro.MISSING``."""

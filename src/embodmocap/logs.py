@@ -76,6 +76,33 @@ def add_file(logger: logging.Logger, path: Path, level: int) -> logging.FileHand
 
 
 @contextmanager
+def command_logging(logger: logging.Logger, level: int, log_file: Path | None = None) -> Iterator[None]:
+    """The command line's handlers for one command: the folding handler on stderr at ``level`` and,
+    with ``log_file``, the file at ``level`` or INFO, whichever shows more. Removed on exit."""
+    handler = setup(logger, level <= logging.DEBUG, level=level)
+    file_handler = None
+    try:
+        if log_file is not None:
+            file_handler = add_file(logger, log_file, min(level, logging.INFO))
+        yield
+    finally:
+        handler.flush_repeats()  # a run of repeated lines at the very end is still counted
+        logger.removeHandler(handler)
+        if file_handler is not None:
+            logger.removeHandler(file_handler)
+            file_handler.close()
+
+
+def say_error(logger: logging.Logger, line: str) -> None:
+    """A command's one-line failure: on stderr, and as an ERROR record in ``logger``'s log files
+    (not through the stderr handler, which would print it twice)."""
+    print(line, file=sys.stderr)
+    for h in logger.handlers:
+        if isinstance(h, logging.FileHandler):
+            h.emit(logger.makeRecord(logger.name, logging.ERROR, __file__, 0, line, (), None))
+
+
+@contextmanager
 def quiet_colmap(pycolmap, log: logging.Logger) -> Iterator[None]:
     """Keep COLMAP's own logging (glog, straight to stderr) to errors unless ``log`` is at DEBUG:
     its INFO line per image and its routine "many threads" warning would drown the package's log."""
