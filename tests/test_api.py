@@ -92,12 +92,27 @@ def test_load_reads_the_evaluation_and_names_missing_files(session, tmp_path):
         embodmocap.load(tmp_path / "not_a_session")
 
 
+def test_run_raises_one_error_listing_the_failed_stages(session, tmp_path):
+    import shutil
+
+    from embodmocap.errors import EmbodMocapError
+
+    root, _ = session
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    # The tiny session's scene capture is too short for Stage I: the scene fails, and its sequence.
+    with pytest.raises(EmbodMocapError, match=r"2 stage\(s\) failed: scene .*key frames.*; sequence .*its scene .* failed"
+                       r".*call run again to resume"):
+        embodmocap.run(copy)
+
+
 @pytest.mark.slow
 def test_run_processes_a_session_with_a_settings_file(tmp_path):
+    from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize
 
     root = tmp_path / "s"
-    synthesize(SYNTH, root)
+    synthesize(SynthConfig(seed=0, seconds=3.0, scene_seconds=15.0), root)  # as tests/test_pipeline.py
     settings = tmp_path / "settings.toml"
     settings.write_text("[motion.smplify]\nphase2_iterations = 40\n")
     res = embodmocap.run(root, settings)
