@@ -14,3 +14,13 @@ __version__ = "0.1.0"
 #: The package logger; modules use ``logging.getLogger(__name__)`` under it, never the root logger.
 logger = logging.getLogger("embodmocap")
 logger.addHandler(logging.NullHandler())
+
+
+def __getattr__(name: str):
+    # ``embodmocap.run`` / ``embodmocap.load`` (the notebook API, :mod:`embodmocap.api`) are
+    # imported on first use, so ``import embodmocap`` stays light for the command line.
+    if name in ("run", "load"):
+        from embodmocap import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'embodmocap' has no attribute {name!r}")

@@ -16,6 +16,7 @@ from typing import Annotated, Literal, Union
 
 import tyro
 
+from embodmocap.cli_options import global_options
 from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_watching_interrupts, watch_interrupts
 from embodmocap.scene.config import SceneConfig
 from embodmocap.batch.commands import Batch, Catalog
@@ -265,11 +266,12 @@ class Benchmark:
 
 @dataclass(frozen=True)
 class Export:
-    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF)."""
+    """Export a fitted sequence for other tools (AMASS npz, BVH, GLB, MimicKit, CSV, MuJoCo MJCF,
+    OpenSim TRC, SMPL-X npz)."""
 
     session: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SESSION")]
     """Session folder (holds session.toml)."""
-    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training"]
+    to: Literal["amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training", "trc", "smplx"]
     """Format to write (training: every sequence unless --seq; docs/training.md)."""
     seq: str | None = None
     """Sequence to export; needed only when the session has several."""
@@ -502,62 +504,94 @@ def _require_stages_done(session: Path, seq: str | None) -> None:
     require_sequence_stages(lay, load_manifest(lay.manifest).sequence(seq))
 
 
-def _setup_logging(debug: bool):
-    from embodmocap import logs
-
-    return logs.setup(log, debug)
-
-
 def main(argv: list[str] | None = None) -> int:
+    """The ``embodmocap`` command. Exit status: 0 done, 1 the command's own failure (a failed stage,
+    problems found), 2 bad input or a file system error, 3 an unexpected error, 130 interrupted."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    debug = "--debug" in argv
-    argv = [a for a in argv if a != "--debug"]
+    try:
+        argv, opts = global_options(argv)
+    except EmbodMocapError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if opts.version:
+        from embodmocap import __version__
+
+        print(f"embodmocap {__version__}")
+        return 0
     # "body make-test-model" and "session import" read naturally as two words.
     if len(argv) >= 2 and argv[0] in ("body", "session", "robot", "sim"):
         argv = [f"{argv[0]}:{argv[1]}"] + argv[2:]
-    handler = _setup_logging(debug)
+    from embodmocap import logs
+
+    try:  # a --log-file that cannot be written is refused before any work
+        if opts.log_file is not None:
+            opts.log_file.parent.mkdir(parents=True, exist_ok=True)
+            open(opts.log_file, "a").close()
+    except OSError as err:
+        print(f"error: --log-file: {os_error_line(err)}", file=sys.stderr)
+        return 2
     previous = watch_interrupts()
     try:
-        return _run(argv, debug)
+        with logs.command_logging(log, opts.level, opts.log_file):
+            return _run(argv, opts)
     finally:
         stop_watching_interrupts(previous)
-        handler.flush_repeats()  # a run of repeated lines at the very end is still counted
-        log.removeHandler(handler)
 
 
-def _run(argv: list[str], debug: bool) -> int:
+def _fail(line: str) -> None:
+    from embodmocap.logs import say_error
+
+    say_error(log, line)
+
+
+def _parse(argv: list[str], settings: Path | None):
+    """The command object: tyro on ``argv``, with the settings file's values as defaults."""
+    kwargs = {}
+    if settings is not None:
+        from embodmocap.cli_settings import command_default, read_settings, subcommands
+
+        data = read_settings(settings)
+        names = subcommands(Commands)
+        name = next((a for a in argv if not a.startswith("-")), None)
+        if name not in names:
+            raise EmbodMocapError(f"--config {settings}: name the command too (e.g. embodmocap run SESSION "
+                                  f"--config {settings})")
+        kwargs["default"] = command_default(names[name], name, data, settings)
+    return tyro.cli(Commands, args=argv, prog="embodmocap",
+                    description="EmbodMocap: 4D human-scene capture from two handheld iPhones.", **kwargs)
+
+
+def _run(argv: list[str], opts) -> int:
+    debug = opts.debug
     try:
-        cmd = tyro.cli(
-            Commands, args=argv, prog="embodmocap",
-            description="EmbodMocap: 4D human-scene capture from two handheld iPhones.",
-        )
+        cmd = _parse(argv, opts.config)
         _preflight(cmd)
         return int(cmd.run())
     except EmbodMocapError as err:
         if interrupted(err):  # e.g. a missing-extra error made by an import that Ctrl-C cut short
-            print("interrupted: run the same command again to resume", file=sys.stderr)
+            _fail("interrupted: run the same command again to resume")
             return 130
         if debug:
             raise
-        print(f"error: {err}", file=sys.stderr)
+        _fail(f"error: {err}")
         return 2
     except KeyboardInterrupt:
-        print("interrupted: run the same command again to resume", file=sys.stderr)
+        _fail("interrupted: run the same command again to resume")
         return 130
     except OSError as err:  # disk full, permission denied, read-only file system, ...
         if debug:
             raise
-        print(f"error: {os_error_line(err)}", file=sys.stderr)
+        _fail(f"error: {os_error_line(err)}")
         return 2
     except Exception as err:  # noqa: BLE001 - a bug or an unforeseen input: still one line
         if interrupted(err):  # Ctrl-C during an import of a compiled module (see errors.watch_interrupts)
-            print("interrupted: run the same command again to resume", file=sys.stderr)
+            _fail("interrupted: run the same command again to resume")
             return 130
         if debug:
             raise
         first = (str(err).splitlines() or [""])[0][:300]
-        print(f"error: unexpected {type(err).__name__}: {first} (run the same command with --debug for the "
-              "traceback, and report it)", file=sys.stderr)
+        _fail(f"error: unexpected {type(err).__name__}: {first} (run the same command with --debug for the "
+              "traceback, and report it)")
         return 3
 
 

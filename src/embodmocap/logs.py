@@ -11,6 +11,7 @@ import logging
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TextIO
 
 FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
@@ -49,13 +50,56 @@ class FoldingHandler(logging.StreamHandler):
         super().close()
 
 
-def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None) -> FoldingHandler:
-    """Attach one folding handler to ``logger`` (the package logger): INFO, or DEBUG with ``debug``."""
+def setup(logger: logging.Logger, debug: bool, stream: TextIO | None = None, *,
+          level: int | None = None) -> FoldingHandler:
+    """Attach one folding handler to ``logger`` (the package logger): INFO, or DEBUG with ``debug``;
+    ``level`` overrides both (``-q``: WARNING, ``-v``: DEBUG)."""
+    level = level if level is not None else (logging.DEBUG if debug else logging.INFO)
     handler = FoldingHandler(stream)
     handler.setFormatter(logging.Formatter(FORMAT, "%H:%M:%S"))
+    handler.setLevel(level)
     logger.addHandler(handler)
-    logger.setLevel(logging.DEBUG if debug else logging.INFO)
+    logger.setLevel(level)
     return handler
+
+
+def add_file(logger: logging.Logger, path: Path, level: int) -> logging.FileHandler:
+    """Also write ``logger``'s records at ``level`` and above to ``path`` (appended, full dates), so
+    a ``-q`` run still keeps its INFO lines in the file; the logger's own level is lowered to match."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setFormatter(logging.Formatter(FORMAT, "%Y-%m-%d %H:%M:%S"))
+    handler.setLevel(level)
+    logger.addHandler(handler)
+    logger.setLevel(min(logger.level, level))
+    return handler
+
+
+@contextmanager
+def command_logging(logger: logging.Logger, level: int, log_file: Path | None = None) -> Iterator[None]:
+    """The command line's handlers for one command: the folding handler on stderr at ``level`` and,
+    with ``log_file``, the file at ``level`` or INFO, whichever shows more. Removed on exit."""
+    handler = setup(logger, level <= logging.DEBUG, level=level)
+    file_handler = None
+    try:
+        if log_file is not None:
+            file_handler = add_file(logger, log_file, min(level, logging.INFO))
+        yield
+    finally:
+        handler.flush_repeats()  # a run of repeated lines at the very end is still counted
+        logger.removeHandler(handler)
+        if file_handler is not None:
+            logger.removeHandler(file_handler)
+            file_handler.close()
+
+
+def say_error(logger: logging.Logger, line: str) -> None:
+    """A command's one-line failure: on stderr, and as an ERROR record in ``logger``'s log files
+    (not through the stderr handler, which would print it twice)."""
+    print(line, file=sys.stderr)
+    for h in logger.handlers:
+        if isinstance(h, logging.FileHandler):
+            h.emit(logger.makeRecord(logger.name, logging.ERROR, __file__, 0, line, (), None))
 
 
 @contextmanager

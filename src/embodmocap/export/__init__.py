@@ -14,6 +14,7 @@ _WHERE = {
     "HeightMap": "mimickit", "egocentric_heightmap": "mimickit", "mimickit_frames": "mimickit",
     "read_heightmap": "mimickit", "read_mimickit_motion": "mimickit", "scene_heightmap": "mimickit",
     "write_heightmap": "mimickit", "write_mimickit": "mimickit", "write_mimickit_motion": "mimickit",
+    "trc_text": "trc", "write_trc": "trc", "smplx_arrays": "smplx_npz", "write_smplx": "smplx_npz",
     "FORMATS": "run", "export_sequence": "run", "ExportConfig": "config",
 }
 

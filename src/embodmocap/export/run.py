@@ -13,6 +13,8 @@ bvh        ``<seq>.bvh``               SMPL skeleton, Y up (:mod:`.bvh`)
 glb        ``<seq>.glb``               scene + skinned animated body, Y up (:mod:`.gltf`)
 mimickit   ``mimickit/`` (a folder)    motion pkl, skeleton json, scene OBJ + height map
 csv        ``<seq>_joints.csv``        world joint positions per frame (:mod:`.csv_joints`)
+trc        ``<seq>.trc``               OpenSim marker file of the world joints, Y up (:mod:`.trc`)
+smplx      ``<seq>_smplx.npz``         SMPL-X-compatible params, hands zero (:mod:`.smplx_npz`)
 robot      ``../robot/<robot>/``       robot motion: BeyondMimic CSV + npz, GMR pkl, scene
                                        MJCF, report (:mod:`embodmocap.robot`, extra ``robot``)
 mjcf       ``mjcf/`` (a folder)        MuJoCo performer + scene heightfield + keyframes
@@ -43,7 +45,7 @@ from embodmocap.io.stage_files import read_world_joints
 log = logging.getLogger(__name__)
 
 #: The export formats, in the order the CLI lists them.
-FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training")
+FORMATS: tuple[str, ...] = ("amass", "bvh", "glb", "mimickit", "csv", "robot", "mjcf", "training", "trc", "smplx")
 
 
 def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
@@ -58,7 +60,7 @@ def _need(path: Path, seq: str, session: Path, stage: str) -> Path:
 
 def _default_out(layout: SessionLayout, seq: str, to: str) -> Path:
     names = {"amass": f"{seq}_amass.npz", "bvh": f"{seq}.bvh", "glb": f"{seq}.glb", "mimickit": "mimickit", "csv": f"{seq}_joints.csv",
-             "mjcf": "mjcf"}
+             "mjcf": "mjcf", "trc": f"{seq}.trc", "smplx": f"{seq}_smplx.npz"}
     return layout.sequence(seq).exports_dir / names[to]
 
 
@@ -102,6 +104,8 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     if to == "csv":
         joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
         return write_joints_csv(out, joints, params.fps, frames)
+    if to in ("trc", "smplx"):
+        return _export_trc_smplx(seq_layout, layout.root, seq, to, out, params, frames)
     if to == "mjcf":
         from embodmocap.sim.config import SceneCollisionConfig
         from embodmocap.sim.session import export_mjcf
@@ -124,6 +128,22 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     scene = _scene_mesh(layout, manifest, seq, prefer_simplified=True)
     return write_mimickit(out, params, model, scene, name=seq, loop_mode=config.mimickit_loop,
                           cell_m=config.heightmap_cell_m, frames=frames)
+
+
+def _export_trc_smplx(seq_layout, root: Path, seq: str, to: str, out: Path, params, frames) -> Path:
+    """``--to trc`` (the world joints, :mod:`.trc`) and ``--to smplx`` (:mod:`.smplx_npz`), each
+    with the fit's ``valid`` flags."""
+    from embodmocap.io.smpl_file import read_smpl_valid
+
+    valid = read_smpl_valid(seq_layout.smpl_world)
+    if to == "smplx":
+        from embodmocap.export.smplx_npz import write_smplx
+
+        return write_smplx(out, params, frames=frames, valid=valid)
+    from embodmocap.export.trc import write_trc
+
+    joints = _read_joints(_need(seq_layout.joints_world, seq, root, "motion"), len(params))
+    return write_trc(out, joints, params.fps, frames, valid=valid)
 
 
 def _export_robot(session: str | Path, seq: str, out: str | Path | None, config: ExportConfig) -> Path:
