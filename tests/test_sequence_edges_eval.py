@@ -1,0 +1,154 @@
+"""Issue 29, parts 5 and 6: the benchmark measures the sequence's edges (W-MPJPE with a chunk at
+every start, the first five frames beside the median frame, silently wrong frames), and each frame
+of the motion says when a view contradicts it (the ``suspect`` flag and quality figures, carried
+into the exports)."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from embodmocap.evaluate.metrics import frame_errors_mm, w_mpjpe, w_mpjpe_all_starts
+from embodmocap.evaluate.session import SequenceTruth, motion_errors
+from embodmocap.geometry.transforms import invert_T, look_at_T
+from embodmocap.motion.quality import QualityConfig, frame_quality
+
+K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def _walk(T: int, J: int = 24, seed: int = 0) -> np.ndarray:
+    """(T, J, 3) a rigid joint cloud walking 3 m along x while turning 90 degrees."""
+    rng = np.random.default_rng(seed)
+    body = rng.normal(scale=[0.15, 0.15, 0.45], size=(J, 3))
+    t = np.arange(T) / T
+    pelvis = np.stack([3.0 * t, 0.3 * np.sin(20 * t), np.full(T, 0.9)], -1)
+    return np.stack([body @ _rot_z(90.0 * s).T for s in t]) + pelvis[:, None]
+
+
+def test_w_mpjpe_all_starts_sees_a_bad_start_the_fixed_chunks_hide_in_the_middle():
+    T = 180
+    gt = _walk(T)
+    pred = gt.copy()
+    # A whole-body offset everywhere is aligned away; a limb 30 cm off in frames 60-61 only matters
+    # for the chunks those two frames anchor (start 60, and 59 and 61 which use one of them).
+    pred += [0.5, -0.2, 0.0]
+    pred[60:62, 5] += [0.3, 0.0, 0.0]
+    starts = w_mpjpe_all_starts(pred, gt, chunk=100)
+    assert starts.shape == (T - 100 + 1,)
+    assert w_mpjpe(pred, gt, chunk=100) < 1.0  # the fixed chunks start at 0 and 100: never anchored there
+    assert np.median(starts) < 1.0 and starts.max() > 10.0
+    assert set(np.flatnonzero(starts > 1.0)) <= {59, 60, 61}
+    # Start 0 is the fixed first chunk exactly; a sequence shorter than the chunk is one chunk.
+    np.testing.assert_allclose(w_mpjpe_all_starts(pred[:100], gt[:100]), [w_mpjpe(pred[:100], gt[:100])])
+    np.testing.assert_allclose(w_mpjpe_all_starts(pred[:40], gt[:40]), [w_mpjpe(pred[:40], gt[:40])])
+    # Batching does not change a value.
+    np.testing.assert_allclose(w_mpjpe_all_starts(pred, gt, batch=7), starts)
+    assert w_mpjpe_all_starts(pred[:1], gt[:1]).shape == (0,)
+
+
+def test_edge_figures_and_silently_wrong_frames():
+    T = 150
+    gt = _walk(T)
+    truth = SequenceTruth(joints=gt, T_world_vio={}, T_world_cam={}, sync_frame={}, valid=np.ones(T, dtype=bool))
+    pred = gt + [0.02, 0.0, 0.0]  # 20 mm everywhere
+    pred[:3, 20] += [0.0, 0.3, 0.0]  # the first three frames: one wrist 30 cm off
+    pred[100, 21] += [0.0, 0.0, 0.2]  # and one frame in the middle
+    np.testing.assert_allclose(frame_errors_mm(pred, gt)[5:10], 20.0)
+    suspect = np.zeros(T, dtype=bool)
+    suspect[[0, 1]] = True  # the fit flagged two of the four wrong frames
+    e = motion_errors(pred, np.arange(T), truth, suspect=suspect)
+    assert e["median_frame_mm"] == pytest.approx(20.0, abs=0.01)
+    wrist_frame = (23 * 20.0 + 1000 * np.hypot(0.02, 0.3)) / 24
+    assert e["first5_frame_mm"] == pytest.approx((3 * wrist_frame + 2 * 20.0) / 5, abs=0.01)
+    assert e["last5_frame_mm"] == pytest.approx(20.0, abs=0.01)
+    assert e["wrong_frames"] == 4 and e["wrong_unflagged_frames"] == 2 and e["suspect_frames"] == 2
+    assert e["wrong_unflagged_pct"] == pytest.approx(100 * 2 / T, abs=1e-3)
+    assert e["w_mpjpe_mm_all_starts_worst"] > 3 * e["w_mpjpe_mm_all_starts_median"]
+    # A frame flagged invalid is not silently wrong (and not evaluated).
+    valid = np.ones(T, dtype=bool)
+    valid[100] = False
+    e2 = motion_errors(pred, np.arange(T), truth, valid, suspect)
+    assert e2["wrong_unflagged_frames"] == 1 and e2["evaluated_frames"] == T - 1
+
+
+def _two_views(points: np.ndarray):
+    """Cameras 4 m away at 0 and 90 degrees about the points' centre, and the points' pixels."""
+    T = len(points)
+    centre = points.reshape(-1, 3).mean(0)
+    Twc = np.stack([np.repeat(look_at_T(centre + [4 * np.cos(a), 4 * np.sin(a), 0.2], centre)[None], T, 0)
+                    for a in (0.0, np.pi / 2)], axis=1)  # (T, 2, 4, 4)
+    Tcw = invert_T(Twc)
+    cam = np.einsum("tvab,tjb->tvja", Tcw[..., :3, :3], points) + Tcw[..., None, :3, 3]
+    uv = np.einsum("ab,tvjb->tvja", K, cam)
+    kp = np.concatenate([uv[..., :2] / uv[..., 2:], np.full(uv.shape[:-1] + (1,), 0.9)], -1)
+    return np.stack([K, K]), Twc, kp
+
+
+def test_a_limb_far_from_both_views_is_suspect_a_wrong_detection_is_not():
+    T = 6
+    truth = _walk(T, J=17, seed=3)
+    Ks, Twc, kp = _two_views(truth)
+    fitted = truth.copy()
+    fitted[:2, 9] += [0.0, 0.0, 0.3]  # left wrist 30 cm off in frames 0-1 (both views see it elsewhere)
+    raw = kp.copy()
+    used = kp.copy()
+    used[:2, 0, [7, 9], 2] = 0.0  # Stage IV dropped view 1's left arm there: the raw detection still counts
+    raw[2, 0, 9, :2] += 150.0  # frame 2: view 1's wrist detection is a blunder (view 2 agrees with the fit)
+    raw[3, 1, [9, 10]] = raw[3, 1, [10, 9]]  # frame 3: view 2 swapped the wrists
+    used[3, 1, [9, 10]] = used[3, 1, [10, 9]]
+    q = frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"))
+    assert q.suspect.tolist() == [True, True, False, False, False, False]
+    assert q.limb_off_m[0] > 0.25 and np.nanmax(q.limb_off_m[2:]) < 1e-6
+    assert q.kp3d_err_m[0] == pytest.approx(0.0, abs=1e-9)  # the median over the 17 points
+    assert np.all(q.reproj_px[4:] < 1e-6) and q.reproj_px[2, 0] < 1e-6  # median per view
+    # Only what the views see: a wrist no view detects says nothing.
+    raw[:2, :, [9, 10], 2] = 0.0
+    used[:2, :, [9, 10], 2] = 0.0
+    q = frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"))
+    assert not q.suspect[:2].any()
+    # The threshold is the config's.
+    fitted[4, 9] += [0.0, 0.0, 0.06]
+    assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect[4]
+    assert frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), QualityConfig(suspect_m=0.04)).suspect[4]
+
+
+def test_quality_round_trips_through_the_motion_file_and_the_exports(tmp_path):
+    from embodmocap.export.amass import write_amass
+    from embodmocap.export.csv_joints import write_joints_csv
+    from embodmocap.io.smpl_file import read_smpl_quality, read_smpl_suspect, write_smpl_npz
+    from embodmocap.types import SmplParams
+
+    T = 5
+    rng = np.random.default_rng(0)
+    params = SmplParams(np.zeros(10), rng.normal(size=(T, 3)) * 0.1, rng.normal(size=(T, 69)) * 0.1,
+                        rng.normal(size=(T, 3)), 30.0)
+    suspect = np.array([True, False, False, True, False])
+    quality = {"suspect": suspect, "limb_off_m": np.array([0.3, 0.01, np.nan, 0.2, 0.02]),
+               "reproj_px": rng.random((T, 2)), "kp3d_err_m": rng.random(T), "quality_views": np.array(["v1", "v2"])}
+    path = write_smpl_npz(tmp_path / "m.npz", params, valid=np.ones(T, bool), quality=quality)
+    back = read_smpl_quality(path)
+    for k, v in quality.items():
+        np.testing.assert_array_equal(back[k], v)
+    np.testing.assert_array_equal(read_smpl_suspect(path), suspect)
+    old = write_smpl_npz(tmp_path / "old.npz", params)  # written without: none suspect, no keys
+    assert read_smpl_quality(old) == {} and not read_smpl_suspect(old).any()
+    with pytest.raises(ValueError, match="quality needs"):
+        write_smpl_npz(tmp_path / "bad.npz", params, quality={"suspect": suspect})
+    valid = np.array([False, True, True, True, True])
+    with np.load(write_amass(tmp_path / "a.npz", params, flags=(valid, suspect))) as z:
+        np.testing.assert_array_equal(z["valid"], valid)
+        np.testing.assert_array_equal(z["suspect"], suspect)
+    joints = rng.normal(size=(T, 24, 3))
+    with open(write_joints_csv(tmp_path / "j.csv", joints, 30.0, flags=(valid, suspect)), newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0][-2:] == ["valid", "suspect"] and len(rows[0]) == 2 + 72 + 2
+    table = np.array(rows[1:], dtype=np.float64)
+    np.testing.assert_array_equal(table[:, -2:], np.stack([valid, suspect], 1).astype(float))
+    np.testing.assert_allclose(table[:, 2:-2].reshape(T, 24, 3), joints, atol=1e-6)
