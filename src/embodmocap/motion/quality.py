@@ -11,10 +11,11 @@ frame of the fitted motion:
   (not the gap-filled), metres;
 - ``limb_off_m`` (T,): the limb joint (shoulders to ankles) furthest from what the views see:
   per joint and view, the distance in metres from the fitted joint to the view's ray through its
-  detection (the raw detector's, with either side's label, or the one the fit used: a left/right
-  confusion or a detection Stage IV's checks dropped is still the view's evidence), the smallest
-  over the views that detect the joint at ``min_conf`` or more (a joint one view sees wrongly but
-  another sees where the fit is does not count), the largest over the joints;
+  detection (the raw detector's or the one the fit used, labels tracked and swaps undone: a
+  detection Stage IV's checks dropped is still the view's evidence), the smallest over the views
+  that detect the joint at ``min_conf`` or more (a joint one view sees wrongly but another sees
+  where the fit is does not count), the largest over the joints. A fitted limb on the other side's
+  place (left and right exchanged in the fit) is as far from both views as any other wrong limb;
 - ``suspect`` (T,): ``limb_off_m`` above ``suspect_m``.
 
 Ray distances are metric where pixels are not (a limb 3 m from the camera is half as many pixels
@@ -32,8 +33,6 @@ from numpy.typing import NDArray
 #: COCO-17 joints judged for the suspect flag: shoulders, elbows, wrists, hips, knees, ankles
 #: (the face points sit on SMPL vertices that a detector places differently).
 LIMB_JOINTS: tuple[int, ...] = tuple(range(5, 17))
-#: COCO-17 index of each joint's other-side twin (the face and limbs mirrored, the nose itself).
-MIRROR: tuple[int, ...] = (0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15)
 
 
 @dataclass(frozen=True)
@@ -45,18 +44,24 @@ class QualityConfig:
     suspect_m: float = 0.10
     """A frame is suspect when a limb joint is further than this (metres) from the ray of every
     view that detects it."""
+    repair_frames: int = 15
+    """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
+    views takes the local rotations of the first frame within this many where it is not, when
+    that brings it closer to the views (:mod:`embodmocap.motion.edge_repair`). 0 = off."""
 
 
 @dataclass(frozen=True)
 class FrameQuality:
     """Per-frame quality of a fitted motion (see the module docstring); ``views`` names the
-    columns of ``reproj_px``."""
+    columns of ``reproj_px``; ``joint_off_m`` (T, 17) each joint's distance from the closest view
+    that sees it (NaN: none does; not written to the files)."""
 
     reproj_px: NDArray
     kp3d_err_m: NDArray
     limb_off_m: NDArray
     suspect: NDArray
     views: tuple[str, ...]
+    joint_off_m: NDArray | None = None
 
     def arrays(self) -> dict[str, NDArray]:
         """The keys written into ``smpl_fit.npz`` / ``smpl_world.npz`` (docs/formats.md)."""
@@ -109,19 +114,27 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
     seen3 = np.isfinite(points).all(-1) & (np.ones(points.shape[:2], bool) if filled is None else ~np.asarray(filled, bool))
     d3 = np.where(seen3, np.linalg.norm(fitted_kp - np.nan_to_num(points), axis=-1), np.nan)
     kp3d = _nanmedian(d3, axis=-1)
-    # Each view's evidence for each joint: its raw detection under either label, or the one the fit used.
-    cands = [(raw2d, np.arange(17)), (raw2d, np.asarray(MIRROR)), (used2d, np.arange(17))]
-    dist = np.full((T, V, 17), np.inf)
-    for kp, idx in cands:
-        k = kp[:, :, idx]
-        ok = np.nan_to_num(k[..., 2]) >= cfg.min_conf
-        r = ray_distance(X, K, T_world_cam, np.nan_to_num(k[..., :2]))
-        dist = np.where(ok & (r < dist), r, dist)
-    per_joint = dist.min(axis=1)[:, list(LIMB_JOINTS)]  # (T, 12): the view closest to the fit
-    per_joint = np.where(np.isfinite(per_joint), per_joint, np.nan)
+    joint = joint_offsets(fitted_kp, K, T_world_cam, used2d, raw2d, cfg.min_conf)
+    per_joint = joint[:, list(LIMB_JOINTS)]
     limb = np.where(np.isfinite(per_joint).any(-1), np.nanmax(np.nan_to_num(per_joint, nan=-1.0), axis=-1), np.nan)
     suspect = np.nan_to_num(limb, nan=0.0) > cfg.suspect_m
-    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views))
+    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint)
+
+
+def joint_offsets(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
+                  min_conf: float) -> NDArray:
+    """(T, 17) each fitted joint's distance (metres) from the ray of the view closest to it among
+    those that detect it at ``min_conf`` or more, the raw detection or the one the fit used
+    (NaN: no view does). Shapes as :func:`frame_quality`."""
+    T, V = used2d.shape[:2]
+    X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
+    dist = np.full((T, V, 17), np.inf)
+    for k in (raw2d, used2d):
+        ok = np.nan_to_num(k[..., 2]) >= min_conf
+        r = ray_distance(X, K, T_world_cam, np.nan_to_num(k[..., :2]))
+        dist = np.where(ok & (r < dist), r, dist)
+    best = dist.min(axis=1)
+    return np.where(np.isfinite(best), best, np.nan)
 
 
 def _nanmedian(a: NDArray, axis: int) -> NDArray:

@@ -206,7 +206,15 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
-    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T)
+    params, n_repaired = res.params, 0
+    if cfg.quality.repair_frames > 0:
+        from embodmocap.motion.edge_repair import repair_edges
+
+        # Limbs the views contradict at the edges of placeable runs take the first fine frame's pose.
+        params, n_repaired = repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d,
+                                                                               k3, T).joint_off_m,
+                                          cfg.quality.suspect_m, cfg.quality.repair_frames)
+    quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
         "init_frames_from_keypoints": n_replaced if v_best else int(T),
@@ -216,6 +224,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         "unplaced_frames_turned": n_turned,
         "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
         "suspect_frames": int((quality.suspect & valid).sum()),
+        "edge_limb_frames_carried": n_repaired,
         "terms_before": res.terms_before, "terms_after": res.terms_after,
         **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
         "fit_seconds": {k: round(float(x), 2) for k, x in res.phase_seconds.items()},
@@ -226,7 +235,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
                     "the worst %.0f cm at frame %d): flagged `suspect` in smpl_world.npz", label, len(bad),
                     100 * cfg.quality.suspect_m, 100 * np.nanmax(quality.limb_off_m[bad]),
                     int(bad[np.nanargmax(quality.limb_off_m[bad])]))
-    return Fitted(with_fps(res.params, fps, gender), valid, figures, quality)
+    return Fitted(with_fps(params, fps, gender), valid, figures, quality)
 
 
 def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],

@@ -1,0 +1,124 @@
+"""The sequence's edges (issue 29): Stage IV re-run in memory on processed sessions under config
+variants, scored at the edges and overall against the truth.
+
+For each session (Stages I-III done, e.g. ``embodmocap benchmark``'s or ``embodmocap synth``'s
+after ``embodmocap run``) and each variant: the dual-view fit exactly as Stage IV makes it
+(sub-frame sync, triangulation, body priors, fit, the per-frame quality: ``embodmocap.motion.solve``;
+nothing is written), scored as ``embodmocap benchmark`` scores ``dual``: W-MPJPE at chunk 100
+(fixed chunks, and with a chunk at every start: median and worst), the unaligned error of the first
+five frames beside the median frame, WA-, PA-MPJPE, RTE, frames flagged suspect, frames with a joint
+more than 15 cm off that no flag marks, and the Stage IV time (triangulation + fit) of each variant,
+all in the same run. Variants run interleaved per session, so a load change on the machine hits
+them alike.
+
+    PYTHONPATH=src python benchmarks/bench_motion_edges.py '{"main": {}, "x": {"smplify.edge_hold": "all"}}' \\
+        SESSION [SESSION ...] [--json OUT.json]
+
+A variant is a JSON object of ``MotionConfig`` fields to change, dotted for nested configs
+(``smplify.w_edge_vel``, ``temporal.max_run``, ``quality.suspect_m``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+KEYS = ("w_mpjpe_mm", "w_mpjpe_mm_all_starts_median", "w_mpjpe_mm_all_starts_worst", "first5_frame_mm",
+        "last5_frame_mm", "median_frame_mm", "wa_mpjpe_mm", "pa_mpjpe_mm", "rte_pct", "world_mpjpe_mm",
+        "invalid_frames", "suspect_frames", "wrong_frames", "wrong_unflagged_pct")
+
+
+def motion_config(over: dict):
+    """``MotionConfig`` with ``over``'s (dotted) fields changed."""
+    from embodmocap.motion.config import MotionConfig
+
+    cfg = MotionConfig()
+    nested: dict[str, dict] = {}
+    top = {}
+    for k, v in over.items():
+        if "." in k:
+            a, b = k.split(".", 1)
+            nested.setdefault(a, {})[b] = v
+        else:
+            top[k] = v
+    for a, fields in nested.items():
+        top[a] = replace(getattr(cfg, a), **fields)
+    return replace(cfg, **top)
+
+
+def main() -> None:
+    from embodmocap.body.model import load_body_model
+    from embodmocap.evaluate.benchmark import _Context, scored
+    from embodmocap.evaluate.session import sequence_truth
+    from embodmocap.io.layout import VIEWS, SessionLayout
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.io.stage_files import read_cameras, read_keypoints2d, sequence_fps
+    from embodmocap.motion import solve as s4
+    from embodmocap.motion.stage import keypoint_layout
+    from embodmocap.sequence.subframe import synced_views
+
+    args = sys.argv[1:]
+    out_json = None
+    if "--json" in args:
+        i = args.index("--json")
+        out_json = Path(args[i + 1])
+        args = args[:i] + args[i + 2:]
+    variants = json.loads(args[0])
+    rows = []
+    for s in args[1:]:
+        lay = SessionLayout(Path(s))
+        man = load_manifest(lay.manifest)
+        seq = next(iter(man.sequences))
+        scene = man.sequences[seq].scene
+        model = load_body_model(man.body_model)
+        truth = sequence_truth(lay, scene, seq)
+        ctx = _Context(lay, seq, scene, model)
+        sl = ctx.sl
+        cams, kps = synced_views(sl, {v: read_cameras(sl.view(v).cameras_world) for v in VIEWS},
+                                 {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS})
+        T = min(len(kps[v]) for v in VIEWS)
+        layout = keypoint_layout(sl, seq)
+        for name, over in variants.items():
+            mcfg = motion_config(over)
+            t0 = time.perf_counter()
+            tri = s4.triangulate_views(mcfg, cams, kps, T, seq)
+            priors = ctx._priors(mcfg.min_prior_fraction, T) if mcfg.use_body_prior else {}
+            fitted = s4.fit_motion(mcfg, model, tri.file, cams, kps, T, sequence_fps(sl), priors, layout,
+                                   man.gender, label=seq)
+            took = time.perf_counter() - t0
+            e = scored(ctx.joints(fitted.params), np.arange(len(fitted.params)), truth, fitted.valid,
+                       fitted.quality.suspect)
+            row = {"session": Path(s).name, "variant": name, "seconds": round(took, 1), **{k: e.get(k) for k in KEYS}}
+            rows.append(row)
+            print("RESULT " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    if out_json:
+        out_json.write_text(json.dumps(rows, indent=1))
+    print(table(rows))
+
+
+def table(rows: list[dict]) -> str:
+    """Per variant: the median and worst over sessions of every figure, the time ratio to the first."""
+    names = list(dict.fromkeys(r["variant"] for r in rows))
+    lines = ["| variant | figure | median | worst | per session |", "|---|---|---|---|---|"]
+    base = {r["session"]: r["seconds"] for r in rows if r["variant"] == names[0]}
+    for n in names:
+        sel = [r for r in rows if r["variant"] == n]
+        for k in KEYS + ("first5_over_median", "time_ratio"):
+            if k == "first5_over_median":
+                vals = [r["first5_frame_mm"] / r["median_frame_mm"] for r in sel]
+            elif k == "time_ratio":
+                vals = [r["seconds"] / base[r["session"]] for r in sel]
+            else:
+                vals = [float(r[k]) for r in sel]
+            worst = max(vals) if k not in ("time_ratio",) else max(vals)
+            lines.append(f"| {n} | {k} | {np.median(vals):.2f} | {worst:.2f} | " + ", ".join(f"{v:.1f}" for v in vals) + " |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
