@@ -15,7 +15,10 @@ them alike.
         SESSION [SESSION ...] [--json OUT.json]
 
 A variant is a JSON object of ``MotionConfig`` fields to change, dotted for nested configs
-(``smplify.w_edge_vel``, ``temporal.max_run``, ``quality.suspect_m``).
+(``smplify.w_edge_vel``, ``temporal.max_run``, ``quality.suspect_m``). Each variant is fitted once
+without the edge repair (row ``<name>, no edge repair``: the fit of main) and, unless the variant
+turns it off, repaired as Stage IV repairs it (row ``<name>``); the repaired row's time adds the
+repair's to the fit's.
 """
 
 from __future__ import annotations
@@ -85,17 +88,27 @@ def main() -> None:
         layout = keypoint_layout(sl, seq)
         for name, over in variants.items():
             mcfg = motion_config(over)
+            # The fit without the edge repair, then the repair on its result: the same steps as
+            # fit_motion with the repair on (solve.repair_run_edges), and both rows from one fit.
+            off = replace(mcfg, quality=replace(mcfg.quality, repair_frames=0))
             t0 = time.perf_counter()
-            tri = s4.triangulate_views(mcfg, cams, kps, T, seq)
-            priors = ctx._priors(mcfg.min_prior_fraction, T) if mcfg.use_body_prior else {}
-            fitted = s4.fit_motion(mcfg, model, tri.file, cams, kps, T, sequence_fps(sl), priors, layout,
+            tri = s4.triangulate_views(off, cams, kps, T, seq)
+            priors = ctx._priors(off.min_prior_fraction, T) if off.use_body_prior else {}
+            fitted = s4.fit_motion(off, model, tri.file, cams, kps, T, sequence_fps(sl), priors, layout,
                                    man.gender, label=seq)
             took = time.perf_counter() - t0
-            e = scored(ctx.joints(fitted.params), np.arange(len(fitted.params)), truth, fitted.valid,
-                       fitted.quality.suspect)
-            row = {"session": Path(s).name, "variant": name, "seconds": round(took, 1), **{k: e.get(k) for k in KEYS}}
-            rows.append(row)
-            print("RESULT " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+            out = [(f"{name}, no edge repair", fitted.params, fitted.quality, took)]
+            if mcfg.quality.repair_frames > 0:
+                t1 = time.perf_counter()
+                params, n = s4.repair_run_edges(mcfg, model, fitted.params, fitted.valid, layout, cams, kps, tri.file, T)
+                kp2d = tri.file["keypoints2d"]
+                quality = s4.fit_quality(mcfg, model, params, layout, cams, kps, kp2d, tri.file, T)
+                out.append((name, params, quality, took + time.perf_counter() - t1))
+            for label, params, quality, sec in out:
+                e = scored(ctx.joints(params), np.arange(len(params)), truth, fitted.valid, quality.suspect)
+                row = {"session": Path(s).name, "variant": label, "seconds": round(sec, 1), **{k: e.get(k) for k in KEYS}}
+                rows.append(row)
+                print("RESULT " + " ".join(f"{k}={v}" for k, v in row.items()), flush=True)
     if out_json:
         out_json.write_text(json.dumps(rows, indent=1))
     print(table(rows))

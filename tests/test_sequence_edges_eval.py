@@ -113,10 +113,17 @@ def test_a_limb_far_from_both_views_is_suspect_a_wrong_detection_is_not():
     used[:2, :, [9, 10], 2] = 0.0
     q = frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"))
     assert not q.suspect[:2].any()
-    # The threshold is the config's.
+    # The threshold is the config's; one frame off alone is a detector's blunder, two in a row are not.
     fitted[4, 9] += [0.0, 0.0, 0.06]
-    assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect[4]
-    assert frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), QualityConfig(suspect_m=0.04)).suspect[4]
+    low = QualityConfig(suspect_m=0.04)
+    assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), low).suspect[4]
+    fitted[5, 9] += [0.0, 0.0, 0.06]
+    assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect[4:].any()
+    assert frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), low).suspect[4:].all()
+    # Evidence below the config's confidence is none.
+    raw[..., 2] = used[..., 2] = 0.5
+    fitted[:2, 9] += [0.0, 0.0, 0.3]
+    assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect.any()
 
 
 def test_quality_round_trips_through_the_motion_file_and_the_exports(tmp_path):
@@ -152,3 +159,43 @@ def test_quality_round_trips_through_the_motion_file_and_the_exports(tmp_path):
     table = np.array(rows[1:], dtype=np.float64)
     np.testing.assert_array_equal(table[:, -2:], np.stack([valid, suspect], 1).astype(float))
     np.testing.assert_allclose(table[:, 2:-2].reshape(T, 24, 3), joints, atol=1e-6)
+
+
+def test_edge_repair_carries_a_contradicted_limb_from_the_first_frame_that_fits():
+    from embodmocap.motion.edge_repair import edge_stretches, repair_edges
+    from embodmocap.types import SmplParams
+
+    T = 20
+    rng = np.random.default_rng(2)
+    pose = rng.normal(scale=0.05, size=(T, 69))
+    col = 3 * (18 - 1)  # the left elbow's first rotation value (SMPL joint 18)
+    pose[:3, col] += 1.0  # the first three frames: the left arm bent far off
+    pose[17:, col] -= 1.0  # and the last three
+    pose[9, col] += 1.0  # and one frame in the middle (not an edge: left to the fit)
+    params = SmplParams(np.zeros(10), np.zeros((T, 3)), pose, np.zeros((T, 3)), 30.0)
+    ref = pose[:, col].copy()
+    ref[:3], ref[17:], ref[9] = ref[3], ref[16], ref[9] - 1.0  # the truth: as the neighbours
+
+    def offsets(p):  # the views see the left elbow and wrist where the truth puts them
+        off = np.full((T, 17), 0.01)
+        off[:, [7, 9]] = 0.3 * np.abs(p.body_pose[:, col] - ref)[:, None] + 0.01
+        return off
+
+    valid = np.ones(T, dtype=bool)
+    out, n = repair_edges(params, valid, offsets, 0.1, 10)
+    assert n == 6
+    arm = np.concatenate([np.arange(3 * (j - 1), 3 * j) for j in (13, 16, 18, 20, 22)])  # collar to hand
+    rest = np.setdiff1d(np.arange(69), arm)
+    np.testing.assert_array_equal(out.body_pose[:3][:, arm], np.repeat(pose[3:4, arm], 3, 0))
+    np.testing.assert_array_equal(out.body_pose[:3][:, rest], pose[:3, rest])
+    np.testing.assert_array_equal(out.body_pose[17:, col], pose[16, col])
+    np.testing.assert_array_equal(out.body_pose[3:17], pose[3:17])  # the middle is the fit's
+    assert np.all(np.abs(offsets(out)[[0, 1, 2, 17, 18, 19]][:, 9]) < 0.1)
+    # A carry that the views do not prefer is not kept; nothing fine within reach, nothing carried.
+    worse = lambda p: offsets(params) + (np.abs(p.body_pose - pose).sum(1) > 0)[:, None]  # noqa: E731
+    assert repair_edges(params, valid, worse, 0.1, 10) == (params, 0)
+    assert edge_stretches(np.full(T, 0.5), valid, 0.1, 10) == []
+    # Runs of placeable frames each have their own edges.
+    valid[10] = False
+    got = edge_stretches(np.where(np.isin(np.arange(T), [0, 11, 12, 19]), 0.5, 0.0), valid, 0.1, 10)
+    assert got == [([0], 1), ([11, 12], 13), ([19], 18)]

@@ -206,14 +206,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
-    params, n_repaired = res.params, 0
-    if cfg.quality.repair_frames > 0:
-        from embodmocap.motion.edge_repair import repair_edges
-
-        # Limbs the views contradict at the edges of placeable runs take the first fine frame's pose.
-        params, n_repaired = repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d,
-                                                                               k3, T).joint_off_m,
-                                          cfg.quality.suspect_m, cfg.quality.repair_frames)
+    # Limbs the views contradict at the edges of placeable runs take the first fine frame's pose.
+    params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T)
     quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
@@ -236,6 +230,21 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
                     100 * cfg.quality.suspect_m, 100 * np.nanmax(quality.limb_off_m[bad]),
                     int(bad[np.nanargmax(quality.limb_off_m[bad])]))
     return Fitted(with_fps(params, fps, gender), valid, figures, quality)
+
+
+def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: str, cams: Mapping[str, Mapping],
+                     kps: Mapping[str, NDArray], k3: Keypoints3DFile, T: int):
+    """``params`` with the limbs the views contradict at the edges of placeable runs carried from
+    their first fine frame (:func:`embodmocap.motion.edge_repair.repair_edges`; off with
+    ``cfg.quality.repair_frames`` 0), and the number of (frame, limb) pairs changed. Inputs as
+    :func:`fit_quality` (the 2D keypoints the fit used are ``k3``'s)."""
+    if cfg.quality.repair_frames <= 0:
+        return params, 0
+    from embodmocap.motion.edge_repair import repair_edges
+
+    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+    return repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T).joint_off_m,
+                        cfg.quality.suspect_m, cfg.quality.repair_frames)
 
 
 def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
