@@ -199,3 +199,30 @@ def test_edge_repair_carries_a_contradicted_limb_from_the_first_frame_that_fits(
     valid[10] = False
     got = edge_stretches(np.where(np.isin(np.arange(T), [0, 11, 12, 19]), 0.5, 0.0), valid, 0.1, 10)
     assert got == [([0], 1), ([11, 12], 13), ([19], 18)]
+
+
+def test_studio_edge_limb_trouble_touches_the_left_arm_of_the_first_frames_only():
+    from embodmocap.errors import InputError
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.perception import edge_limb_trouble
+
+    rng = np.random.default_rng(0)
+    kps = {v: np.concatenate([rng.uniform(100, 400, (30, 17, 2)), rng.uniform(0.7, 0.95, (30, 17, 1))], -1)
+           for v in ("v1", "v2")}
+    before = {v: k.copy() for v, k in kps.items()}
+    first = {"v1": 4, "v2": 6}
+    out = edge_limb_trouble(kps, first, 5, "mislabelled", np.random.default_rng(1))
+    for v in kps:
+        np.testing.assert_array_equal(kps[v], before[v])  # inputs unchanged
+    changed = {v: np.flatnonzero((out[v] != kps[v]).any(-1).any(-1)).tolist() for v in kps}
+    assert changed == {"v1": [4, 5, 6, 7, 8], "v2": [6, 7, 8, 9, 10]}
+    np.testing.assert_array_equal(out["v1"][4:9][:, [7, 9, 8, 10]], kps["v1"][4:9][:, [8, 10, 7, 9]])
+    conf = out["v2"][6:11][:, [7, 9], 2]
+    assert np.all((conf >= 0.05) & (conf <= 0.3))
+    np.testing.assert_array_equal(np.delete(out["v2"][6:11], [7, 9], axis=1), np.delete(kps["v2"][6:11], [7, 9], axis=1))
+    occ = edge_limb_trouble(kps, first, 5, "occluded", np.random.default_rng(1))
+    assert np.all(occ["v1"][4:9][:, [7, 9]] == 0.0) and np.all(occ["v1"][9:] == kps["v1"][9:])
+    with pytest.raises(ValueError, match="edge limb mode"):
+        edge_limb_trouble(kps, first, 5, "sideways", np.random.default_rng(1))
+    with pytest.raises(InputError, match="edge_limb_frames"):
+        SynthConfig(edge_limb_frames=-1)

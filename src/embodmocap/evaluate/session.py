@@ -157,14 +157,14 @@ def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: Ev
 
 def flag_counts(path: Path) -> dict:
     """How many frames of a world SMPL motion file are flagged (no ground truth needed):
-    ``frames``, ``invalid_frames`` (``valid`` False), ``suspect_frames`` (placeable but ``suspect``:
+    ``invalid_frames`` (``valid`` False), ``suspect_frames`` (placeable but ``suspect``:
     a limb far from every view that sees it) and the worst limb's median / largest distance from
     the views (``limb_off_mm_median`` / ``_max``, when the file has the quality keys)."""
     from embodmocap.io.smpl_file import read_smpl_quality, read_smpl_valid
 
     valid = read_smpl_valid(path)
     q = read_smpl_quality(path)
-    out = {"frames": int(len(valid)), "invalid_frames": int((~valid).sum())}
+    out = {"invalid_frames": int((~valid).sum())}
     if q:
         off = q["limb_off_m"][valid & np.isfinite(q["limb_off_m"])]
         out.update({"suspect_frames": int((q["suspect"] & valid).sum()),
