@@ -55,15 +55,11 @@ def motion_config(over: dict):
 
 
 def main() -> None:
-    from embodmocap.body.model import load_body_model
-    from embodmocap.evaluate.benchmark import _Context, scored
-    from embodmocap.evaluate.session import sequence_truth
-    from embodmocap.io.layout import VIEWS, SessionLayout
-    from embodmocap.io.manifest import load_manifest
-    from embodmocap.io.stage_files import read_cameras, read_keypoints2d, sequence_fps
+    from _stage4 import stage4_session
+
+    from embodmocap.evaluate.benchmark import scored
+    from embodmocap.io.stage_files import sequence_fps
     from embodmocap.motion import solve as s4
-    from embodmocap.motion.stage import keypoint_layout
-    from embodmocap.sequence.subframe import synced_views
 
     args = sys.argv[1:]
     out_json = None
@@ -74,18 +70,9 @@ def main() -> None:
     variants = json.loads(args[0])
     rows = []
     for s in args[1:]:
-        lay = SessionLayout(Path(s))
-        man = load_manifest(lay.manifest)
-        seq = next(iter(man.sequences))
-        scene = man.sequences[seq].scene
-        model = load_body_model(man.body_model)
-        truth = sequence_truth(lay, scene, seq)
-        ctx = _Context(lay, seq, scene, model)
+        ss = stage4_session(s)
+        seq, model, truth, ctx, cams, kps, T, layout = ss.seq, ss.model, ss.truth, ss.ctx, ss.cams, ss.kps, ss.T, ss.layout
         sl = ctx.sl
-        cams, kps = synced_views(sl, {v: read_cameras(sl.view(v).cameras_world) for v in VIEWS},
-                                 {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS})
-        T = min(len(kps[v]) for v in VIEWS)
-        layout = keypoint_layout(sl, seq)
         for name, over in variants.items():
             mcfg = motion_config(over)
             # The fit without the edge repair, then the repair on its result: the same steps as
@@ -95,7 +82,7 @@ def main() -> None:
             tri = s4.triangulate_views(off, cams, kps, T, seq)
             priors = ctx._priors(off.min_prior_fraction, T) if off.use_body_prior else {}
             fitted = s4.fit_motion(off, model, tri.file, cams, kps, T, sequence_fps(sl), priors, layout,
-                                   man.gender, label=seq)
+                                   ss.gender, label=seq)
             took = time.perf_counter() - t0
             out = [(f"{name}, no edge repair", fitted.params, fitted.quality, took)]
             if mcfg.quality.repair_frames > 0:
