@@ -226,3 +226,23 @@ def test_studio_edge_limb_trouble_touches_the_left_arm_of_the_first_frames_only(
         edge_limb_trouble(kps, first, 5, "sideways", np.random.default_rng(1))
     with pytest.raises(InputError, match="edge_limb_frames"):
         SynthConfig(edge_limb_frames=-1)
+
+
+def test_benchmark_tables_show_the_edges_per_session_with_median_and_worst():
+    from embodmocap.evaluate.benchmark import tables_markdown
+
+    base = {"w_mpjpe_mm": 30.0, "wa_mpjpe_mm": 15.0, "w_mpjpe_mm_c500": 40.0, "wa_mpjpe_mm_c500": 15.0,
+            "w_mpjpe_mm_c1000": 40.0, "wa_mpjpe_mm_c1000": 15.0, "rte_pct": 0.3}
+    rows = []
+    for seed, first5 in ((0, 30.0), (1, 60.0)):
+        dual = {**base, "w_mpjpe_mm_all_starts_median": 25.0 + seed, "w_mpjpe_mm_all_starts_worst": 90.0 + seed,
+                "first5_frame_mm": first5, "last5_frame_mm": 20.0, "median_frame_mm": 20.0, "suspect_frames": 2,
+                "wrong_frames": 3, "wrong_unflagged_pct": 0.5}
+        rows.append({"seed": seed, "preset": "indoor", "perception": "hard",
+                     "methods": {m: base for m in ("monocular", "single_v1", "single_v2")} | {"dual": dual}})
+    md = tables_markdown(rows)
+    assert "### Sequence edges, dual" in md
+    assert "| indoor 1 hard | realistic | 26.00 | 91.00 | 60.00 |" in md
+    assert "| median of 2 | realistic |" in md and md.split("| worst of 2 | realistic | ")[1].startswith("26.00 | 91.00 | 60.00")
+    assert md.rstrip().endswith("| 3.00 |")  # the worst first5 / median ratio
+    assert "Sequence edges" not in tables_markdown([{**rows[0], "methods": {m: base for m in rows[0]["methods"]}}])
