@@ -87,9 +87,10 @@ def main() -> None:
             out = [(f"{name}, no edge repair", fitted.params, fitted.quality, took)]
             if mcfg.quality.repair_frames > 0:
                 t1 = time.perf_counter()
-                params, n = s4.repair_run_edges(mcfg, model, fitted.params, fitted.valid, layout, cams, kps, tri.file, T)
-                kp2d = tri.file["keypoints2d"]
-                quality = s4.fit_quality(mcfg, model, params, layout, cams, kps, kp2d, tri.file, T)
+                params, n = s4.repair_run_edges(mcfg, model, fitted.params, fitted.valid, layout, cams, kps, tri.file, T,
+                                                fitted.quality)
+                quality = (s4.fit_quality(mcfg, model, params, layout, cams, kps, tri.file["keypoints2d"], tri.file, T)
+                           if n else fitted.quality)
                 out.append((name, params, quality, took + time.perf_counter() - t1))
             for label, params, quality, sec in out:
                 e = scored(ctx.joints(params), np.arange(len(params)), truth, fitted.valid, quality.suspect)

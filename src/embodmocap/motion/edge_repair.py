@@ -64,7 +64,8 @@ def edge_stretches(off: NDArray, valid: NDArray, limit_m: float, max_frames: int
     return out
 
 
-def repair_edges(params, valid: NDArray, offsets: Callable[[object], NDArray], limit_m: float, max_frames: int):
+def repair_edges(params, valid: NDArray, offsets: Callable[[object], NDArray], limit_m: float, max_frames: int,
+                 off0: NDArray | None = None):
     """``params`` with the contradicted limbs at run edges carried from their first fine frame
     (module docstring), and the number of (frame, limb) pairs changed.
 
@@ -72,9 +73,10 @@ def repair_edges(params, valid: NDArray, offsets: Callable[[object], NDArray], l
         params: the fitted :class:`~embodmocap.types.SmplParams`; valid: (T,) placeable frames;
         offsets: params -> (T, 17) each COCO-17 joint's distance from the views that see it
             (NaN: unseen; :func:`embodmocap.motion.quality.joint_offsets` of the body's keypoints);
-        limit_m: a limb further than this is contradicted; max_frames: longest stretch carried.
+        limit_m: a limb further than this is contradicted; max_frames: longest stretch carried;
+        off0: ``offsets(params)`` when the caller has it (None: computed here).
     """
-    off0 = offsets(params)
+    off0 = offsets(params) if off0 is None else off0
     pose = np.array(params.body_pose, dtype=np.float64, copy=True)
     plan = []
     for name, (coco, smpl) in LIMBS.items():

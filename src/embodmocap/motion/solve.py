@@ -207,8 +207,10 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
     # Limbs the views contradict at the edges of placeable runs take the first fine frame's pose.
-    params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T)
-    quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
+    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T)
+    params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T, quality)
+    if n_repaired:
+        quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
         "init_frames_from_keypoints": n_replaced if v_best else int(T),
@@ -233,18 +235,20 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
 
 
 def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: str, cams: Mapping[str, Mapping],
-                     kps: Mapping[str, NDArray], k3: Keypoints3DFile, T: int):
+                     kps: Mapping[str, NDArray], k3: Keypoints3DFile, T: int, quality=None):
     """``params`` with the limbs the views contradict at the edges of placeable runs carried from
     their first fine frame (:func:`embodmocap.motion.edge_repair.repair_edges`; off with
     ``cfg.quality.repair_frames`` 0), and the number of (frame, limb) pairs changed. Inputs as
-    :func:`fit_quality` (the 2D keypoints the fit used are ``k3``'s)."""
+    :func:`fit_quality` (the 2D keypoints the fit used are ``k3``'s); ``quality``: ``params``'s
+    when the caller has it."""
     if cfg.quality.repair_frames <= 0:
         return params, 0
     from embodmocap.motion.edge_repair import repair_edges
 
     kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
     return repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T).joint_off_m,
-                        cfg.quality.suspect_m, cfg.quality.repair_frames)
+                        cfg.quality.suspect_m, cfg.quality.repair_frames,
+                        None if quality is None else quality.joint_off_m)
 
 
 def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
