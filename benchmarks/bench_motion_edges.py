@@ -16,8 +16,8 @@ them alike.
 
 A variant is a JSON object of ``MotionConfig`` fields to change, dotted for nested configs
 (``smplify.w_edge_vel``, ``temporal.max_run``, ``quality.suspect_m``). Each variant is fitted once
-without the edge repair (row ``<name>, no edge repair``: the fit of main) and, unless the variant
-turns it off, repaired as Stage IV repairs it (row ``<name>``). Times: the first row's is the
+without the edge repair (row ``<name>, no edge repair``) and, when the variant turns it on
+(``quality.repair_frames`` > 0; off by default), repaired as Stage IV repairs it (row ``<name>``). Times: the first row's is the
 triangulation and the fit without the per-frame quality figures (what main runs); the second adds the
 quality figures and the repair (what Stage IV runs now).
 """

@@ -49,10 +49,13 @@ class QualityConfig:
     """A frame is suspect when a limb joint is further than this (metres) from the ray of every
     view that detects it, in this frame and a neighbouring one (a drifting limb stays off; a
     detector's one-frame blunder does not make a frame suspect)."""
-    repair_frames: int = 15
+    repair_frames: int = 0
     """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
     views takes the local rotations of the first frame within this many where it is not, when
-    that brings it closer to the views (:mod:`embodmocap.motion.edge_repair`). 0 = off."""
+    that brings it closer to the views (:mod:`embodmocap.motion.edge_repair`). 0 = off, the
+    default: aimed at issue 29's external sessions (a limb 30-36 cm off in the first frames), a
+    failure the studio did not reproduce; with 15 on four hard studio sessions it changed one
+    stretch, by +0.13 mm on its first five frames (BENCHMARKS.md, session 7)."""
 
 
 @dataclass(frozen=True)
