@@ -207,7 +207,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
-    # Limbs the views contradict at the edges of placeable runs take the first fine frame's pose.
+    # The per-frame quality figures and the suspect flag; with QualityConfig.repair_frames, limbs the
+    # views contradict at the edges of placeable runs first take the first fine frame's pose.
     t_quality = time.perf_counter()
     quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T)
     params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T, quality)
