@@ -105,27 +105,19 @@ def test_a_limb_far_from_both_views_is_suspect_a_wrong_detection_is_not():
     used[3, 1, [9, 10]] = used[3, 1, [10, 9]]
     q = frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"))
     assert q.suspect.tolist() == [True, True, False, False, False, False]
-    assert q.limb_off_m[0] > 0.25 and np.nanmax(q.limb_off_m[2:]) < 0.1
+    assert q.limb_off_m[0] > 0.25 and np.nanmax(q.limb_off_m[2:]) < 1e-6
     assert q.kp3d_err_m[0] == pytest.approx(0.0, abs=1e-9)  # the median over the 17 points
     assert np.all(q.reproj_px[4:] < 1e-6) and q.reproj_px[2, 0] < 1e-6  # median per view
-    # A wrist on view 1's ray but 25 cm deeper: view 1 alone cannot tell, where the two views'
-    # rays meet can (the outdoor studio seed 3: a left wrist 16-27 cm off along one view's ray).
-    deep = truth.copy()
-    ray = truth[:2, 9] - Twc[:2, 0, :3, 3]
-    deep[:2, 9] += 0.25 * ray / np.linalg.norm(ray, axis=-1, keepdims=True)
-    q = frame_quality(deep, Ks, Twc, kp, kp, truth, None, ("v1", "v2"))
-    assert q.suspect.tolist() == [True, True, False, False, False, False]
-    assert q.limb_off_m[:2] == pytest.approx([0.25, 0.25], abs=0.01)
     # Only what the views see: a wrist no view detects says nothing.
     raw[:2, :, [9, 10], 2] = 0.0
     used[:2, :, [9, 10], 2] = 0.0
     q = frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"))
     assert not q.suspect[:2].any()
     # The threshold is the config's; one frame off alone is a detector's blunder, two in a row are not.
-    fitted[4, 15] += [0.0, 0.0, 0.06]  # the left ankle
+    fitted[4, 9] += [0.0, 0.0, 0.06]
     low = QualityConfig(suspect_m=0.04)
     assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), low).suspect[4]
-    fitted[5, 15] += [0.0, 0.0, 0.06]
+    fitted[5, 9] += [0.0, 0.0, 0.06]
     assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect[4:].any()
     assert frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2"), low).suspect[4:].all()
     # Evidence below the config's confidence is none.

@@ -14,10 +14,8 @@ frame of the fitted motion:
   detection (the raw detector's or the one the fit used, labels tracked and swaps undone: a
   detection Stage IV's checks dropped is still the view's evidence), the smallest over the views
   that detect the joint at ``min_conf`` or more (a joint one view sees wrongly but another sees
-  where the fit is does not count); with two views whose detections of the joint agree (their
-  rays meet), the distance from where they meet when that is larger (a joint on one view's ray
-  at the wrong depth); the largest over the joints. A fitted limb on the other side's place (left
-  and right exchanged in the fit) is as far from both views as any other wrong limb;
+  where the fit is does not count), the largest over the joints. A fitted limb on the other side's
+  place (left and right exchanged in the fit) is as far from both views as any other wrong limb;
 - ``suspect`` (T,): a limb joint further than ``suspect_m`` from every view that sees it, in the
   frame and in one of its neighbours (``limb_off_m`` says how far in the frame).
 
@@ -135,61 +133,19 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
 
 
 def joint_offsets(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
-                  min_conf: float, pair_gap_m: float = 0.08) -> NDArray:
-    """(T, 17) how far each fitted joint is from what the views see, metres (NaN: no view detects
-    it at ``min_conf`` or more): the larger of
-
-    - its distance from the ray of the view closest to it (each view's raw detection or the one the
-      fit used): a view says nothing about depth along its own ray;
-    - with two views, its distance from where their rays meet, for the pairs of detections whose
-      rays pass within ``pair_gap_m`` of each other (two views that agree on a point), the closest
-      such point: a joint on one view's ray but at the wrong depth is far from it.
-
-    Shapes as :func:`frame_quality`."""
+                  min_conf: float) -> NDArray:
+    """(T, 17) each fitted joint's distance (metres) from the ray of the view closest to it among
+    those that detect it at ``min_conf`` or more, the raw detection or the one the fit used
+    (NaN: no view does). Shapes as :func:`frame_quality`."""
     T, V = used2d.shape[:2]
     X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
     dist = np.full((T, V, 17), np.inf)
-    rays = []
     for k in (raw2d, used2d):
         ok = np.nan_to_num(k[..., 2]) >= min_conf
         r = ray_distance(X, K, T_world_cam, np.nan_to_num(k[..., :2]))
         dist = np.where(ok & (r < dist), r, dist)
-        rays.append((ok, _ray_directions(K, T_world_cam, np.nan_to_num(k[..., :2]))))
     best = dist.min(axis=1)
-    if V == 2:
-        c = T_world_cam[:, :, None, :3, 3]  # (T, V, 1, 3)
-        pair = np.full((T, 17), np.inf)
-        for ok_a, d_a in rays:
-            for ok_b, d_b in rays:
-                mid, gap = _rays_meet(c[:, 0], d_a[:, 0], c[:, 1], d_b[:, 1])
-                agree = ok_a[:, 0] & ok_b[:, 1] & (gap < pair_gap_m)
-                r = np.linalg.norm(fitted_kp - mid, axis=-1)
-                pair = np.where(agree & (r < pair), r, pair)
-        best = np.where(np.isfinite(pair), np.maximum(best, pair), best)
     return np.where(np.isfinite(best), best, np.nan)
-
-
-def _ray_directions(K: NDArray, T_world_cam: NDArray, uv: NDArray) -> NDArray:
-    """(T, V, J, 3) unit world directions of the rays through pixels uv (T, V, J, 2)."""
-    pix = np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1)
-    d = np.einsum("tvab,tvjb->tvja", T_world_cam[..., :3, :3], np.einsum("vab,tvjb->tvja", np.linalg.inv(K), pix))
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
-def _rays_meet(c1: NDArray, d1: NDArray, c2: NDArray, d2: NDArray) -> tuple[NDArray, NDArray]:
-    """Midpoint (..., 3) of the closest points of rays ``c + s d`` (unit d, s >= 0) and their
-    distance (...,); rays that are nearly parallel or meet behind a camera get an infinite distance."""
-    w = c1 - c2
-    b = (d1 * d2).sum(-1)
-    dd, e = (d1 * w).sum(-1), (d2 * w).sum(-1)
-    den = 1.0 - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (b * e - dd) / den
-        u = (e - b * dd) / den
-    p1, p2 = c1 + s[..., None] * d1, c2 + u[..., None] * d2
-    gap = np.linalg.norm(p1 - p2, axis=-1)
-    gap = np.where((den > 1e-6) & (s > 0) & (u > 0) & np.isfinite(gap), gap, np.inf)
-    return 0.5 * (p1 + p2), gap
 
 
 def _nanmedian(a: NDArray, axis: int) -> NDArray:
