@@ -66,7 +66,7 @@ class LabelTrackConfig:
     exchanged the correct labels of frames 14-22 to match (10 frames apart), putting the
     triangulated left wrist 10-22 cm off and W-MPJPE of the chunks starting there at 100-168 mm
     (issue 29). 10 -> 4: that session's worst chunk start 167.5 -> 76.1 mm, W-MPJPE 29.2 -> 28.1,
-    PA 17.5 -> 16.8; three other hard sessions unchanged (BENCHMARKS.md, session 7)."""
+    PA 17.5 -> 16.8; four other hard sessions unchanged (BENCHMARKS.md, session 7)."""
     geometry_px: float = 100.0
     """With two views: a frame's mean reprojection error of the group (pixels) that costs as much
     as one torso length of movement (two views labelled differently do not meet)."""
