@@ -25,32 +25,18 @@ import numpy as np
 
 
 def main() -> None:
-    from embodmocap.body.model import load_body_model
-    from embodmocap.evaluate.benchmark import _Context, scored
-    from embodmocap.evaluate.session import sequence_truth
-    from embodmocap.io.layout import VIEWS, SessionLayout
-    from embodmocap.io.manifest import load_manifest
-    from embodmocap.io.stage_files import read_cameras, read_keypoints2d, sequence_fps
+    from _stage4 import stage4_session
+
+    from embodmocap.evaluate.benchmark import scored
+    from embodmocap.io.stage_files import sequence_fps
     from embodmocap.motion import solve as s4
     from embodmocap.motion.config import MotionConfig
-    from embodmocap.motion.stage import keypoint_layout
-    from embodmocap.sequence.subframe import synced_views
 
     variants = json.loads(sys.argv[1])
     for s in sys.argv[2:]:
-        lay = SessionLayout(Path(s))
-        man = load_manifest(lay.manifest)
-        seq = next(iter(man.sequences))
-        scene = man.sequences[seq].scene
-        model = load_body_model(man.body_model)
-        truth = sequence_truth(lay, scene, seq)
-        ctx = _Context(lay, seq, scene, model)
+        ss = stage4_session(s)
+        seq, model, truth, ctx, cams, kps, T, layout = ss.seq, ss.model, ss.truth, ss.ctx, ss.cams, ss.kps, ss.T, ss.layout
         sl = ctx.sl
-        # As Stage IV: view 2 resampled at view 1's instants (sub-frame sync).
-        cams, kps = synced_views(sl, {v: read_cameras(sl.view(v).cameras_world) for v in VIEWS},
-                                 {v: read_keypoints2d(sl.view(v).keypoints).keypoints for v in VIEWS})
-        T = min(len(kps[v]) for v in VIEWS)
-        layout = keypoint_layout(sl, seq)
         for name, over in variants.items():
             over = dict(over)
             use_prior = over.pop("_prior", True)
@@ -60,7 +46,7 @@ def main() -> None:
             tri = s4.triangulate_views(mcfg, cams, kps, T, seq)
             priors = ctx._priors(mcfg.min_prior_fraction, T) if use_prior else {}
             fitted = s4.fit_motion(mcfg, model, tri.file, cams, kps, T, sequence_fps(sl), priors, layout,
-                                   man.gender, label=seq)
+                                   ss.gender, label=seq)
             e = scored(ctx.joints(fitted.params), np.arange(len(fitted.params)), truth, fitted.valid)
             print(f"RESULT {Path(s).name} {name}: W100 {e['w_mpjpe_mm']:.1f} W1000 {e['w_mpjpe_mm_c1000']:.1f} "
                   f"WA {e['wa_mpjpe_mm']:.1f} PA {e['pa_mpjpe_mm']:.1f} world {e['world_mpjpe_mm']:.1f} "

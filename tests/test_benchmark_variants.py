@@ -14,7 +14,7 @@ import pytest
 
 from embodmocap.io.atomic import write_json, write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout
-from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid
+from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_suspect, read_smpl_valid
 from embodmocap.motion import stage as stage4
 from stage4_session import SYNTH, make_stage4_session
 
@@ -53,7 +53,8 @@ def test_benchmark_dual_fit_is_stage_iv_s_fit(session, tmp_path, residual_frames
     want, _ = read_smpl_npz(sl.smpl_fit)
     manifest = load_manifest(lay.manifest)
     ctx = _Context(lay, SEQ, manifest.sequences[SEQ].scene, load_body_model(manifest.body_model))
-    got, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, flagged=True)
+    got, valid, suspect = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, flagged=True)
     for k in ("betas", "global_orient", "body_pose", "transl"):
         np.testing.assert_allclose(np.asarray(getattr(got, k)), np.asarray(getattr(want, k)), atol=1e-9, err_msg=k)
     np.testing.assert_array_equal(valid, read_smpl_valid(sl.smpl_fit))
+    np.testing.assert_array_equal(suspect, read_smpl_suspect(sl.smpl_fit))

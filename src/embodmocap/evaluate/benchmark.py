@@ -59,6 +59,11 @@ _ERR_KEYS = ("w_mpjpe_mm", "wa_mpjpe_mm", "w_mpjpe_mm_c500", "wa_mpjpe_mm_c500",
 # W-MPJPE with them kept (what the fit put there; equal to w_mpjpe_mm when none was flagged); and
 # the error in the session's world with no alignment (:func:`scored`; not for the mono rows).
 _FLAG_KEYS = ("invalid_frames", "w_mpjpe_mm_incl_invalid", "world_mpjpe_mm")
+# The sequence edges (issue 29): W-MPJPE at chunk 100 with a chunk starting at every frame (median
+# and worst start), the first five frames' unaligned error beside the median frame's, and the frames
+# with a joint > 15 cm off that the fit flagged neither invalid nor suspect (motion_errors).
+_EDGE_KEYS = ("w_mpjpe_mm_all_starts_median", "w_mpjpe_mm_all_starts_worst", "first5_frame_mm", "last5_frame_mm",
+              "median_frame_mm", "suspect_frames", "wrong_frames", "wrong_unflagged_pct")
 _QUALITY_KEYS = ("mask_iou_pct", "reproj_err_px", "depth_err_m2", "jitter", "w_mpjpe_mm")
 
 
@@ -150,7 +155,7 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     # is scored on the same frames, so the rows compare like with like.
     dual_params, frames = ctx.final_params()
     dual_valid = ctx.final_valid()
-    methods["dual"] = scored(ctx.joints(dual_params), frames, truth, dual_valid)
+    methods["dual"] = scored(ctx.joints(dual_params), frames, truth, dual_valid, ctx.final_suspect())
     # Monocular: v1's prior through v1's calibrated cameras.
     mono = ctx.prior_in_world("v1", ctx.cameras("v1"))
     methods["monocular"] = scored(ctx.joints(mono), np.arange(len(mono)), truth,
@@ -164,8 +169,8 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
         methods[name] = mono_errors(session, seq, name.split("_", 1)[1], truth, frames, dual_valid, ctx)
     result = {"methods": methods}
     if cfg.fit_without_prior:
-        params, valid = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
-        result["methods_no_prior"] = {"dual": scored(ctx.joints(params), np.arange(len(params)), truth, valid)}
+        params, valid, suspect = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
+        result["methods_no_prior"] = {"dual": scored(ctx.joints(params), np.arange(len(params)), truth, valid, suspect)}
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -178,16 +183,17 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     return result
 
 
-def scored(joints: np.ndarray, frames: np.ndarray, truth, valid: np.ndarray | None = None) -> dict:
+def scored(joints: np.ndarray, frames: np.ndarray, truth, valid: np.ndarray | None = None,
+           suspect: np.ndarray | None = None) -> dict:
     """:func:`~embodmocap.evaluate.session.motion_errors` plus ``world_mpjpe_mm``: the mean joint
     error in the session's own world (Stage I's, where the truth is expressed) with no alignment at
     all, on the same frames. W-MPJPE re-anchors each chunk on its first two frames, so a few mm of
     pose error in those two frames turns the whole chunk (W-MPJPE at chunk 1000 of a 6 s session
     is set by two frames); the unaligned error says how far the output really is from the truth.
-    joints: (T, 24, 3) at sequence ``frames`` (T,); ``valid`` (T,) bool as motion_errors."""
+    joints: (T, 24, 3) at sequence ``frames`` (T,); ``valid``, ``suspect`` (T,) bool as motion_errors."""
     from embodmocap.evaluate.session import motion_errors
 
-    out = motion_errors(joints, frames, truth, valid)
+    out = motion_errors(joints, frames, truth, valid, suspect)
     ok = truth.valid[frames] & (np.ones(len(frames), dtype=bool) if valid is None else np.asarray(valid, dtype=bool))
     err = np.linalg.norm(np.asarray(joints)[ok] - truth.joints[frames][ok], axis=-1)
     out["world_mpjpe_mm"] = round(1000 * float(err.mean()), 2) if err.size else float("nan")
@@ -244,6 +250,11 @@ class _Context:
         from embodmocap.io.smpl_file import read_smpl_valid
 
         return read_smpl_valid(self.sl.smpl_world)
+
+    def final_suspect(self) -> np.ndarray:
+        from embodmocap.io.smpl_file import read_smpl_suspect
+
+        return read_smpl_suspect(self.sl.smpl_world)
 
     def joints(self, params) -> np.ndarray:
         import torch
@@ -315,7 +326,8 @@ class _Context:
         (:func:`embodmocap.motion.solve.triangulate_views`, :func:`~embodmocap.motion.solve.fit_motion`)
         with ``variant``'s terms switched off and, with ``prior=False``, no body prior; or one view
         (reprojection + smoothness + prior only: no triangulation is possible, so not Stage IV).
-        ``flagged`` (dual view): return ``(params, valid)``, the (T,) placeable frames too."""
+        ``flagged`` (dual view): return ``(params, valid, suspect)``, the (T,) placeable and
+        suspect frames too."""
         from embodmocap.motion import solve as s4
         from embodmocap.motion.config import MotionConfig
         from embodmocap.motion.stage import keypoint_layout
@@ -344,7 +356,7 @@ class _Context:
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
             priors = self._priors(mcfg.min_prior_fraction, T) if prior else {}
             fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
-            return (fitted.params, fitted.valid) if flagged else fitted.params
+            return (fitted.params, fitted.valid, fitted.quality.suspect) if flagged else fitted.params
         if not prior:
             raise ValueError("a single view cannot be fitted without a body prior")
         from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
@@ -382,6 +394,7 @@ def tables_markdown(rows: list[dict]) -> str:
         if nop:
             vals = [np.mean([_err(r["methods_no_prior"]["dual"], k) for r in nop]) for k in _ERR_KEYS + _FLAG_KEYS]
             lines.append(f"| dual | none | {perception} | {len(nop)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
+    lines += edge_table(ok)
     abl = [r for r in ok if "ablation" in r]
     if abl:
         lines += ["", "### Loss ablation (quality metrics; W-MPJPE in mm at chunk 100)", "",
@@ -393,12 +406,39 @@ def tables_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def edge_table(ok: list[dict]) -> list[str]:
+    """The dual rows' sequence-edge figures (issue 29), per session plus median and worst, as
+    Markdown lines (none when no row has them: rows written before they were scored)."""
+    rows = [(f"{r['preset']} {r['seed']} {r.get('perception', 'clean')}", prior, r[key]["dual"])
+            for r in ok for key, prior in (("methods", "realistic"), ("methods_no_prior", "none"))
+            if key in r and "w_mpjpe_mm_all_starts_median" in r[key]["dual"]]
+    if not rows:
+        return []
+    lines = ["", "### Sequence edges, dual (mm; W-MPJPE at chunk 100 with a chunk at every start; unaligned "
+             "error of the first / last five frames and the median frame; frames with a joint > 15 cm off)", "",
+             "| session | prior | " + " | ".join(_EDGE_KEYS) + " | first5 / median |", "|---|---|" + "---|" * (len(_EDGE_KEYS) + 1)]
+    for name, prior, x in rows:
+        vals = [_err(x, k) for k in _EDGE_KEYS] + [_err(x, "first5_frame_mm") / max(_err(x, "median_frame_mm"), 1e-9)]
+        lines.append(f"| {name} | {prior} | " + " | ".join(f"{v:.2f}" for v in vals) + " |")
+    for prior in ("realistic", "none"):
+        sel = [x for _, p, x in rows if p == prior]
+        if sel:
+            med = [np.median([_err(x, k) for x in sel]) for k in _EDGE_KEYS]
+            worst = [np.max([_err(x, k) for x in sel]) for k in _EDGE_KEYS]
+            ratio = [_err(x, "first5_frame_mm") / max(_err(x, "median_frame_mm"), 1e-9) for x in sel]
+            lines.append(f"| median of {len(sel)} | {prior} | " + " | ".join(f"{v:.2f}" for v in med)
+                         + f" | {np.median(ratio):.2f} |")
+            lines.append(f"| worst of {len(sel)} | {prior} | " + " | ".join(f"{v:.2f}" for v in worst)
+                         + f" | {np.max(ratio):.2f} |")
+    return lines
+
+
 def _err(x: dict, k: str) -> float:
     """One figure of a method's errors; rows written before the valid flags were scored count 0
     invalid frames, and W-MPJPE with the flagged frames kept is W-MPJPE when none was flagged."""
     if k == "w_mpjpe_mm_incl_invalid":
         return x.get(k, x["w_mpjpe_mm"])
-    if k == "world_mpjpe_mm":  # rows written before it was scored (and the mono rows) have none
+    if k == "world_mpjpe_mm" or k in _EDGE_KEYS:  # rows written before it was scored (and the mono rows) have none
         return x.get(k, float("nan"))
     return x.get(k, 0) if k == "invalid_frames" else x[k]
 

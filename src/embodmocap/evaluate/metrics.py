@@ -11,6 +11,7 @@ comparable with published tables:
 
 - ``w_mpjpe`` (GVHMR's "WA2-MPJPE" / WHAM's "W-MPJPE_100"): 100-frame chunks, each aligned by the
   similarity transform (Umeyama with scale) fitted on the chunk's first two frames;
+  ``w_mpjpe_all_starts`` the same for a chunk starting at every frame (where a clip is cut matters);
 - ``wa_mpjpe`` (GVHMR's "WAA-MPJPE" / WHAM's "WA-MPJPE_100"): the same with the similarity fitted
   on the whole chunk;
 - ``rte_pct``: root translation error after one rigid (no scale) alignment of the whole
@@ -145,6 +146,43 @@ def w_mpjpe(pred: ArrayLike, gt: ArrayLike, chunk: int = 100, with_scale: bool =
     """
     pred, gt = _check_joints(pred, gt, "w_mpjpe")
     return _chunked_error(pred, gt, chunk, 2, with_scale)
+
+
+def w_mpjpe_all_starts(pred: ArrayLike, gt: ArrayLike, chunk: int = 100, with_scale: bool = True,
+                       batch: int = 256) -> F:
+    """W-MPJPE of the chunk starting at every possible frame, millimetres: (S,) per start.
+
+    :func:`w_mpjpe` cuts the sequence at frames 0, chunk, 2 chunk, ...: its figure depends on which
+    frames happen to anchor a chunk, and a user who cuts a clip anywhere (or aligns on the first
+    frames of a sequence) sees the anchor wherever it falls. Here chunk ``s`` covers frames
+    ``s .. s + chunk - 1`` for every ``s = 0 .. T - chunk`` (S = T - chunk + 1 starts), each
+    aligned by the similarity fitted on its own first two frames, and its value is the mean joint
+    error over the chunk's frames. A sequence shorter than ``chunk`` (but with >= 2 frames) is one
+    chunk of all its frames (S = 1), as :func:`w_mpjpe` keeps a short last chunk. The median over
+    starts is the typical clip, the maximum the worst place to cut. pred, gt: (T, J, 3) metres;
+    ``batch`` starts are aligned at once (memory: batch x chunk x J x 3 floats). Empty (0,) when
+    T < 2.
+    """
+    pred, gt = _check_joints(pred, gt, "w_mpjpe_all_starts")
+    if chunk < 2:
+        raise ValueError(f"chunk must be >= 2 frames (an alignment needs two), got {chunk}")
+    T = len(pred)
+    if T < 2:
+        return np.zeros(0)
+    L = min(chunk, T)
+    starts = np.arange(T - L + 1)
+    out = []
+    for b in range(0, len(starts), batch):
+        idx = starts[b:b + batch, None] + np.arange(L)[None]  # (S_b, L) frames of each chunk
+        out.append(_aligned_chunk_errors(pred[idx], gt[idx], 2, with_scale).mean(axis=(1, 2)))
+    return 1000.0 * np.concatenate(out)
+
+
+def frame_errors_mm(pred: ArrayLike, gt: ArrayLike) -> F:
+    """(T,) mean joint error of each frame with no alignment at all, millimetres:
+    ``1000 * mean_j |pred_tj - gt_tj|``. pred, gt: (T, J, 3) metres."""
+    pred, gt = _check_joints(pred, gt, "frame_errors_mm")
+    return 1000.0 * np.linalg.norm(pred - gt, axis=-1).mean(axis=-1)
 
 
 def wa_mpjpe(pred: ArrayLike, gt: ArrayLike, chunk: int = 100, with_scale: bool = True) -> float:
@@ -326,7 +364,7 @@ def sync_err_frames(est: ArrayLike, true: ArrayLike) -> float | F:
 
 
 __all__ = [
-    "SMPL_FOOT_SKATING_VERTEX_IDS", "depth_err_m2", "foot_skating", "jitter", "mask_iou_pct", "mpjpe",
-    "pa_mpjpe", "reproj_err_px", "rte_pct", "sync_err_frames", "umeyama", "view_offset_err", "w_mpjpe",
-    "wa_mpjpe",
+    "SMPL_FOOT_SKATING_VERTEX_IDS", "depth_err_m2", "foot_skating", "frame_errors_mm", "jitter", "mask_iou_pct",
+    "mpjpe", "pa_mpjpe", "reproj_err_px", "rte_pct", "sync_err_frames", "umeyama", "view_offset_err", "w_mpjpe",
+    "w_mpjpe_all_starts", "wa_mpjpe",
 ]

@@ -150,7 +150,27 @@ def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: Ev
 
     params, _ = read_smpl_npz(lay.sequence(seq).smpl_world)
     cams = {v: read_cameras(lay.sequence(seq).view(v).cameras_final).T_world_cam for v in VIEWS}
-    return quality_metrics(lay, seq, load_body_model(body_model_path), params, cams, cfg)
+    out = quality_metrics(lay, seq, load_body_model(body_model_path), params, cams, cfg)
+    out.update(flag_counts(lay.sequence(seq).smpl_world))
+    return out
+
+
+def flag_counts(path: Path) -> dict:
+    """How many frames of a world SMPL motion file are flagged (no ground truth needed):
+    ``invalid_frames`` (``valid`` False), ``suspect_frames`` (placeable but ``suspect``:
+    a limb far from every view that sees it) and the worst limb's median / largest distance from
+    the views (``limb_off_mm_median`` / ``_max``, when the file has the quality keys)."""
+    from embodmocap.io.smpl_file import read_smpl_quality, read_smpl_valid
+
+    valid = read_smpl_valid(path)
+    q = read_smpl_quality(path)
+    out = {"invalid_frames": int((~valid).sum())}
+    if q:
+        off = q["limb_off_m"][valid & np.isfinite(q["limb_off_m"])]
+        out.update({"suspect_frames": int((q["suspect"] & valid).sum()),
+                    "limb_off_mm_median": round(1000 * float(np.median(off)), 1) if off.size else None,
+                    "limb_off_mm_max": round(1000 * float(off.max()), 1) if off.size else None})
+    return out
 
 
 def quality_metrics(lay: SessionLayout, seq: str, model, params, T_world_cam: dict[str, NDArray],
@@ -228,9 +248,12 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     """Errors of one fitted sequence against the synthetic truth (Stage I's world)."""
     from embodmocap.io.smpl_file import read_smpl_valid
 
+    from embodmocap.io.smpl_file import read_smpl_suspect
+
     _, params, frames, body = _fitted(lay, seq, body_model_path)
     truth = sequence_truth(lay, scene, seq)
-    out = motion_errors(body.joints.numpy(), frames, truth, read_smpl_valid(lay.sequence(seq).smpl_world))
+    out = motion_errors(body.joints.numpy(), frames, truth, read_smpl_valid(lay.sequence(seq).smpl_world),
+                        read_smpl_suspect(lay.sequence(seq).smpl_world))
     if lay.sequence(seq).keypoints3d.is_file():
         out.update(keypoint_errors(lay, scene, seq, body_model_path))
     calib = json.loads(lay.sequence(seq).calibration.read_text()) if lay.sequence(seq).calibration.is_file() else None
@@ -276,14 +299,38 @@ def subframe_sync_err_frames(lay: SessionLayout, seq: str) -> float | None:
     return round(residual_s(rec) * fps - true_residual, 4)
 
 
-def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth, valid: NDArray | None = None) -> dict:
+#: Edge frames: the first (last) this many evaluated frames of a sequence are its start (end).
+EDGE_FRAMES = 5
+#: A frame with a joint further than this from the truth (no alignment), metres, is wrong; one that
+#: is neither flagged invalid nor suspect is wrong silently.
+WRONG_FRAME_M = 0.15
+
+
+def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth, valid: NDArray | None = None,
+                  suspect: NDArray | None = None) -> dict:
     """W-/WA-MPJPE (chunks 100, 500, 1000), PA-MPJPE and RTE of world joints (T, 24, 3) at sequence
     ``frames`` against the truth (frames outside the scripted motion are left out). Frames the fit
     flagged invalid (``valid`` (T,) False: the body could not be placed) are left out too and
-    counted in ``invalid_frames``, so nothing is dropped silently."""
+    counted in ``invalid_frames``, so nothing is dropped silently.
+
+    The edges of the sequence, over the evaluated frames (issue 29): W-MPJPE at chunk 100 with a
+    chunk starting at every frame (``w_mpjpe_mm_all_starts_median`` / ``_worst``); the mean
+    unaligned joint error of the first and last :data:`EDGE_FRAMES` frames (``first5_frame_mm``,
+    ``last5_frame_mm``) beside the median frame's (``median_frame_mm``); frames with a joint more
+    than :data:`WRONG_FRAME_M` from the truth (``wrong_frames``) and those of them the fit did not
+    flag, neither invalid nor ``suspect`` (T,) bool (``wrong_unflagged_frames``, and its percentage
+    of the frames inside the motion ``wrong_unflagged_pct``); ``suspect_frames`` counts the flag."""
     ok = truth.valid[frames]
     valid = np.ones(len(frames), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-    out: dict = {"invalid_frames": int((~valid).sum()), "evaluated_frames": int((ok & valid).sum())}
+    suspect = np.zeros(len(frames), dtype=bool) if suspect is None else np.asarray(suspect, dtype=bool)
+    out: dict = {"invalid_frames": int((~valid).sum()), "evaluated_frames": int((ok & valid).sum()),
+                 "suspect_frames": int((suspect & valid).sum())}
+    if ok.any():
+        d = np.linalg.norm(np.asarray(joints)[ok] - truth.joints[frames][ok], axis=-1).max(axis=-1)
+        wrong = d > WRONG_FRAME_M
+        silent = wrong & valid[ok] & ~suspect[ok]
+        out.update({"wrong_frames": int(wrong.sum()), "wrong_unflagged_frames": int(silent.sum()),
+                    "wrong_unflagged_pct": round(100.0 * float(silent.mean()), 3)})
     if not valid.all() and ok.sum() >= 2:
         # The same figures with the flagged frames kept (what the fit interpolated there), so that
         # leaving them out is never silent. Chunks are cut over the evaluated frames in order, so
@@ -299,7 +346,22 @@ def motion_errors(joints: NDArray, frames: NDArray, truth: SequenceTruth, valid:
         out[f"wa_mpjpe_mm{suffix}"] = round(float(M.wa_mpjpe(pred, gt, chunk=c)), 2)
     out["pa_mpjpe_mm"] = round(float(M.pa_mpjpe(pred, gt)), 2)
     out["rte_pct"] = round(float(M.rte_pct(pred[:, 0], gt[:, 0])), 3)
+    out.update(edge_errors(pred, gt))
     return out
+
+
+def edge_errors(pred: NDArray, gt: NDArray) -> dict:
+    """The sequence-edge figures of :func:`motion_errors` for the evaluated frames' joints
+    pred, gt (T, J, 3) metres, in order (NaN where there are too few frames)."""
+    nan = float("nan")
+    starts = M.w_mpjpe_all_starts(pred, gt, chunk=100) if len(pred) >= 2 else np.zeros(0)
+    per_frame = M.frame_errors_mm(pred, gt) if len(pred) else np.zeros(0)
+    r = lambda x: round(float(x), 2)  # noqa: E731
+    return {"w_mpjpe_mm_all_starts_median": r(np.median(starts)) if starts.size else nan,
+            "w_mpjpe_mm_all_starts_worst": r(starts.max()) if starts.size else nan,
+            "first5_frame_mm": r(per_frame[:EDGE_FRAMES].mean()) if per_frame.size else nan,
+            "last5_frame_mm": r(per_frame[-EDGE_FRAMES:].mean()) if per_frame.size else nan,
+            "median_frame_mm": r(np.median(per_frame)) if per_frame.size else nan}
 
 
 def keypoint_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=None, smpl_path: Path | None = None) -> dict:

@@ -16,6 +16,8 @@ Keys written (format version 1)::
     frames           (T,) int64       sequence frame of each row
     surface_model_type () str         "smpl" or "smplh"
     version          () int64         1
+    valid, suspect   (T,) bool        the motion's frame flags (``smpl_world.npz``), when given:
+                     a frame the body could not be placed in / whose fit a view contradicts
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ def _frames_or_range(frames: NDArray | None, T: int) -> NDArray[np.int64]:
     return frames
 
 
-def write_amass(path: str | Path, params: SmplParams, *, frames: NDArray | None = None, hands: bool = False) -> Path:
+def write_amass(path: str | Path, params: SmplParams, *, frames: NDArray | None = None, hands: bool = False,
+                flags: tuple[NDArray, NDArray] | None = None) -> Path:
     """Write ``params`` (world, Z up) as an AMASS-style npz; returns the path.
 
     Args:
@@ -58,6 +61,7 @@ def write_amass(path: str | Path, params: SmplParams, *, frames: NDArray | None 
         params: world SMPL parameters, T frames.
         frames: (T,) sequence frame of each row; default ``0..T-1``.
         hands: write the (T, 156) SMPL+H pose layout (zero hands) instead of SMPL's (T, 72).
+        flags: (valid, suspect) (T,) bool each, written as ``valid`` and ``suspect`` (None: not written).
     """
     T = len(params)
     poses = params.poses
@@ -74,9 +78,19 @@ def write_amass(path: str | Path, params: SmplParams, *, frames: NDArray | None 
         frames=_frames_or_range(frames, T),
         surface_model_type=np.array("smplh" if hands else "smpl"),
         version=np.array(AMASS_VERSION, dtype=np.int64),
+        **_flag_arrays(flags, T),
     )
     log.info("wrote AMASS-style motion %s (%d frames, %d pose values)", path, T, poses.shape[1])
     return Path(path)
+
+
+def _flag_arrays(flags: tuple[NDArray, NDArray] | None, T: int) -> dict[str, NDArray]:
+    if flags is None:
+        return {}
+    valid, suspect = (np.asarray(x, dtype=bool) for x in flags)
+    if valid.shape != (T,) or suspect.shape != (T,):
+        raise ValueError(f"flags must be two ({T},) arrays, got {valid.shape}, {suspect.shape}")
+    return {"valid": valid, "suspect": suspect}
 
 
 def read_amass(path: str | Path) -> tuple[SmplParams, NDArray[np.int64]]:

@@ -20,6 +20,10 @@ y up, z forward. With ``C = R_HUMANOID_SMPL`` (the fixed change of axes):
     root_rot   = R(global_orient) @ C^T              (world orientation of the pelvis body)
     joint_rot  = C @ R(pose_j) @ C^T                 (local rotation, humanoid axes)
 
+With the motion's frame flags, a sidecar ``<name>_frames.json`` says per motion frame which
+sequence frame it is (``frames``) and whether the fit placed it (``valid``) or a view contradicts it
+(``suspect``), so a training set can leave those frames out (MimicKit reads only the pkl).
+
 Body offsets for the performer's own bone lengths go in a sidecar ``<name>_skeleton.json``
 (``body_names``, ``smpl_joints``, ``parents``, ``local_pos_m``: each body's rest position in its
 parent's frame, humanoid axes), so a humanoid MJCF can be scaled to the performer.
@@ -208,11 +212,13 @@ def motion_support_heightmap(vertices: NDArray, faces: NDArray, params: SmplPara
 
 
 def write_mimickit(out_dir: str | Path, params: SmplParams, model, scene: tuple | None = None, *, name: str = "motion",
-                   loop_mode: str = "clamp", cell_m: float = 0.05, frames: NDArray | None = None) -> Path:
+                   loop_mode: str = "clamp", cell_m: float = 0.05, frames: NDArray | None = None,
+                   flags: tuple[NDArray, NDArray] | None = None) -> Path:
     """Write the whole MimicKit bundle into the folder ``out_dir`` (replaced atomically).
 
-    Files: ``<name>.pkl`` (motion), ``<name>_skeleton.json`` (bodies and fitted offsets), and with
-    a scene ``(vertices, faces, ...)``: ``scene.obj`` and ``scene_heightmap.npz``.
+    Files: ``<name>.pkl`` (motion), ``<name>_skeleton.json`` (bodies and fitted offsets), with
+    ``flags`` ((valid, suspect) (T,) bool each) ``<name>_frames.json``, and with a scene
+    ``(vertices, faces, ...)``: ``scene.obj`` and ``scene_heightmap.npz``.
     """
     if frames is not None and len(frames) > 1 and np.any(np.diff(np.asarray(frames)) != 1):
         log.warning("%s: the sequence frames have gaps; MimicKit plays them back to back at %.3f fps", out_dir, params.fps)
@@ -221,6 +227,14 @@ def write_mimickit(out_dir: str | Path, params: SmplParams, model, scene: tuple 
     with atomic_dir(out_dir) as tmp:
         write_mimickit_motion(tmp / f"{name}.pkl", params, rest, loop_mode=loop_mode)
         write_json(tmp / f"{name}_skeleton.json", humanoid_skeleton(rest, model.parents))
+        if flags is not None:
+            T = len(params)
+            fr = np.arange(T) if frames is None else np.asarray(frames, dtype=np.int64)
+            valid, suspect = (np.asarray(x, dtype=bool) for x in flags)
+            if valid.shape != (T,) or suspect.shape != (T,):
+                raise ValueError(f"flags must be two ({T},) arrays, got {valid.shape}, {suspect.shape}")
+            write_json(tmp / f"{name}_frames.json", {"frames": fr.tolist(), "valid": valid.tolist(),
+                                                     "suspect": suspect.tolist()})
         if scene is not None:
             write_text(tmp / "scene.obj", obj_text(scene[0], scene[1]))
             write_heightmap(tmp / "scene_heightmap.npz", motion_support_heightmap(scene[0], scene[1], params, model, cell_m=cell_m))

@@ -40,6 +40,7 @@ from embodmocap.export.gltf import write_glb
 from embodmocap.export.mimickit import write_mimickit
 from embodmocap.export.config import ExportConfig
 from embodmocap.io.layout import SessionLayout
+from embodmocap.io.smpl_file import read_smpl_suspect, read_smpl_valid
 from embodmocap.io.stage_files import read_world_joints
 
 log = logging.getLogger(__name__)
@@ -99,13 +100,20 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     out = Path(out) if out is not None else _default_out(layout, seq, to)
     log.info("exporting %s of %s (%d frames) as %s -> %s", seq, layout.root, len(params), to, out)
 
+    # Every frame's flags travel with the motion: placed or not (``valid``), contradicted by a view (``suspect``).
+    flags = (read_smpl_valid(seq_layout.smpl_world), read_smpl_suspect(seq_layout.smpl_world))
+    if flags[0].all() and not flags[1].any():
+        log.info("%s: every frame valid, none suspect", seq)
+    else:
+        log.info("%s: %d frames flagged invalid, %d suspect (the export carries the flags)", seq,
+                 int((~flags[0]).sum()), int((flags[1] & flags[0]).sum()))
     if to == "amass":
-        return write_amass(out, params, frames=frames, hands=config.amass_hands)
+        return write_amass(out, params, frames=frames, hands=config.amass_hands, flags=flags)
     if to == "csv":
         joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
-        return write_joints_csv(out, joints, params.fps, frames)
+        return write_joints_csv(out, joints, params.fps, frames, flags=flags)
     if to in ("trc", "smplx"):
-        return _export_trc_smplx(seq_layout, layout.root, seq, to, out, params, frames)
+        return _export_trc_smplx(seq_layout, layout.root, seq, to, out, params, frames, flags[0])
     if to == "mjcf":
         from embodmocap.sim.config import SceneCollisionConfig
         from embodmocap.sim.session import export_mjcf
@@ -127,15 +135,13 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     # mimickit: a physics asset wants the lighter mesh when stage I wrote one.
     scene = _scene_mesh(layout, manifest, seq, prefer_simplified=True)
     return write_mimickit(out, params, model, scene, name=seq, loop_mode=config.mimickit_loop,
-                          cell_m=config.heightmap_cell_m, frames=frames)
+                          cell_m=config.heightmap_cell_m, frames=frames, flags=flags)
 
 
-def _export_trc_smplx(seq_layout, root: Path, seq: str, to: str, out: Path, params, frames) -> Path:
+def _export_trc_smplx(seq_layout, root: Path, seq: str, to: str, out: Path, params, frames,
+                      valid) -> Path:
     """``--to trc`` (the world joints, :mod:`.trc`) and ``--to smplx`` (:mod:`.smplx_npz`), each
-    with the fit's ``valid`` flags."""
-    from embodmocap.io.smpl_file import read_smpl_valid
-
-    valid = read_smpl_valid(seq_layout.smpl_world)
+    with the fit's ``valid`` flags (T,) bool."""
     if to == "smplx":
         from embodmocap.export.smplx_npz import write_smplx
 

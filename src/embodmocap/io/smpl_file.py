@@ -14,6 +14,14 @@ Keys (see docs/formats.md, "Stage IV outputs"):
                      all True): frames without enough triangulated joints are fitted from their
                      neighbours and flagged False
 
+Per-frame quality (optional, all or none; Stage IV writes them, :mod:`embodmocap.motion.quality`):
+
+    suspect          (T,) bool a limb joint further than the threshold from every view that sees it
+    limb_off_m       (T,) float64 that distance of the worst limb joint, metres (NaN: none seen)
+    reproj_px        (T, V) float64 each view's median reprojection error, pixels (NaN: none)
+    kp3d_err_m       (T,) float64 median distance to the triangulated keypoints, metres (NaN: none)
+    quality_views    (V,) str the views, the columns of reproj_px
+
 AMASS's own files use the same key names (``poses``, ``trans``, ``betas``, ``gender``,
 ``mocap_framerate``), so tools that read AMASS SMPL motion read these.
 """
@@ -21,6 +29,7 @@ AMASS's own files use the same key names (``poses``, ``trans``, ``betas``, ``gen
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,10 +43,14 @@ SMPL_FILE_VERSION = 1
 _KEYS = ("poses", "trans", "betas", "gender", "mocap_framerate", "frames")
 
 
+#: The per-frame quality keys (all present or none).
+QUALITY_KEYS = ("suspect", "limb_off_m", "reproj_px", "kp3d_err_m", "quality_views")
+
+
 def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None,
-                   valid: NDArray | None = None) -> Path:
+                   valid: NDArray | None = None, quality: Mapping[str, NDArray] | None = None) -> Path:
     """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1, ``valid`` (T,) bool
-    to all True."""
+    to all True; ``quality``: the per-frame quality keys (:data:`QUALITY_KEYS`; None or empty: none)."""
     T = len(params)
     frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
     if frames.shape != (T,):
@@ -45,10 +58,46 @@ def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None 
     valid = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
     if valid.shape != (T,):
         raise ValueError(f"valid must be ({T},), got {valid.shape}")
+    quality = dict(quality or {})
+    if quality:
+        if set(quality) != set(QUALITY_KEYS):
+            raise ValueError(f"quality needs the keys {QUALITY_KEYS}, got {sorted(quality)}")
+        for k in QUALITY_KEYS[:-1]:
+            if len(quality[k]) != T:
+                raise ValueError(f"quality {k} must have {T} rows, got {np.shape(quality[k])}")
     write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
               betas=np.asarray(params.betas), gender=np.array(params.gender),
-              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid)
+              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid,
+              **quality)
     return Path(path)
+
+
+def read_smpl_quality(path: str | Path) -> dict[str, NDArray]:
+    """The per-frame quality keys of a world SMPL motion file (:data:`QUALITY_KEYS`); empty for a
+    file written without them.
+
+    Raises:
+        InputError: as :func:`read_smpl_npz`, or only some of the keys, or rows that do not match.
+    """
+    params, _ = read_smpl_npz(path)
+    data = load_npz(path, what="SMPL motion file", fix="", versions=None)
+    have = [k for k in QUALITY_KEYS if k in data]
+    if not have:
+        return {}
+    fix = "re-run `embodmocap motion` to write it again"
+    if len(have) != len(QUALITY_KEYS):
+        raise InputError(path, f"has the quality keys {have} but not {sorted(set(QUALITY_KEYS) - set(have))}", fix)
+    out = {k: np.asarray(data[k]) for k in QUALITY_KEYS}
+    if any(len(out[k]) != len(params) for k in QUALITY_KEYS[:-1]):
+        raise InputError(path, f"quality keys do not have one row per frame ({len(params)})", fix)
+    out["suspect"] = out["suspect"].astype(bool)
+    return out
+
+
+def read_smpl_suspect(path: str | Path) -> NDArray[np.bool_]:
+    """(T,) the ``suspect`` flags of a world SMPL motion file (all False when the file has none)."""
+    q = read_smpl_quality(path)
+    return q["suspect"] if q else np.zeros(len(read_smpl_npz(path)[0]), dtype=bool)
 
 
 def read_smpl_valid(path: str | Path) -> NDArray[np.bool_]:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from embodmocap.geometry.triangulation import TriangulationConfig
 from embodmocap.motion.label_track import LabelTrackConfig
+from embodmocap.motion.quality import QualityConfig
 from embodmocap.motion.temporal import TemporalConfig
 
 
@@ -250,3 +251,6 @@ class MotionConfig:
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
     gets no pull towards the prior's pose: the triangulation wins."""
+    quality: QualityConfig = field(default_factory=QualityConfig)
+    """The per-frame quality figures and the ``suspect`` flag written with the motion
+    (:mod:`embodmocap.motion.quality`)."""

@@ -58,8 +58,15 @@ class LabelTrackConfig:
     lengths: where the two points of a pair overlap in the image (arms crossing in front of the
     body, legs passing), the detector's jitter alone can make exchanging them look a little
     better; a real confusion gains about twice the pair's separation at each end."""
-    max_gap: int = 10
-    """Frames more than this apart (no pair seen in between) are not compared."""
+    max_gap: int = 4
+    """Frames more than this apart (no pair seen in between) are not compared. Across a longer
+    gap the limb moves too far for its position to tell its side, and a confusion at the
+    sequence's start (no past to undo it) was carried over the gap into correct labels: on the
+    hard studio seed 0, view 2's arms were swapped in frames 0-3, unseen in 5-13, and the chain
+    exchanged the correct labels of frames 14-22 to match (10 frames apart), putting the
+    triangulated left wrist 10-22 cm off and W-MPJPE of the chunks starting there at 100-168 mm
+    (issue 29). 10 -> 4: that session's worst chunk start 167.5 -> 76.1 mm, W-MPJPE 29.2 -> 28.1,
+    PA 17.5 -> 16.8; four other hard sessions unchanged (BENCHMARKS.md, session 7)."""
     geometry_px: float = 100.0
     """With two views: a frame's mean reprojection error of the group (pixels) that costs as much
     as one torso length of movement (two views labelled differently do not meet)."""

@@ -17,6 +17,7 @@ same steps in memory, for the benchmark's variants and for tests:
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -99,6 +100,7 @@ class Fitted:
     params: object
     valid: NDArray
     figures: dict
+    quality: object = None  # FrameQuality (embodmocap.motion.quality): per-frame figures and the suspect flag
 
 
 def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
@@ -205,6 +207,14 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
+    # The per-frame quality figures and the suspect flag; with QualityConfig.repair_frames, limbs the
+    # views contradict at the edges of placeable runs first take the first fine frame's pose.
+    t_quality = time.perf_counter()
+    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T)
+    params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T, quality)
+    if n_repaired:
+        quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
+    t_quality = time.perf_counter() - t_quality
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
         "init_frames_from_keypoints": n_replaced if v_best else int(T),
@@ -213,11 +223,56 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         "limb_starts_propagated": n_propagated,
         "unplaced_frames_turned": n_turned,
         "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
+        "suspect_frames": int((quality.suspect & valid).sum()),
+        "edge_limb_frames_carried": n_repaired,
         "terms_before": res.terms_before, "terms_after": res.terms_after,
         **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
-        "fit_seconds": {k: round(float(x), 2) for k, x in res.phase_seconds.items()},
+        "fit_seconds": {**{k: round(float(x), 2) for k, x in res.phase_seconds.items()},
+                        "quality": round(t_quality, 2)},
     }
-    return Fitted(with_fps(res.params, fps, gender), valid, figures)
+    if (quality.suspect & valid).any():
+        bad = np.flatnonzero(quality.suspect & valid)
+        log.warning("%s: %d placeable frames are suspect (a limb %.0f cm or more from every view that sees it; "
+                    "the worst %.0f cm at frame %d): flagged `suspect` in smpl_world.npz", label, len(bad),
+                    100 * cfg.quality.suspect_m, 100 * np.nanmax(quality.limb_off_m[bad]),
+                    int(bad[np.nanargmax(quality.limb_off_m[bad])]))
+    return Fitted(with_fps(params, fps, gender), valid, figures, quality)
+
+
+def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: str, cams: Mapping[str, Mapping],
+                     kps: Mapping[str, NDArray], k3: Keypoints3DFile, T: int, quality=None):
+    """``params`` with the limbs the views contradict at the edges of placeable runs carried from
+    their first fine frame (:func:`embodmocap.motion.edge_repair.repair_edges`; off with
+    ``cfg.quality.repair_frames`` 0), and the number of (frame, limb) pairs changed. Inputs as
+    :func:`fit_quality` (the 2D keypoints the fit used are ``k3``'s); ``quality``: ``params``'s
+    when the caller has it."""
+    if cfg.quality.repair_frames <= 0:
+        return params, 0
+    from embodmocap.motion.edge_repair import repair_edges
+
+    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+    return repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T).joint_off_m,
+                        cfg.quality.suspect_m, cfg.quality.repair_frames,
+                        None if quality is None else quality.joint_off_m)
+
+
+def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
+                kp2d: NDArray, k3: Keypoints3DFile, T: int):
+    """The per-frame quality of fitted ``params`` (:func:`embodmocap.motion.quality.frame_quality`):
+    against the 2D keypoints the fit used (``kp2d`` (T, V, 17, 3)), the detector's (``kps``), the
+    triangulation ``k3``, with the cameras ``cams`` (all on view 1's instants)."""
+    import torch
+
+    from embodmocap.body.joints import smpl_to_coco17
+    from embodmocap.motion.quality import frame_quality
+
+    with torch.no_grad():
+        out = model.from_params(params, dtype=torch.float64)
+        fitted = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+    filled = k3["filled"] if "filled" in k3.files else None
+    return frame_quality(fitted, np.stack([cams[v]["K"] for v in VIEWS]),
+                         np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d,
+                         np.stack([kps[v][:T] for v in VIEWS], axis=1), k3["points"], filled, tuple(VIEWS), cfg.quality)
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,7 @@ import numpy as np
 from embodmocap.errors import InputError
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.io.smpl_file import read_smpl_quality
 from embodmocap.io.stage_files import (read_cameras, read_keypoints2d, read_keypoints3d, read_smpl_npz, read_smpl_valid,
                                        sequence_fps, write_cameras, write_keypoints3d, write_smpl_npz, write_world_joints)
 from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
@@ -105,7 +106,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
                          cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.torso_tol_m,
                          cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.turn_unplaced, cfg.kp3d_conf,
-                         cfg.init_median_frames, layout,
+                         cfg.init_median_frames, cfg.quality, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
                          # the model's content, not its absolute path: a moved session redoes nothing
                          path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
@@ -113,7 +114,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
                                    manifest.gender, label=entry.name, source=out.keypoints3d)
-            write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid)
+            write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays())
             step.record([out.smpl_fit], fit.figures)
 
     # 3. Contact alignment (always writes the final outputs).
@@ -125,7 +126,9 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
             params, frames = read_smpl_npz(out.smpl_fit)
             al = solve.align_motion(cfg, model, params, frames, read_smpl_valid(out.smpl_fit), contacts, cams_raw,
                                     label=entry.name, source=lay.manifest)
-            write_smpl_npz(out.smpl_world, al.params, al.frames, valid=al.valid)
+            # The per-frame quality is the fit's: the alignment moves body and cameras together.
+            write_smpl_npz(out.smpl_world, al.params, al.frames, valid=al.valid,
+                           quality=read_smpl_quality(out.smpl_fit))
             write_world_joints(out.joints_world, al.joints)
             for v in VIEWS:
                 write_cameras(out.view(v).cameras_final, al.cameras_final[v])

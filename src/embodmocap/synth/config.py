@@ -122,6 +122,14 @@ class SynthConfig:
     view2_other_scene: bool = False
     """View 2 is filmed in another room than the scene capture ("built to fail": the view cannot
     be registered to the scene)."""
+    edge_limb_frames: int = 0
+    """For this many frames from the sync event (the sequence's first frames), the left arm is hard
+    for the detector in both views: view 2 sees it occluded (confidence 0.05-0.3, noisy) and view 1
+    mislabels or misses it (``edge_limb``): the start of a sequence with no past to tell the limb
+    by (issue 29). 0 = off."""
+    edge_limb: Literal["mislabelled", "occluded"] = "mislabelled"
+    """What view 1 does with the left arm over ``edge_limb_frames``: ``mislabelled`` (the two arms'
+    labels exchanged) or ``occluded`` (not detected)."""
     laser: LaserConfig = LaserConfig()
     """The laser dot of the sync event: easy (default), realistic range, or none."""
     perception: Literal["clean", "hard"] = "clean"
@@ -153,6 +161,7 @@ class SynthConfig:
             (-0.5 < self.phone_offset_frames < 0.5, "phone_offset_frames must be in (-0.5, 0.5)"),
             (self.view_separation_deg is None or 0 <= self.view_separation_deg <= 180, "view_separation_deg must be in [0, 180]"),
             (0 <= self.view2_away_fraction < 1, "view2_away_fraction must be in [0, 1)"),
+            (self.edge_limb_frames >= 0, "edge_limb_frames must be >= 0"),
             (all(0 < r[0] <= r[1] for r in (self.laser.core_px, self.laser.halo_px, self.laser.gain,
                                              self.laser.psf_sigma_px, self.laser.shutter, self.laser.whiteness,
                                              self.laser.shake_deg, self.laser.shake_hz))

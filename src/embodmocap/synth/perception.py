@@ -225,6 +225,45 @@ def noisy_keypoints(
     return kp
 
 
+#: COCO-17 (elbow, wrist) of the left and right arm.
+LEFT_ARM, RIGHT_ARM = (7, 9), (8, 10)
+
+
+def edge_limb_trouble(kps: dict[str, NDArray], first: dict[str, int], frames: int, mode: str,
+                      rng: np.random.Generator) -> dict[str, NDArray]:
+    """The sequence's start made hard for one limb (issue 29): over the ``frames`` frames from
+    ``first[v]`` (each view's sync frame: the sequence's first frames), view 2 sees the left arm
+    only weakly (occluded: confidence 0.05-0.3, 6 % of the person's height of jitter) while view 1
+    sees it clearly but, with ``mode = "mislabelled"``, labels the two arms the wrong way round
+    (what a detector does on an arm crossing the body) or, with ``"occluded"``, misses the left arm.
+
+    Args:
+        kps: view -> (T_v, 17, 3) detector keypoints (COCO-17 order), each view's raw frames;
+        first: view -> its first frame of the trouble; mode: ``mislabelled`` or ``occluded``;
+        rng: the only source of randomness. Returns new arrays (inputs unchanged).
+    """
+    if mode not in ("mislabelled", "occluded"):
+        raise ValueError(f"edge limb mode must be 'mislabelled' or 'occluded', got {mode!r}")
+    out = {v: np.array(k, dtype=np.float64, copy=True) for v, k in kps.items()}
+    v1, v2 = sorted(out)
+    a = out[v2]
+    sel = slice(first[v2], min(first[v2] + frames, len(a)))
+    n = len(a[sel])
+    seen = a[sel][..., 2] > 0
+    scale = person_height_px(a[sel][:, :, :2])  # (n,)
+    for j in LEFT_ARM:
+        a[sel, j, :2] += rng.normal(size=(n, 2)) * 0.06 * scale[:, None]
+        a[sel, j, 2] = np.where(seen[:, j], rng.uniform(0.05, 0.3, size=n), 0.0)
+    b = out[v1]
+    sel = slice(first[v1], min(first[v1] + frames, len(b)))
+    if mode == "mislabelled":
+        for left, right in zip(LEFT_ARM, RIGHT_ARM):
+            b[sel, left], b[sel, right] = kps[v1][sel, right], kps[v1][sel, left]
+    else:
+        b[sel, list(LEFT_ARM)] = 0.0
+    return out
+
+
 def runs(T: int, n: int, rate: float, frames: tuple[int, int], rng: np.random.Generator) -> NDArray[np.bool_]:
     """(T, n) True inside random runs: per frame and column a run starts with probability
     ``rate`` and lasts a random number of frames in ``frames`` (inclusive)."""

@@ -172,6 +172,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     # 4. The two views.
     seq_gt: dict[str, np.ndarray] = {}
     sync_frames = {}
+    detected: dict[str, np.ndarray] = {}
     for k, v in enumerate(VIEWS):
         span = np.arange(starts[v], ends[v])
         # Each frame's instant in motion frames: view 2 may run a fraction of a frame off view 1.
@@ -198,10 +199,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         prng = _rng(cfg.seed, 60 + k)
         noise = perception.HARD_KEYPOINT_NOISE if cfg.perception == "hard" else perception.KeypointNoiseConfig()
         kps = perception.noisy_keypoints(gt_px, vis, prng, noise)
+        detected[v] = kps  # the keypoint files are written once both views' detections exist
         perc = lay.perception(cfg.sequence_name, v)
-        for i, kp in enumerate(kps):
-            out_kp = perception.coco17_to_body25(kp) if layout == "BODY_25" else kp
-            write_openpose_json(perc.keypoints_json(i), [out_kp] if kp[:, 2].max() > 0 else [])
         if cfg.body_prior != "none":
             prior_params = type(params)(params.betas, params.global_orient[span], params.body_pose[span], params.transl[span], params.fps, params.gender)
             pcfg = perception.POOR_PRIOR_NOISE if cfg.body_prior == "poor" else perception.PriorNoiseConfig()
@@ -213,6 +212,15 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
             f"{v}_motion_start": np.int64(starts[v]), f"{v}_sync_frame": np.int64(sync_frames[v]),
             f"{v}_keypoints2d_gt": gt_px, f"{v}_visibility": vis, f"{v}_time_offset_frames": np.float64(phase),
         })
+
+    if cfg.edge_limb_frames > 0:  # the start of the sequence made hard for the left arm (issue 29)
+        detected = perception.edge_limb_trouble(detected, sync_frames, cfg.edge_limb_frames, cfg.edge_limb,
+                                                _rng(cfg.seed, 90))
+    for v in VIEWS:
+        perc = lay.perception(cfg.sequence_name, v)
+        for i, kp in enumerate(detected[v]):
+            out_kp = perception.coco17_to_body25(kp) if layout == "BODY_25" else kp
+            write_openpose_json(perc.keypoints_json(i), [out_kp] if kp[:, 2].max() > 0 else [])
 
     # 5. Ground truth and manifest.
     gt = lay.ground_truth

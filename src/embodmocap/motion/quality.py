@@ -1,0 +1,157 @@
+"""Per-frame quality of the fitted motion, and the frames whose fit is suspect (issue 29).
+
+A fit can be placeable (``valid``) and still wrong: a limb that Stage IV's keypoint checks took
+from one view and the other view sees weakly is held only by smoothness, and at the start of a
+sequence it can end up 30 cm from where both views see it. Nothing but the views can say so, so per
+frame of the fitted motion:
+
+- ``reproj_px`` (T, V): each view's median reprojection error of the fitted keypoints against the
+  2D keypoints the fit used (those above ``min_conf``), pixels;
+- ``kp3d_err_m`` (T,): the median distance of the fitted keypoints from the triangulated ones
+  (not the gap-filled), metres;
+- ``limb_off_m`` (T,): the limb joint (shoulders to ankles) furthest from what the views see:
+  per joint and view, the distance in metres from the fitted joint to the view's ray through its
+  detection (the raw detector's or the one the fit used, labels tracked and swaps undone: a
+  detection Stage IV's checks dropped is still the view's evidence), the smallest over the views
+  that detect the joint at ``min_conf`` or more (a joint one view sees wrongly but another sees
+  where the fit is does not count), the largest over the joints. A fitted limb on the other side's
+  place (left and right exchanged in the fit) is as far from both views as any other wrong limb;
+- ``suspect`` (T,): a limb joint further than ``suspect_m`` from every view that sees it, in the
+  frame and in one of its neighbours (``limb_off_m`` says how far in the frame).
+
+Ray distances are metric where pixels are not (a limb 3 m from the camera is half as many pixels
+off as at 1.5 m), and a view says nothing about depth along its own ray, which is why a joint is
+judged by the view it is closest to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: COCO-17 joints judged for the suspect flag: shoulders, elbows, wrists, hips, knees, ankles
+#: (the face points sit on SMPL vertices that a detector places differently).
+LIMB_JOINTS: tuple[int, ...] = tuple(range(5, 17))
+
+
+@dataclass(frozen=True)
+class QualityConfig:
+    """How the per-frame quality of the fit is measured and when a frame is suspect."""
+
+    min_conf: float = 0.6
+    """Detections below this confidence are not a view's evidence. A detector's blunders (a far
+    outlier, a hidden joint guessed elsewhere) come at middling confidence: on a hard studio
+    session whose fit had no joint 15 cm off, 25 placeable frames had a limb joint more than 10 cm
+    from its only detection at 0.3-0.6 (none at 0.6 or more that lasted two frames)."""
+    suspect_m: float = 0.10
+    """A frame is suspect when a limb joint is further than this (metres) from the ray of every
+    view that detects it, in this frame and a neighbouring one (a drifting limb stays off; a
+    detector's one-frame blunder does not make a frame suspect)."""
+    repair_frames: int = 0
+    """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
+    views takes the local rotations of the first frame within this many where it is not, when
+    that brings it closer to the views (:mod:`embodmocap.motion.edge_repair`). 0 = off, the
+    default: aimed at issue 29's external sessions (a limb 30-36 cm off in the first frames), a
+    failure the studio did not reproduce; with 15 on four hard studio sessions it changed one
+    stretch, by +0.13 mm on its first five frames (BENCHMARKS.md, session 7)."""
+
+
+@dataclass(frozen=True)
+class FrameQuality:
+    """Per-frame quality of a fitted motion (see the module docstring); ``views`` names the
+    columns of ``reproj_px``; ``joint_off_m`` (T, 17) each joint's distance from the closest view
+    that sees it (NaN: none does; not written to the files)."""
+
+    reproj_px: NDArray
+    kp3d_err_m: NDArray
+    limb_off_m: NDArray
+    suspect: NDArray
+    views: tuple[str, ...]
+    joint_off_m: NDArray | None = None
+
+    def arrays(self) -> dict[str, NDArray]:
+        """The keys written into ``smpl_fit.npz`` / ``smpl_world.npz`` (docs/formats.md)."""
+        return {"reproj_px": np.asarray(self.reproj_px, np.float64), "kp3d_err_m": np.asarray(self.kp3d_err_m, np.float64),
+                "limb_off_m": np.asarray(self.limb_off_m, np.float64), "suspect": np.asarray(self.suspect, bool),
+                "quality_views": np.array(self.views)}
+
+
+def ray_distance(points: NDArray, K: NDArray, T_world_cam: NDArray, uv: NDArray) -> NDArray:
+    """Distance (metres) of world points from the camera rays through pixels ``uv``.
+
+    Args:
+        points: (T, V, J, 3) world points; K: (V, 3, 3); T_world_cam: (T, V, 4, 4) OpenCV cameras;
+        uv: (T, V, J, 2) pixels. Returns (T, V, J); a point behind the camera is its distance
+        from the camera centre (the ray starts there).
+    """
+    Kinv = np.linalg.inv(K)  # (V, 3, 3)
+    pix = np.concatenate([uv, np.ones(uv.shape[:-1] + (1,))], axis=-1)
+    d_cam = np.einsum("vab,tvjb->tvja", Kinv, pix)
+    d = np.einsum("tvab,tvjb->tvja", T_world_cam[..., :3, :3], d_cam)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    rel = points - T_world_cam[:, :, None, :3, 3]
+    along = np.maximum((rel * d).sum(-1, keepdims=True), 0.0)
+    return np.linalg.norm(rel - along * d, axis=-1)
+
+
+def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
+                  points: NDArray, filled: NDArray | None, views: tuple[str, ...],
+                  cfg: QualityConfig = QualityConfig()) -> FrameQuality:
+    """The per-frame quality of a fit (module docstring).
+
+    Args:
+        fitted_kp: (T, 17, 3) the fitted body's keypoints (the detector's layout), world metres;
+        K: (V, 3, 3); T_world_cam: (T, V, 4, 4) the cameras the fit used;
+        used2d: (T, V, 17, 3) the 2D keypoints the fit used (labels tracked, swaps undone,
+            guesses dropped); raw2d: (T, V, 17, 3) the detector's, on the same instants;
+        points: (T, 17, 3) triangulated keypoints (NaN = none); filled: (T, 17) bool gap-filled
+            points (not measured; None = none filled); views: the view names.
+    """
+    T, V = used2d.shape[:2]
+    X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
+    Rt = np.swapaxes(T_world_cam[..., :3, :3], -1, -2)
+    cam = np.einsum("tvab,tvjb->tvja", Rt, X - T_world_cam[:, :, None, :3, 3])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = np.einsum("vab,tvjb->tvja", K, cam)
+        uv = proj[..., :2] / proj[..., 2:]
+    c_used = np.nan_to_num(used2d[..., 2])
+    e = np.where(c_used >= cfg.min_conf, np.linalg.norm(uv - used2d[..., :2], axis=-1), np.nan)
+    reproj = _nanmedian(e, axis=-1)  # (T, V)
+    seen3 = np.isfinite(points).all(-1) & (np.ones(points.shape[:2], bool) if filled is None else ~np.asarray(filled, bool))
+    d3 = np.where(seen3, np.linalg.norm(fitted_kp - np.nan_to_num(points), axis=-1), np.nan)
+    kp3d = _nanmedian(d3, axis=-1)
+    joint = joint_offsets(fitted_kp, K, T_world_cam, used2d, raw2d, cfg.min_conf)
+    per_joint = joint[:, list(LIMB_JOINTS)]
+    limb = np.where(np.isfinite(per_joint).any(-1), np.nanmax(np.nan_to_num(per_joint, nan=-1.0), axis=-1), np.nan)
+    off = np.nan_to_num(per_joint, nan=0.0) > cfg.suspect_m  # (T, 12) contradicted
+    before = np.concatenate([np.zeros_like(off[:1]), off[:-1]])
+    after = np.concatenate([off[1:], np.zeros_like(off[:1])])
+    suspect = (off & (before | after)).any(-1)
+    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint)
+
+
+def joint_offsets(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
+                  min_conf: float) -> NDArray:
+    """(T, 17) each fitted joint's distance (metres) from the ray of the view closest to it among
+    those that detect it at ``min_conf`` or more, the raw detection or the one the fit used
+    (NaN: no view does). Shapes as :func:`frame_quality`."""
+    T, V = used2d.shape[:2]
+    X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
+    dist = np.full((T, V, 17), np.inf)
+    for k in (raw2d, used2d):
+        ok = np.nan_to_num(k[..., 2]) >= min_conf
+        r = ray_distance(X, K, T_world_cam, np.nan_to_num(k[..., :2]))
+        dist = np.where(ok & (r < dist), r, dist)
+    best = dist.min(axis=1)
+    return np.where(np.isfinite(best), best, np.nan)
+
+
+def _nanmedian(a: NDArray, axis: int) -> NDArray:
+    """NaN-ignoring median along ``axis``; NaN where every value is NaN (no warning)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(a, axis=axis)
