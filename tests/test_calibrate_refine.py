@@ -220,7 +220,7 @@ def test_drift_knots_follow_a_vio_error_that_grows_along_the_view():
     assert centre_err_cm(rigid) > 0.8, centre_err_cm(rigid)
     assert centre_err_cm(knots) < 0.3, centre_err_cm(knots)
     # The per-frame cameras are the knots' corrections, frame by frame (as calibration.json stores them).
-    from embodmocap.calibrate.refine import drift_transforms
+    from embodmocap.calibrate.drift import drift_transforms
 
     o = knots.views["v1"]
     D = drift_transforms(o.knot_frames, o.knots, o.pivot, n)
@@ -228,7 +228,7 @@ def test_drift_knots_follow_a_vio_error_that_grows_along_the_view():
 
 
 def test_knot_frames_and_basis():
-    from embodmocap.calibrate.refine import knot_basis, knot_frames
+    from embodmocap.calibrate.drift import knot_basis, knot_frames
 
     assert knot_frames(100, 0).tolist() == [0] and knot_frames(80, 45).tolist() == [0]
     k = knot_frames(181, 45)
@@ -237,3 +237,34 @@ def test_knot_frames_and_basis():
     np.testing.assert_allclose(B.sum(1), 1.0)
     np.testing.assert_allclose(B[k], np.eye(len(k)))
     np.testing.assert_allclose(B @ k.astype(float), np.arange(181))  # linear in between
+
+
+def test_world_cameras_and_drift_corrected_views_agree():
+    # calibration.json's drift record -> per-frame cameras; the views handed to the geometric sync
+    # carry the same cameras through the one T_world_vio.
+    from embodmocap.calibrate import solve
+    from embodmocap.calibrate.drift import drift_transforms
+    from embodmocap.io.stage_files import CameraFile
+
+    n = 100
+    T_vio = trajectory(0.3, n)
+    T_reg = offset(20.0, [0.5, -1.0, 0.1])
+    kf = np.array([0, 33, 66, 99])
+    knots = np.array([[0.001, 0.01, 0.0, 0.0], [0.0, -0.01, 0.02, 0.0], [-0.002, 0.0, 0.01, 0.005], [0.003, 0.02, -0.01, 0.0]])
+    pivot = (T_reg @ T_vio)[:, :3, 3].mean(0)
+    T_mean = offset(2.0, [0.01, 0.0, 0.0]) @ T_reg
+    vr = {"T_world_vio_registration": T_reg.tolist(), "T_world_vio": T_mean.tolist(),
+          "drift": {"knot_frames": kf.tolist(), "knots": knots.tolist(), "pivot": pivot.tolist()}}
+    want = drift_transforms(kf, knots, pivot, n) @ T_reg @ T_vio
+    np.testing.assert_allclose(solve.world_cameras(vr, T_vio), want, atol=1e-12)
+    np.testing.assert_allclose(drift_transforms(kf, knots, pivot, n)[kf][:, :3, 3] - pivot
+                               + np.einsum("nij,j->ni", drift_transforms(kf, knots, pivot, n)[kf][:, :3, :3], pivot),
+                               knots[:, 1:], atol=1e-12)  # the knots' translations, pivot form
+    cams = CameraFile(version=np.int64(1), K=K, width=np.int64(W), height=np.int64(H), T_world_cam=T_vio,
+                      raw_frames=np.arange(n))
+    views = {"v1": solve.ViewInputs(cameras=cams, keypoints=np.zeros((n, 17, 3)), depth_m=lambda t: None)}
+    fixed = solve.drift_corrected(views, {"views": {"v1": vr}})
+    np.testing.assert_allclose(T_mean @ fixed["v1"].cameras.T_world_cam, want, atol=1e-9)
+    rigid = {k: v for k, v in vr.items() if k != "drift"}
+    np.testing.assert_allclose(solve.world_cameras(rigid, T_vio), T_mean @ T_vio)
+    assert solve.drift_corrected(views, {"views": {"v1": rigid}})["v1"] is views["v1"]

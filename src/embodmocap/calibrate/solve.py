@@ -462,7 +462,7 @@ def world_cameras(view_report: dict, T_vio_cam: NDArray) -> NDArray:
     """(T, 4, 4) a view's cameras in the scene's world from its ``calibration.json`` entry: each
     frame's drift correction on the registration offset when the view has ``drift``, else the one
     ``T_world_vio``."""
-    from embodmocap.calibrate.refine import drift_transforms
+    from embodmocap.calibrate.drift import drift_transforms
 
     T_vio_cam = np.asarray(T_vio_cam, dtype=np.float64)
     d = view_report.get("drift")
