@@ -45,8 +45,11 @@ def offset(yaw_deg, t):
     return make_T(rot_z(np.radians(yaw_deg)), np.asarray(t, dtype=np.float64))
 
 
-def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=None):
-    """ViewData of perturbed views, the scene, the track pairs and the true corrections."""
+def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=None, n=40, drift=None):
+    """ViewData of perturbed views, the scene, the track pairs and the true corrections.
+
+    ``drift``: view -> (T, 4, 4) a VIO error that changes frame by frame (world side, on top of
+    the rigid one): the views' cameras are then ``inv(truth) @ inv(drift[t]) @ T_true[t]``."""
     rng = np.random.default_rng(seed)
     v, f = box_mesh(*ROOM)
     scene = L.ScenePoints.from_mesh(v, f, n_points=30000, seed=1)
@@ -54,8 +57,7 @@ def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=
     sfm_pts = L.ScenePoints.from_mesh(v, f, n_points=1500, seed=3).points.numpy()
     truth = {"v1": offset(1.5, [0.06, -0.08, 0.03]), "v2": offset(-2.0, [-0.09, 0.05, -0.04])}
     phases = {"v1": 0.0, "v2": math.pi}
-    T_true = {k: trajectory(phases[k]) for k in views}
-    n = len(T_true[views[0]])
+    T_true = {k: trajectory(phases[k], n) for k in views}
     out = {}
     for k in views:
         frames_c, pc, frames_m, xy, xyz = [], [], [], [], []
@@ -76,7 +78,7 @@ def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=
         xy[bad] = rng.uniform([0, 0], [W, H], (int(bad.sum()), 2))
         T_world_vio = invert_T(truth[k])  # the true VIO world is the identity here
         out[k] = ViewData(
-            T_world_cam=invert_T(truth[k]) @ T_true[k],
+            T_world_cam=invert_T(truth[k]) @ (T_true[k] if drift is None else invert_T(drift[k]) @ T_true[k]),
             K=K,
             background=L.BackgroundCloud(*map(_t, (np.concatenate(frames_c), np.concatenate(pc)))),
             matches=L.Matches2D3D.from_arrays(np.concatenate(frames_m), xy, np.concatenate(xyz)),
@@ -195,3 +197,74 @@ def test_nothing_to_refine_raises():
     views, _, _, _ = make_world(views=("v1",))
     with pytest.raises(ValueError, match="solver"):
         refine_offsets(views, replace(RefineConfig(), solver="sgd"))
+
+
+def test_drift_knots_follow_a_vio_error_that_grows_along_the_view():
+    # Each view's VIO drifts by 4 cm and 0.4 deg over its 120 frames (a handheld track's scale error
+    # and path drift): no rigid offset fits every frame, the drift knots do.
+    n = 120
+    s = np.linspace(-0.5, 0.5, n)
+    drift = {"v1": np.stack([offset(0.4 * x, [0.04 * x, -0.03 * x, 0.01 * x]) for x in s]),
+             "v2": np.stack([offset(-0.3 * x, [-0.02 * x, 0.04 * x, 0.0]) for x in s])}
+    views, scene, tracks, truth = make_world(n=n, drift=drift, seed=7)
+    true_cams = {k: trajectory({"v1": 0.0, "v2": math.pi}[k], n) for k in truth}
+
+    def centre_err_cm(res):
+        return max(100 * np.median(np.linalg.norm(res.views[k].T_world_cam[:, :3, 3] - true_cams[k][:, :3, 3], axis=1))
+                   for k in truth)
+
+    rigid = refine_offsets(views, RefineConfig(solver="lm", drift_knot_frames=0), scene=scene, tracks=tracks)
+    knots = refine_offsets(views, RefineConfig(solver="lm", drift_knot_frames=30), scene=scene, tracks=tracks)
+    assert set(knots.terms_after) >= {"drift/v1", "drift/v2"} and len(knots.views["v1"].knot_frames) == 5
+    assert not knots.diverged
+    assert centre_err_cm(rigid) > 0.8, centre_err_cm(rigid)
+    assert centre_err_cm(knots) < 0.3, centre_err_cm(knots)
+    # The per-frame cameras are the knots' corrections, frame by frame (as calibration.json stores them).
+    from embodmocap.calibrate.drift import drift_transforms
+
+    o = knots.views["v1"]
+    D = drift_transforms(o.knot_frames, o.knots, o.pivot, n)
+    np.testing.assert_allclose(o.T_world_cam, D @ views["v1"].T_world_cam, atol=1e-12)
+
+
+def test_knot_frames_and_basis():
+    from embodmocap.calibrate.drift import knot_basis, knot_frames
+
+    assert knot_frames(100, 0).tolist() == [0] and knot_frames(80, 45).tolist() == [0]
+    k = knot_frames(181, 45)
+    assert k[0] == 0 and k[-1] == 180 and np.diff(k).max() <= 45 and len(k) == 5
+    B = knot_basis(181, k)
+    np.testing.assert_allclose(B.sum(1), 1.0)
+    np.testing.assert_allclose(B[k], np.eye(len(k)))
+    np.testing.assert_allclose(B @ k.astype(float), np.arange(181))  # linear in between
+
+
+def test_world_cameras_and_drift_corrected_views_agree():
+    # calibration.json's drift record -> per-frame cameras; the views handed to the geometric sync
+    # carry the same cameras through the one T_world_vio.
+    from embodmocap.calibrate import solve
+    from embodmocap.calibrate.drift import drift_transforms
+    from embodmocap.io.stage_files import CameraFile
+
+    n = 100
+    T_vio = trajectory(0.3, n)
+    T_reg = offset(20.0, [0.5, -1.0, 0.1])
+    kf = np.array([0, 33, 66, 99])
+    knots = np.array([[0.001, 0.01, 0.0, 0.0], [0.0, -0.01, 0.02, 0.0], [-0.002, 0.0, 0.01, 0.005], [0.003, 0.02, -0.01, 0.0]])
+    pivot = (T_reg @ T_vio)[:, :3, 3].mean(0)
+    T_mean = offset(2.0, [0.01, 0.0, 0.0]) @ T_reg
+    vr = {"T_world_vio_registration": T_reg.tolist(), "T_world_vio": T_mean.tolist(),
+          "drift": {"knot_frames": kf.tolist(), "knots": knots.tolist(), "pivot": pivot.tolist()}}
+    want = drift_transforms(kf, knots, pivot, n) @ T_reg @ T_vio
+    np.testing.assert_allclose(solve.world_cameras(vr, T_vio), want, atol=1e-12)
+    np.testing.assert_allclose(drift_transforms(kf, knots, pivot, n)[kf][:, :3, 3] - pivot
+                               + np.einsum("nij,j->ni", drift_transforms(kf, knots, pivot, n)[kf][:, :3, :3], pivot),
+                               knots[:, 1:], atol=1e-12)  # the knots' translations, pivot form
+    cams = CameraFile(version=np.int64(1), K=K, width=np.int64(W), height=np.int64(H), T_world_cam=T_vio,
+                      raw_frames=np.arange(n))
+    views = {"v1": solve.ViewInputs(cameras=cams, keypoints=np.zeros((n, 17, 3)), depth_m=lambda t: None)}
+    fixed = solve.drift_corrected(views, {"views": {"v1": vr}})
+    np.testing.assert_allclose(T_mean @ fixed["v1"].cameras.T_world_cam, want, atol=1e-9)
+    rigid = {k: v for k, v in vr.items() if k != "drift"}
+    np.testing.assert_allclose(solve.world_cameras(rigid, T_vio), T_mean @ T_vio)
+    assert solve.drift_corrected(views, {"views": {"v1": rigid}})["v1"] is views["v1"]

@@ -117,6 +117,19 @@ class RefineConfig:
     """A translation change larger than this is flagged as diverged, metres."""
     max_yaw_deg: float = 10.0
     """A yaw change larger than this is flagged as diverged, degrees."""
+    drift_knot_frames: int = 45
+    """Slow VIO drift: the correction of each view is a piecewise-linear function of the frame,
+    with a knot every this many frames (45 = 1.5 s at 30 fps; a view shorter than two spacings, or
+    0, gets one rigid yaw + translation, the refinement before drift). A handheld VIO track errs
+    with the path walked (a scale error, drift of a per cent or two of the path), which no single
+    offset fits at every frame."""
+    drift_sigma_m: float = 0.2
+    """Smoothness prior of the drift knots: neighbouring knots' translations differ by about this
+    much, metres, in the units of the normalised objective (larger = freer drift)."""
+    drift_sigma_deg: float = 2.0
+    """Smoothness prior of the drift knots' yaw, degrees (as ``drift_sigma_m``)."""
+    w_drift: float = 1.0
+    """Weight of the drift smoothness prior (mean over each view's neighbouring knot pairs)."""
     inlier_ratio: float = 3.0
     """A residual counts as an inlier when its norm is below this many robust scales."""
     min_inlier_fraction: float = 0.75

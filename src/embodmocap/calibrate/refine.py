@@ -20,6 +20,13 @@ Two solvers on the same residual blocks:
   Chamfer neighbours re-found each iteration (ICP-style).
 
 ``both`` runs the two and keeps the lower final loss; both runs are reported.
+
+Slow VIO drift (``drift_knot_frames`` > 0): a real handheld VIO track errs with the path walked (a
+scale error, drift of a per cent or two of the path), so no single yaw + translation fits every
+frame of a view. The correction is then a piecewise-linear function of the frame: ``[yaw, t]`` at
+knots every ``drift_knot_frames`` frames, interpolated per observation, with a smoothness prior on
+the change between neighbouring knots (``drift_sigma_m``, ``drift_sigma_deg``). One knot (a
+view shorter than two knot spacings, or ``drift_knot_frames = 0``) is the rigid offset above.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from numpy.typing import NDArray
 
 from embodmocap.calibrate import losses as L
 from embodmocap.calibrate.config import RefineConfig, Solver  # noqa: F401 (defined with the stage's settings)
+from embodmocap.calibrate.drift import drift_transforms, knot_basis, knot_frames
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +72,12 @@ class ViewOffset:
     yaw_delta_rad: rotation about +Z of the world-side correction, radians.
     t_delta_m: (3,) world-side translation of the correction, metres.
     T_delta: (4, 4) ``[Rz(yaw) | t]``; T_world_vio: (4, 4) ``T_delta @ T_world_vio_init``;
-    T_world_cam: (T, 4, 4) refined cameras ``T_delta @ T_world_cam_init``.
+    T_world_cam: (T, 4, 4) refined cameras ``T_delta(t) @ T_world_cam_init(t)``.
+    With drift knots, ``yaw_delta_rad``, ``t_delta_m``, ``T_delta`` and ``T_world_vio`` are the
+    correction at the mean of the per-frame parameters (the best single offset); ``T_world_cam``
+    carries each frame's own correction.
+    knot_frames: (K,) frames of the knots; knots: (K, 4) ``[yaw, tx, ty, tz]`` at each knot, the
+    pivot form (rotation about ``pivot``, then the translation); pivot: (3,) the view's pivot.
     """
 
     yaw_delta_rad: float
@@ -72,6 +85,9 @@ class ViewOffset:
     T_delta: NDArray
     T_world_vio: NDArray
     T_world_cam: NDArray
+    knot_frames: NDArray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    knots: NDArray = field(default_factory=lambda: np.zeros((1, 4)))
+    pivot: NDArray = field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass(frozen=True)
@@ -142,12 +158,28 @@ class _Block:
         return (self.r * w[:, None]).reshape(-1)
 
 
+def _offset_points_each(P: torch.Tensor, pivot: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """:func:`embodmocap.calibrate.losses.offset_points` with each point's own ``[yaw, t]`` (N, 4)."""
+    q = p - pivot
+    c, s = torch.cos(P[:, 0]), torch.sin(P[:, 0])
+    rot = torch.stack([c * q[:, 0] - s * q[:, 1], s * q[:, 0] + c * q[:, 1], q[:, 2]], -1)
+    return rot + pivot + P[:, 1:4]
+
+
 class _Problem:
     def __init__(self, views: dict[str, ViewData], cfg: RefineConfig, scene, tracks) -> None:
         self.names = list(views)
         self.cfg = cfg
         self.scene = scene
         self.cams = {v: L.Cameras.from_T(d.T_world_cam) for v, d in views.items()}
+        # Each view's correction at its knots (one knot: the rigid offset); x stacks (K_v, 4) per view.
+        n = {v: len(np.asarray(d.T_world_cam)) for v, d in views.items()}
+        self.knot_frames = {v: knot_frames(n[v], cfg.drift_knot_frames) for v in self.names}
+        self.basis = {v: torch.as_tensor(knot_basis(n[v], self.knot_frames[v])) for v in self.names}
+        sizes = [4 * len(self.knot_frames[v]) for v in self.names]
+        self.slices = dict(zip(self.names, (slice(a, a + b) for a, b in zip(np.cumsum([0] + sizes[:-1]), sizes))))
+        self.num_params = int(sum(sizes))
+        self.rigid = all(len(k) == 1 for k in self.knot_frames.values())
         self.K = {v: torch.as_tensor(np.asarray(d.K, dtype=np.float64)) for v, d in views.items()}
         self.views = views
         self.tracks = tracks
@@ -167,18 +199,37 @@ class _Problem:
         # observation is taken to the world once here; each evaluation is then one rigid motion of
         # fixed points instead of a per-point gather of camera matrices (same values, far less work).
         self._world: dict[str, torch.Tensor] = {}
+        self._frames: dict[str, torch.Tensor] = {}  # each key's observation frames (drift knots)
         if self.tracks is not None:
             tr = self.tracks
             self._world["track_a"] = _to_world(self.cams[tr.view_a], tr.frames, tr.p_a)
             self._world["track_b"] = _to_world(self.cams[tr.view_b], tr.frames, tr.p_b)
+            self._frames["track_a"] = self._frames["track_b"] = tr.frames
         for v in self.chamfer_views:
             bg = views[v].background
             self._world[f"chamfer/{v}"] = _to_world(self.cams[v], bg.frames, bg.p_cam)
+            self._frames[f"chamfer/{v}"] = bg.frames
         self._reproj: dict[str, tuple[torch.Tensor, torch.Tensor]] = {
             v: (self.cams[v].R[views[v].matches.frames], self.cams[v].c[views[v].matches.frames]) for v in self.reproj_views}
+        # Per observation key: its (N, K) knot weights (None for a rigid view: one parameter set).
+        self._weights = {key: self.basis[self._view_of(key)][f] if len(self.knot_frames[self._view_of(key)]) > 1 else None
+                         for key, f in self._frames.items()}
+        for v in self.reproj_views:
+            self._weights[f"reproj/{v}"] = self.basis[v][views[v].matches.frames] if len(self.knot_frames[v]) > 1 else None
 
-    def params(self, x: torch.Tensor) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-        return {v: (x[4 * i], x[4 * i + 1 : 4 * i + 4]) for i, v in enumerate(self.names)}
+    def _view_of(self, key: str) -> str:
+        if key in ("track_a", "track_b"):
+            return self.tracks.view_a if key == "track_a" else self.tracks.view_b
+        return key.split("/", 1)[1]
+
+    def params(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """view -> (K_v, 4) ``[yaw, tx, ty, tz]`` at the view's knots."""
+        return {v: x[self.slices[v]].reshape(-1, 4) for v in self.names}
+
+    def _each(self, X: torch.Tensor, key: str) -> torch.Tensor:
+        """The observations of ``key``'s own parameters: (N, 4), or (1, 4) for a rigid view."""
+        w = self._weights[key]
+        return X if w is None else w @ X
 
     def neighbours(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         p = self.params(x.detach())
@@ -187,13 +238,29 @@ class _Problem:
             for v in self.chamfer_views
         }
 
-    def _moved(self, params, v: str, key: str) -> torch.Tensor:
-        """The fixed world points ``key`` moved by view ``v``'s offset ``params`` (same as
+    def _moved(self, X: torch.Tensor, v: str, key: str) -> torch.Tensor:
+        """The fixed world points ``key`` moved by view ``v``'s offset ``X`` (K, 4) (same as
         :func:`embodmocap.calibrate.losses.cam_to_world` on the camera-space points)."""
-        return L.offset_points(params[0], params[1], self.cams[v].pivot, self._world[key])
+        if self._weights[key] is None:
+            return L.offset_points(X[0, 0], X[0, 1:4], self.cams[v].pivot, self._world[key])
+        return _offset_points_each(self._each(X, key), self.cams[v].pivot, self._world[key])
 
-    def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor]) -> list[_Block]:
+    def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor], data: bool = True) -> list[_Block]:
+        """Every term's residual block at ``x`` (the drift priors last); ``data=False``: the priors only."""
         cfg, p = self.cfg, self.params(x)
+        out = []
+        if data:
+            out += self._data_blocks(p, nbrs)
+        for v in self.names:
+            if len(self.knot_frames[v]) > 1:
+                # Smoothness prior: neighbouring knots differ by about drift_sigma (a Gaussian prior).
+                dX = p[v][1:] - p[v][:-1]
+                sig = torch.tensor([math.radians(cfg.drift_sigma_deg)] + [cfg.drift_sigma_m] * 3, dtype=dX.dtype)
+                out.append(_Block(f"drift/{v}", dX / sig, torch.ones(len(dX), dtype=dX.dtype), "l2", 1.0, cfg.w_drift))
+        return out
+
+    def _data_blocks(self, p: dict[str, torch.Tensor], nbrs: dict[str, torch.Tensor]) -> list[_Block]:
+        cfg = self.cfg
         out = []
         if self.tracks is not None:
             a, b = self.tracks.view_a, self.tracks.view_b
@@ -208,7 +275,7 @@ class _Problem:
             has_nbr = valid.to(r.dtype)  # points with no scene sample nearby do not count
             out.append(_Block(f"chamfer/{v}", r, has_nbr, cfg.chamfer_kernel, cfg.chamfer_scale_m, cfg.w_chamfer))
         for v in self.reproj_views:
-            r = _reproj(p[v], self.cams[v].pivot, *self._reproj[v], self.K[v], self.views[v].matches)
+            r = _reproj(self._each(p[v], f"reproj/{v}"), self.cams[v].pivot, *self._reproj[v], self.K[v], self.views[v].matches)
             out.append(_Block(f"reproj/{v}", r, torch.ones(len(r), dtype=r.dtype), cfg.reproj_kernel, cfg.reproj_scale_px, cfg.w_reproj))
         return out
 
@@ -238,11 +305,16 @@ def _to_world(cams: L.Cameras, frames: torch.Tensor, p_cam: torch.Tensor) -> tor
     return torch.einsum("nij,nj->ni", cams.R[frames], p_cam) + cams.c[frames]
 
 
-def _reproj(params, pivot: torch.Tensor, R: torch.Tensor, c: torch.Tensor, K: torch.Tensor, m: L.Matches2D3D) -> torch.Tensor:
+def _reproj(P: torch.Tensor, pivot: torch.Tensor, R: torch.Tensor, c: torch.Tensor, K: torch.Tensor, m: L.Matches2D3D) -> torch.Tensor:
     """(P, 2) observed minus projected pixels (as :func:`embodmocap.calibrate.losses.reproj_residuals`)
-    with each match's camera rotation ``R`` (P, 3, 3) and centre ``c`` (P, 3) gathered once."""
-    yaw, t = params
-    x_back = (m.xyz - pivot - t) @ L.rz_torch(yaw) + pivot  # the inverse offset on the points
+    with each match's camera rotation ``R`` (P, 3, 3) and centre ``c`` (P, 3) gathered once, under
+    the offset ``P`` (1, 4) (one for every match) or (P, 4) (each match its own, drift knots)."""
+    if len(P) == 1:
+        x_back = (m.xyz - pivot - P[0, 1:4]) @ L.rz_torch(P[0, 0]) + pivot  # the inverse offset on the points
+    else:
+        q = m.xyz - pivot - P[:, 1:4]
+        cy, sy = torch.cos(P[:, 0]), torch.sin(P[:, 0])
+        x_back = torch.stack([cy * q[:, 0] + sy * q[:, 1], -sy * q[:, 0] + cy * q[:, 1], q[:, 2]], -1) + pivot
     p_cam = torch.einsum("nji,nj->ni", R, x_back - c)
     z = p_cam[:, 2].clamp(min=1e-6)
     u = K[0, 0] * p_cam[:, 0] / z + K[0, 2]
@@ -257,7 +329,7 @@ def _reproj(params, pivot: torch.Tensor, R: torch.Tensor, c: torch.Tensor, K: to
 
 def _adam(prob: _Problem, cfg: RefineConfig) -> SolverRun:
     t0 = time.perf_counter()
-    x = torch.zeros(4 * len(prob.names), dtype=torch.float64, requires_grad=True)
+    x = torch.zeros(prob.num_params, dtype=torch.float64, requires_grad=True)
     opt = torch.optim.Adam([x], lr=cfg.adam_lr)
     n = max(cfg.adam_iterations, 1)
     nbrs: dict[str, torch.Tensor] = {}
@@ -281,7 +353,7 @@ def _adam(prob: _Problem, cfg: RefineConfig) -> SolverRun:
 
 def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
     t0 = time.perf_counter()
-    x = torch.zeros(4 * len(prob.names), dtype=torch.float64)
+    x = torch.zeros(prob.num_params, dtype=torch.float64)
     f = prob.evaluate(x)[0]
     lam = cfg.lm_damping
     it = 0
@@ -294,7 +366,7 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
             return torch.cat([b.whitened(w) for b, w in zip(prob.blocks(xx, nbrs), irls)])
 
         r = resid(x)
-        J = _jacobian(resid, x)
+        J = _jacobian(resid, x) if prob.rigid else _knot_jacobian(prob, resid, x, nbrs, irls)
         H, g = J.T @ J, J.T @ r
         # a tiny ridge keeps unobserved directions (e.g. the height with tracks only) solvable
         ridge = 1e-12 * max(float(H.diagonal().max()), 1e-12)
@@ -310,6 +382,55 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
         if not accepted or float(dx.abs().max()) < cfg.lm_step_tol:
             break
     return SolverRun("lm", f, it, time.perf_counter() - t0, x.numpy())
+
+
+def _knot_jacobian(prob: _Problem, resid, x: torch.Tensor, nbrs, irls, step: float = 1e-6) -> torch.Tensor:
+    """(m, n) Jacobian of the whitened residuals over the drift knots, in 8 V evaluations instead of
+    two per knot parameter.
+
+    A data residual depends on a view's knots only through its observation's own parameters
+    ``B[frame] @ X`` (hat weights summing to 1), so moving every knot of one component together
+    gives each row's derivative by its own parameter, and the chain rule spreads it on the knots by
+    the row's hat weights. The smoothness prior's rows (the last ones) depend on the knots directly:
+    differenced on their own, which costs nothing."""
+    with torch.no_grad():
+        blocks = prob.blocks(x, nbrs)
+        data = [b for b in blocks if not b.name.startswith("drift/")]
+        m_data = sum(b.r.numel() for b in data)
+        J = torch.zeros(len(resid(x)), prob.num_params, dtype=x.dtype)
+        for v in prob.names:
+            sl = prob.slices[v]
+            # (m_data, K) hat weights of each data row on this view's knots (0: rows of other views)
+            W = torch.cat([_row_weights(prob, b, v) for b in data])
+            for c in range(4):
+                e = torch.zeros_like(x)
+                e[sl.start + c: sl.stop: 4] = step
+                g = (resid(x + e)[:m_data] - resid(x - e)[:m_data]) / (2.0 * step)
+                J[:m_data, sl.start + c: sl.stop: 4] = g[:, None] * W
+
+        def prior(xx: torch.Tensor) -> torch.Tensor:
+            bl = [b for b in prob.blocks(xx, nbrs, data=False)]
+            return torch.cat([b.whitened(w) for b, w in zip(bl, irls[len(data):])])
+
+        J[m_data:] = _jacobian(prior, x, step)
+    return J
+
+
+def _row_weights(prob: _Problem, b: _Block, v: str) -> torch.Tensor:
+    """(rows, K_v) hat weights on view ``v``'s knots of block ``b``'s whitened rows (zeros when
+    the block does not depend on ``v``)."""
+    k = b.r.shape[1]
+    K = len(prob.knot_frames[v])
+    if b.name == "track":
+        keys = [key for key in ("track_a", "track_b") if prob._view_of(key) == v]
+    else:
+        keys = [b.name] if prob._view_of(b.name) == v else []
+    if not keys:
+        return torch.zeros(b.r.numel(), K, dtype=b.r.dtype)
+    w = prob._weights[keys[0]]
+    if w is None:  # a rigid view (shorter than two knot spacings) beside one with knots
+        return torch.ones(b.r.numel(), 1, dtype=b.r.dtype)
+    return w.repeat_interleave(k, dim=0)
 
 
 def _jacobian(fn, x: torch.Tensor, step: float = 1e-6) -> torch.Tensor:
@@ -352,7 +473,7 @@ def refine_offsets(
     if cfg.solver not in ("adam", "lm", "both"):
         raise ValueError(f"unknown solver {cfg.solver!r}: use adam, lm or both")
     prob = _Problem(views, cfg, scene, tracks)
-    x0 = torch.zeros(4 * len(prob.names), dtype=torch.float64)
+    x0 = torch.zeros(prob.num_params, dtype=torch.float64)
     loss0, terms0, stats0 = prob.evaluate(x0)
 
     runs: dict[str, SolverRun] = {}
@@ -367,7 +488,7 @@ def refine_offsets(
 
     x = torch.as_tensor(best.x)
     loss1, terms1, stats1 = prob.evaluate(x)
-    offsets = {v: _view_offset(views[v], prob.cams[v], best.x[4 * i : 4 * i + 4]) for i, v in enumerate(prob.names)}
+    offsets = {v: _view_offset(views[v], prob, v, best.x[prob.slices[v]]) for v in prob.names}
     diverged, message = _divergence(loss0, loss1, offsets, cfg)
     warns = _disagreements(stats1, cfg)
     if diverged:
@@ -391,19 +512,26 @@ def refine_offsets(
     )
 
 
-def _view_offset(view: ViewData, cams: L.Cameras, x: NDArray) -> ViewOffset:
-    yaw = float(x[0])
-    t = L.world_side_translation(yaw, x[1:4], cams.pivot.numpy())
+def _view_offset(view: ViewData, prob: _Problem, v: str, x: NDArray) -> ViewOffset:
+    X = np.asarray(x, dtype=np.float64).reshape(-1, 4)
+    mean = prob.basis[v].numpy().mean(axis=0) @ X  # the per-frame parameters' mean: the best single offset
+    yaw = float(mean[0])
+    pivot = prob.cams[v].pivot.numpy()
+    t = L.world_side_translation(yaw, mean[1:4], pivot)
     c, s = math.cos(yaw), math.sin(yaw)
     D = np.eye(4)
     D[:3, :3] = [[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]
     D[:3, 3] = t
+    T_cam = np.asarray(view.T_world_cam, dtype=np.float64)
+    frames = prob.knot_frames[v]
+    per_frame = D[None] if len(frames) == 1 else drift_transforms(frames, X, pivot, len(T_cam))
     return ViewOffset(
         yaw_delta_rad=yaw,
         t_delta_m=t,
         T_delta=D,
         T_world_vio=D @ np.asarray(view.T_world_vio_init, dtype=np.float64),
-        T_world_cam=D @ np.asarray(view.T_world_cam, dtype=np.float64),
+        T_world_cam=per_frame @ T_cam,
+        knot_frames=frames, knots=X, pivot=pivot,
     )
 
 
@@ -414,8 +542,10 @@ def _divergence(loss0: float, loss1: float, offsets: dict[str, ViewOffset], cfg:
     elif loss1 > loss0 * (1 + 1e-9) + 1e-15:
         problems.append(f"the loss rose from {loss0:.6g} to {loss1:.6g}")
     for v, o in offsets.items():
-        dt = float(np.linalg.norm(o.t_delta_m))
-        dyaw = math.degrees(abs(o.yaw_delta_rad))
+        # the largest correction of any knot (world side), not only the mean
+        D = drift_transforms(o.knot_frames, o.knots, o.pivot, int(o.knot_frames[-1]) + 1)[o.knot_frames]
+        dt = max(float(np.linalg.norm(o.t_delta_m)), float(np.linalg.norm(D[:, :3, 3], axis=1).max()))
+        dyaw = math.degrees(max(abs(o.yaw_delta_rad), float(np.abs(o.knots[:, 0]).max())))
         if dt > cfg.max_translation_m or dyaw > cfg.max_yaw_deg:
             problems.append(
                 f"view {v} moved {dt:.3f} m / {dyaw:.2f} deg from registration "
@@ -431,6 +561,8 @@ def _disagreements(stats: dict[str, dict[str, float]], cfg: RefineConfig) -> lis
     there to ignore) must not raise the warning, but a wall the view cannot fit must."""
     out = []
     for name, st in stats.items():
+        if name.startswith("drift/"):  # the smoothness prior is no data term
+            continue
         if not st["inliers"] >= cfg.min_inlier_fraction:
             out.append(
                 f"{name}: only {100 * st['inliers']:.0f}% of residuals within {cfg.inlier_ratio} robust "

@@ -431,6 +431,8 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
                             f"(limits {100 * cfg.max_refine_shift_m:.0f} cm / {cfg.max_refine_yaw_deg} deg)")
         report["views"][v] = {
             "T_world_vio_registration": T0.tolist(), "T_world_vio": T1.tolist(),
+            **({"drift": drift_record(result.views[v])} if result is not None and not result.diverged
+               and len(result.views[v].knot_frames) > 1 else {}),
             "refine_shift_m": round(shift, 5), "refine_yaw_deg": round(yaw, 4),
             "registered_fraction": float(len(regs[v]["t"]) / max(len(regs[v]["attempted"]), 1)),
             "vio_check": init_report[v]["vio_check"],
@@ -448,6 +450,41 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
     return report
 
 
+def drift_record(offset) -> dict:
+    """``calibration.json``'s ``drift`` of a view refined with drift knots (a
+    :class:`~embodmocap.calibrate.refine.ViewOffset`): the knots' frames, their ``[yaw, tx, ty, tz]``
+    (pivot form, on top of ``T_world_vio_registration``) and the pivot."""
+    return {"knot_frames": [int(k) for k in offset.knot_frames], "knots": np.asarray(offset.knots).tolist(),
+            "pivot": np.asarray(offset.pivot).tolist()}
+
+
+def world_cameras(view_report: dict, T_vio_cam: NDArray) -> NDArray:
+    """(T, 4, 4) a view's cameras in the scene's world from its ``calibration.json`` entry: each
+    frame's drift correction on the registration offset when the view has ``drift``, else the one
+    ``T_world_vio``."""
+    from embodmocap.calibrate.drift import drift_transforms
+
+    T_vio_cam = np.asarray(T_vio_cam, dtype=np.float64)
+    d = view_report.get("drift")
+    if d is None:
+        return np.asarray(view_report["T_world_vio"]) @ T_vio_cam
+    D = drift_transforms(np.asarray(d["knot_frames"]), np.asarray(d["knots"]), np.asarray(d["pivot"]), len(T_vio_cam))
+    return D @ np.asarray(view_report["T_world_vio_registration"]) @ T_vio_cam
+
+
+def drift_corrected(views: Mapping[str, ViewInputs], report: dict) -> dict[str, ViewInputs]:
+    """The views with their VIO cameras corrected for the refined drift, so that the one
+    ``T_world_vio`` of ``report`` puts every frame where :func:`world_cameras` does (what step 4,
+    the geometric sync and ``cameras_world.npz``, takes). Views without drift are returned as they are."""
+    out = dict(views)
+    for v, vr in report["views"].items():
+        if "drift" in vr:
+            cams = views[v].cameras
+            T = np.linalg.inv(np.asarray(vr["T_world_vio"])) @ world_cameras(vr, cams["T_world_cam"])
+            out[v] = replace(views[v], cameras=replace(cams, T_world_cam=T))
+    return out
+
+
 def refine_cameras(views: Mapping[str, ViewInputs], init: Mapping[str, YawOffset], regs: Mapping, refine_cfg,
                    cfg: CalibrateConfig, points=None, tracks=None) -> dict[str, NDArray]:
     """view -> (T, 4, 4) cameras in the scene's world after refining the views of ``init`` (one
@@ -455,8 +492,8 @@ def refine_cameras(views: Mapping[str, ViewInputs], init: Mapping[str, YawOffset
     The benchmark's Stage III variants (single view, loss ablation)."""
     data = {v: build_view_data(cfg, views[v], init[v], regs[v]) for v in init}
     res = refine_offsets(data, refine_cfg, scene=points, tracks=tracks)
-    return {v: (res.views[v].T_world_vio if not res.diverged else data[v].T_world_vio_init)
-            @ views[v].cameras.T_world_cam for v in init}
+    return {v: res.views[v].T_world_cam if not res.diverged else data[v].T_world_vio_init @ views[v].cameras.T_world_cam
+            for v in init}
 
 
 @dataclass(frozen=True)
@@ -539,6 +576,6 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
     report = refine_report(cfg, inputs.views, init, regs, init_report, points, slicing != "start",
                            sequence=inputs.sequence, scene=inputs.scene)
     T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS}
-    geo = geometric_sync(cfg, inputs.sync_record, inputs.views, T_world_vio, inputs.fps, inputs.contact_sheets,
-                         inputs.sequence, inputs.laser_dots)
+    geo = geometric_sync(cfg, inputs.sync_record, drift_corrected(inputs.views, report), T_world_vio, inputs.fps,
+                         inputs.contact_sheets, inputs.sequence, inputs.laser_dots)
     return CalibrateResult({v: files[v] for v in VIEWS}, report, geo.record, geo.cameras_world, T_world_vio)

@@ -153,6 +153,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # which would make every rerun of the refinement redo this step (and differ between two runs).
     fp_geo = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
                          rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in VIEWS},
+                         {v: report["views"][v].get("drift") for v in VIEWS},
                          *[path_fingerprint(out.view(v).keypoints) for v in VIEWS],
                          *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync)
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
@@ -160,7 +161,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
             dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS})
-            geo = solve.geometric_sync(cfg, rec, views, T_world_vio, sequence_fps(out), sheets, entry.name, dots)
+            geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
+                                       sheets, entry.name, dots)
             write_json(out.sync, geo.record)
             amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
             for w in geo.record["warnings"]:

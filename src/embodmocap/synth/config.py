@@ -7,6 +7,7 @@ from typing import Literal
 
 import numpy as np
 
+from embodmocap.synth.vio import HARD_VIO, VioErrorConfig
 from embodmocap.types import Intrinsics
 
 
@@ -132,6 +133,15 @@ class SynthConfig:
     labels exchanged) or ``occluded`` (not detected)."""
     laser: LaserConfig = LaserConfig()
     """The laser dot of the sync event: easy (default), realistic range, or none."""
+    cameras: Literal["standard", "hard"] = "standard"
+    """The views' VIO: ``standard`` = the studio's historic slow drift in time only (a rigid offset
+    fits every frame of a view to a few millimetres); ``hard`` = also the errors of a real handheld
+    ARKit track that no rigid offset absorbs (:data:`embodmocap.synth.vio.HARD_VIO`: a 1-2 % scale
+    error, drift of 1-2 % of the path walked, 0.1-0.3 deg of yaw per metre), unless ``vio`` sets
+    its own. Stage III's hard preset (``indoor+vio``, ``outdoor+vio`` in the benchmarks)."""
+    vio: VioErrorConfig = VioErrorConfig()
+    """Path-dependent VIO errors of the two views (scale, drift per metre walked, yaw per metre);
+    all zero by default. Non-zero values are used as given, whatever ``cameras`` says."""
     perception: Literal["clean", "hard"] = "clean"
     """The 2D detector the perception files imitate: ``clean`` = a good detector on a clear view
     (jitter, low confidence when occluded, rare outliers, short swaps); ``hard`` = every adversity
@@ -172,6 +182,12 @@ class SynthConfig:
         bad = [msg for ok, msg in checks if not ok]
         if bad:
             raise InputError(None, "invalid synth settings: " + "; ".join(bad), "change the options")
+
+    def vio_errors(self) -> VioErrorConfig:
+        """The views' path-dependent VIO errors: ``vio`` when set, else the ``cameras`` preset's."""
+        if self.vio.active or self.cameras == "standard":
+            return self.vio
+        return HARD_VIO
 
     def layout(self) -> str:
         """The keypoint layout the perception files are written in."""

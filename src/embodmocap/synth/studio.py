@@ -45,6 +45,7 @@ from embodmocap.synth.render import Renderer, RenderConfig
 from embodmocap.synth.config import SynthConfig
 from embodmocap.synth.scene import build_scene, write_scene_ply
 from embodmocap.synth.sync_event import aim_at_dot, choose_dot, with_dot
+from embodmocap.synth.vio import add_path_errors
 
 log = logging.getLogger(__name__)
 
@@ -184,6 +185,9 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         T_vio_cam = trajectory.add_drift(
             invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
         )
+        # The hard camera preset: scale error and drift that grow with the path (own generator, so
+        # the standard studio's draws are untouched).
+        T_vio_cam = add_path_errors(T_vio_cam, _rng(cfg.seed, 90 + k), cfg.vio_errors())
         # The laser goes off half-way between motion frames e-1 and e.
         laser_on = (t_motion < event - 0.5) & (cfg.laser.mode != "none")
         log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
