@@ -35,9 +35,9 @@ _KEYS = ("poses", "trans", "betas", "gender", "mocap_framerate", "frames")
 
 
 def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None,
-                   valid: NDArray | None = None) -> Path:
+                   valid: NDArray | None = None, one_view: bool = False) -> Path:
     """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1, ``valid`` (T,) bool
-    to all True."""
+    to all True; ``one_view``: fitted from one phone (no triangulation), stored as a () bool."""
     T = len(params)
     frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
     if frames.shape != (T,):
@@ -47,8 +47,15 @@ def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None 
         raise ValueError(f"valid must be ({T},), got {valid.shape}")
     write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
               betas=np.asarray(params.betas), gender=np.array(params.gender),
-              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid)
+              mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid,
+              one_view=np.bool_(one_view))
     return Path(path)
+
+
+def read_smpl_one_view(path: str | Path) -> bool:
+    """Whether a world SMPL motion file was fitted from one phone (False for files without the key)."""
+    data = load_npz(path, what="SMPL motion file", fix="", versions=None)
+    return bool(data["one_view"]) if "one_view" in data else False
 
 
 def read_smpl_valid(path: str | Path) -> NDArray[np.bool_]:
