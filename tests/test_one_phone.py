@@ -155,6 +155,16 @@ def test_a_one_phone_session_runs_every_stage(tmp_path):
     ev = evaluate_session(lay.root)["sequences"][cfg.sequence_name]
     assert ev["one_view"] and ev["invalid_frames"] <= 5
     assert ev["w_mpjpe_mm"] < 150.0 and ev["v1_view_translation_err_cm"] < 10.0, ev
+    # The benchmark's single-view row is this path: the same fit from the same files.
+    from embodmocap.body.model import load_body_model
+    from embodmocap.evaluate.benchmark import _Context
+    from embodmocap.io.smpl_file import read_smpl_npz
+
+    ctx = _Context(lay, cfg.sequence_name, cfg.scene_name, load_body_model(lay.body_model))
+    params = ctx.fit(single_view="v1", cameras={"v1": ctx.cameras("v1")}, prior=False)
+    fitted, _ = read_smpl_npz(sl.smpl_fit)
+    np.testing.assert_allclose(params.poses, fitted.poses, atol=1e-6)
+    np.testing.assert_allclose(params.transl, fitted.transl, atol=1e-6)
     # `check` says what one view cannot give, without calling the take unusable for it.
     (chk,) = check_session(CheckConfig(), lay.root)
     assert chk.figures["one_view"] and any("no triangulation" in n for n in chk.notes)

@@ -260,12 +260,12 @@ class _Context:
         return read_cameras(self.sl.view(v).cameras_world).T_world_cam
 
     def _T(self) -> int:
-        return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
+        return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in self.sl.views())
 
     def _priors(self, min_fraction: float, T: int | None = None) -> dict:
         from embodmocap.io.body_prior import body_priors_by_frame
 
-        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T() if T is None else T,
+        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in self.sl.views()}, self._T() if T is None else T,
                                     min_fraction, self.seq)
 
     def prior_in_world(self, v: str, T_world_cam: np.ndarray):
