@@ -24,6 +24,7 @@ So one view is less accurate than two (the figures are in BENCHMARKS.md, session
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -126,12 +127,9 @@ def lift_keypoints(kp: NDArray, K: NDArray, T_world_cam: NDArray, depth_at: Call
     found = z > 0
     # The torso's depth per frame: a limb point far from it read an occluder or the background.
     torso = np.where(found[:, _TORSO], z[:, _TORSO], np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            ref = np.nanmedian(torso, axis=1)
+    with warnings.catch_warnings():  # a frame with no lifted torso point has no reference: expected
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(torso, axis=1)
     far = found & np.isfinite(ref)[:, None] & (np.abs(z - np.nan_to_num(ref)[:, None]) > cfg.max_from_body_m)
     ok = found & ~far
     t_ok, j_ok = np.nonzero(ok)
