@@ -46,7 +46,7 @@ VERDICTS = ("usable", "usable with warnings", "reshoot")
 ONE_VIEW_NOTE = ("one phone: no sync needed, but no triangulation: each joint's depth comes from the phone's LiDAR "
                  "at the keypoint, and a limb hidden from the one view (behind the body or furniture) from the "
                  "2D keypoints, smoothness and the body prior only, so the motion is less accurate than with two "
-                 "phones (about 2x the two-phone W-MPJPE on the studio benchmark, README)")
+                 "phones (1.8x the two-phone W-MPJPE on average on the studio benchmark, up to 2.6x; README)")
 
 #: COCO-17 hips and shoulders: the performer's position for the view angle.
 TORSO = (5, 6, 11, 12)
