@@ -41,7 +41,7 @@ log = logging.getLogger("embodmocap")
 
 @dataclass(frozen=True)
 class Synth:
-    """Write a synthetic dual-iPhone session with ground truth (the built-in test studio)."""
+    """Write a synthetic dual-iPhone session (one iPhone with ``--views 1``) with ground truth (the built-in test studio)."""
 
     out: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")]
     """Session folder to create."""

@@ -60,11 +60,14 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
     from embodmocap.sequence.subframe import frame_times
     from embodmocap.sequence.sync_record import decide
 
-    cams = {v: views[v].cameras for v in VIEWS}
-    world = {v: T_world_vio[v] @ cams[v]["T_world_cam"] for v in VIEWS}
+    names = [v for v in VIEWS if v in views]
+    cams = {v: views[v].cameras for v in names}
+    world = {v: T_world_vio[v] @ cams[v]["T_world_cam"] for v in names}
     geo = None
+    if len(names) == 1:  # one phone: Stage II's record is final (no other clock to find)
+        return _one_view_result(record, cams, world)
     if cfg.geosync.enabled:
-        data = [(cams[v]["K"], world[v], views[v].keypoints, frame_times(cams[v], fps)) for v in VIEWS]
+        data = [(cams[v]["K"], world[v], views[v].keypoints, frame_times(cams[v], fps)) for v in names]
         search = cfg.geosync.search_s_without_laser if record["slicing"]["source"] == "start" else cfg.geosync.search_s
         geo = find_offset(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
         log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,
@@ -73,7 +76,7 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
     dot_check = check_laser_dots(laser_dots, T_world_vio, cfg.geosync.laser_dot_agree_m)
     rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check)
     cameras_world = {}
-    for v in VIEWS:
+    for v in names:
         # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
         cameras_world[v] = CameraFile(
             version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"], T_world_cam=world[v],
@@ -87,3 +90,15 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         "laser_dot_gap_m": None if dot_check is None or dot_check.gap_m is None else round(dot_check.gap_m, 4),
     }
     return GeosyncResult(rec, cameras_world, figures, geo)
+
+
+def _one_view_result(record: dict, cams: Mapping, world: Mapping) -> GeosyncResult:
+    """A one-phone sequence's step 4: Stage II's final ``sync.json`` kept, the world cameras with
+    no time offset."""
+    cameras_world = {v: CameraFile(version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"],
+                                   T_world_cam=world[v], raw_frames=cams[v]["raw_frames"], time_offset_s=np.float64(0.0))
+                     for v in cams}
+    figures = {"sync_source": record["chosen"]["source"], "sync_offset_s": 0.0, "sync_residual_frames": 0.0,
+               "geometric_offset_frames": None, "geometric_confidence": None, "laser_minus_geometric_frames": None,
+               "laser_dot_gap_m": None}
+    return GeosyncResult(record, cameras_world, figures, None)

@@ -370,7 +370,7 @@ def initial_offsets(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], regs:
     """
     init: dict[str, YawOffset] = {}
     init_report = {}
-    for v in VIEWS:
+    for v in views:
         cams = views[v].cameras
         r = regs[v]
         acc = np.asarray(r["accepted"], dtype=bool)
@@ -399,7 +399,8 @@ def initial_offsets(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], regs:
 def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: dict, regs: Mapping,
                   init_report: dict, points=None, use_tracks: bool = True, *, sequence: str = "",
                   scene: str = "") -> dict:
-    """Both views' offsets refined jointly; returns ``calibration.json``'s content.
+    """The views' offsets refined jointly (one view: alone, no track term); returns
+    ``calibration.json``'s content (``one_view`` true for one view).
 
     Args:
         points: the scene mesh's :func:`scene_points` (or a function returning them; needed when
@@ -408,20 +409,22 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
         sequence, scene: names written into the report.
     """
     warnings: list[str] = []
-    data = {v: build_view_data(cfg, views[v], init[v], regs[v]) for v in VIEWS}
+    names = [v for v in VIEWS if v in views]
+    data = {v: build_view_data(cfg, views[v], init[v], regs[v]) for v in names}
     result = None
     if cfg.refine_views:
         points = points() if callable(points) else points
-        tracks = track_pairs(views, cfg.track_frames) if use_tracks else None
-        if not use_tracks:
+        tracks = track_pairs(views, cfg.track_frames) if use_tracks and len(names) > 1 else None
+        if not use_tracks and len(names) > 1:
             warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
                             "pairs are not used by the refinement")
         result = refine_offsets(data, cfg.refine, scene=points, tracks=tracks)
         warnings += list(result.warnings)
         if result.diverged:
             warnings.append(f"refinement diverged ({result.message}); the registration-only offsets are kept")
-    report = {"version": CALIBRATION_VERSION, "sequence": sequence, "scene": scene, "views": {}, "warnings": warnings}
-    for v in VIEWS:
+    report = {"version": CALIBRATION_VERSION, "sequence": sequence, "scene": scene, "one_view": len(names) == 1,
+              "views": {}, "warnings": warnings}
+    for v in names:
         T0 = init[v].T
         T1 = result.views[v].T_world_vio if result is not None and not result.diverged else T0
         D = T1 @ np.linalg.inv(T0)
@@ -557,7 +560,8 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
     files: dict[str, RegistrationFile] = {}
     regs: dict = {}
     pending = {}
-    for v in VIEWS:
+    names = [v for v in VIEWS if v in inputs.views]
+    for v in names:
         rv = register_view(cfg, inputs.views[v], inputs.index, view_name=v, label=f"{inputs.sequence} {v}",
                            source=inputs.sources.get(v))
         if rv.disagreement is not None:
@@ -575,7 +579,7 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
     init, init_report = initial_offsets(cfg, inputs.views, regs)
     report = refine_report(cfg, inputs.views, init, regs, init_report, points, slicing != "start",
                            sequence=inputs.sequence, scene=inputs.scene)
-    T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS}
+    T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names}
     geo = geometric_sync(cfg, inputs.sync_record, drift_corrected(inputs.views, report), T_world_vio, inputs.fps,
                          inputs.contact_sheets, inputs.sequence, inputs.laser_dots)
-    return CalibrateResult({v: files[v] for v in VIEWS}, report, geo.record, geo.cameras_world, T_world_vio)
+    return CalibrateResult({v: files[v] for v in names}, report, geo.record, geo.cameras_world, T_world_vio)

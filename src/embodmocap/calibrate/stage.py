@@ -1,4 +1,4 @@
-"""Stage III: put both moving views in the scene's world.
+"""Stage III: put the moving views (two, or one for a one-phone sequence) in the scene's world.
 
 ``run(config, session, seq)`` reads top to bottom as the recipe:
 
@@ -15,6 +15,10 @@
    which the two views' keypoint rays meet, to a fraction of a frame; ``sync.json`` gets it, its
    agreement with the laser and the final choice, which Stage IV applies (sub-frame) ->
    ``<view>/cameras_world.npz`` (per-frame cameras in the scene's world, with that offset).
+
+A one-phone sequence runs the same steps on its one view: registration, the offset, and the
+refinement without the cross-view track term (Chamfer + reprojection, as a view alone); no
+geometric sync (``sync.json`` was final in Stage II) and no placement through the performer.
 
 The decisions are pure functions in :mod:`embodmocap.calibrate.solve` (arrays and configs in,
 results out); this module loads the files, fingerprints each step, calls them and writes.
@@ -44,7 +48,7 @@ from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.sequence.laser_check import observe_laser_dots
 from embodmocap.io.frame_stack import read_depth_m, read_mask
-from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
+from embodmocap.io.layout import SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps, write_cameras, \
     write_registration
@@ -70,20 +74,21 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     entry = load_manifest(lay.manifest).sequence(seq)
     scene = lay.scene(entry.scene)
     out = lay.sequence(entry.name)
+    names = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
     if not (scene.sfm_dir / "sparse").is_dir() or not scene.mesh_raw.is_file():
         raise InputError(scene.root, "Stage I outputs are missing", f"run `embodmocap scene {lay.root} --scene {entry.scene}` first")
-    for v in VIEWS:
+    for v in names:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
             raise InputError(out.view(v).root, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
     sm = StageManifest(out.calibrate_manifest, "calibrate", cfg, root=lay.root, upstream=[
         Upstream(scene.manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}"),
         Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")],
-        inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in VIEWS
+        inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in names
                                                   for k in ("cameras", "keypoints", "masks", "depth")]])
     label = f"sequence {entry.name}"
     upstream = fingerprint(path_fingerprint(scene.sfm_dir / "sparse"), path_fingerprint(scene.mesh_raw),
-                           *[path_fingerprint(out.view(v).cameras) for v in VIEWS])
-    views = {v: view_inputs(out, v, entry.views[v].capture) for v in VIEWS}
+                           *[path_fingerprint(out.view(v).cameras) for v in names])
+    views = {v: view_inputs(out, v, entry.views[v].capture) for v in names}
 
     @functools.lru_cache(maxsize=1)
     def points():  # the scene mesh sampled for the Chamfer term, read when a step needs it
@@ -96,7 +101,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     index = None
     regs = {}
     pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
-    for v in VIEWS:
+    for v in names:
         vl = out.view(v)
         fp = fingerprint("register", REGISTER_VERSION, upstream, path_fingerprint(vl.masks) if vl.masks.is_file() else None,
                          cfg.register, cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
@@ -127,8 +132,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
 
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
-    use_tracks = slicing != "start"
-    fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
+    use_tracks = slicing != "start" and len(names) > 1
+    fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in names],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
                          cfg.scene_points, cfg.track_frames, use_tracks)
     calib_path = out.calibration
@@ -137,10 +142,10 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             report = solve.refine_report(cfg, views, init, regs, init_report, points, use_tracks,
                                          sequence=entry.name, scene=entry.scene)
             write_json(calib_path, report)
-            step.record([calib_path], {f"{v}_{k}": report["views"][v][k] for v in VIEWS
-                                       for k in ("refine_shift_m", "refine_yaw_deg")})
+            step.record([calib_path], {f"{v}_{k}": report["views"][v][k] for v in names
+                                       for k in ("refine_shift_m", "refine_yaw_deg")} | {"one_view": entry.one_view})
     report = json.loads(calib_path.read_text())
-    T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS}
+    T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names}
 
     # 4. Geometric sync: with both views in one world (whatever their time offset), the offset is
     # where both views' keypoint rays meet (sequence.geosync); sync.json gets the final choice
@@ -152,28 +157,29 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # The refined offsets, not calibration.json's bytes: the report also holds the solver's timings,
     # which would make every rerun of the refinement redo this step (and differ between two runs).
     fp_geo = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
-                         rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in VIEWS},
-                         {v: report["views"][v].get("drift") for v in VIEWS},
-                         *[path_fingerprint(out.view(v).keypoints) for v in VIEWS],
-                         *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync)
+                         rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in names},
+                         {v: report["views"][v].get("drift") for v in names},
+                         *[path_fingerprint(out.view(v).keypoints) for v in names],
+                         *[path_fingerprint(out.view(v).cameras) for v in names], cfg.geosync)
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
         if step.run:
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
-            dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS})
+            dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in names}) \
+                if len(names) > 1 else None  # one dot seen by two views is one place; one view has nothing to compare
             geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
                                        sheets, entry.name, dots)
             write_json(out.sync, geo.record)
             amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
             for w in geo.record["warnings"]:
                 log.warning("%s", w)
-            for v in VIEWS:
+            for v in names:
                 write_cameras(out.view(v).cameras_world, geo.cameras_world[v])
-            step.record([out.sync, *[out.view(v).cameras_world for v in VIEWS]], geo.figures)
+            step.record([out.sync, *[out.view(v).cameras_world for v in names]], geo.figures)
     report = json.loads(calib_path.read_text())
     for w in report.get("warnings", []):
         log.warning("%s: %s", entry.name, w)
-    return CalibrateOutputs(entry.name, {v: np.asarray(report["views"][v]["T_world_vio"]) for v in VIEWS},
+    return CalibrateOutputs(entry.name, {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names},
                             report, tuple(sm.skipped))
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from embodmocap.errors import EmbodMocapError, InputError
-from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 
 log = logging.getLogger(__name__)
@@ -266,7 +266,7 @@ class Catalog:
                 "note": entry.note, "status": status, "failed_stage": failed_stage, "error": error,
                 "frames": frames, "fps": fps, "duration_s": round(n / fps, 4) if n and fps else None,
                 "motion_frames": motion_frames, "valid_frames": valid_frames, "path": str(sl.root)})
-            for v in VIEWS:
+            for v in entry.view_names:
                 ve = entry.views.get(v)
                 out["views"].append({
                     "session": name, "sequence": sq, "view": v, "capture": str(ve.capture) if ve else None,

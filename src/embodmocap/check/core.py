@@ -14,11 +14,13 @@ Per sequence, on a sample of frames and without running Stages II-IV:
    are skipped with a warning (never a silent pass);
 4. **geometry**: the angle between the two views at the performer over time (the paper asks for
    60-120 degrees), and the geometric sync (rays meeting, :mod:`embodmocap.sequence.geosync`) on
-   the subsampled timeline, checked against the laser;
+   the subsampled timeline, checked against the laser (two views only);
 5. **tracking jumps**: VIO poses that move or turn faster than a hand can (relocalisation jumps).
 
 Every finding is a reason for one verdict: ``usable`` (none), ``usable with warnings`` or
-``reshoot``; exit status 0 / 1 / 2.
+``reshoot``; exit status 0 / 1 / 2. A one-phone sequence is checked the same way on its one view
+(the performer's share of the view's time against the both-views limits; no angle and no sync to
+check) and gets a note saying what one view cannot give (:data:`ONE_VIEW_NOTE`).
 """
 
 from __future__ import annotations
@@ -40,6 +42,12 @@ log = logging.getLogger(__name__)
 
 VERDICTS = ("usable", "usable with warnings", "reshoot")
 
+#: What ``check`` says of every one-phone sequence (a note: it does not change the verdict).
+ONE_VIEW_NOTE = ("one phone: no sync needed, but no triangulation: each joint's depth comes from the phone's LiDAR "
+                 "at the keypoint, and a limb hidden from the one view (behind the body or furniture) from the "
+                 "2D keypoints, smoothness and the body prior only, so the motion is less accurate than with two "
+                 "phones (1.8x the two-phone W-MPJPE on average on the studio benchmark, up to 2.6x; README)")
+
 #: COCO-17 hips and shoulders: the performer's position for the view angle.
 TORSO = (5, 6, 11, 12)
 
@@ -53,6 +61,8 @@ class SequenceCheck:
     reasons: list[str] = field(default_factory=list)
     figures: dict = field(default_factory=dict)
     seconds: float = 0.0
+    notes: list[str] = field(default_factory=list)
+    """What the capture cannot give by design (e.g. one phone), said without changing the verdict."""
 
     def warn(self, msg: str) -> None:
         self.reasons.append(f"warning: {msg}")
@@ -69,7 +79,7 @@ class SequenceCheck:
 
     def to_json(self) -> dict:
         return {"sequence": self.name, "verdict": self.verdict, "exit_status": self.exit_status,
-                "reasons": self.reasons, "figures": self.figures, "seconds": round(self.seconds, 2)}
+                "reasons": self.reasons, "notes": self.notes, "figures": self.figures, "seconds": round(self.seconds, 2)}
 
 
 def check_session(cfg: CheckConfig, session: str | Path, seq: str | None = None) -> list[SequenceCheck]:
@@ -104,6 +114,8 @@ def format_text(results: list[SequenceCheck]) -> str:
             for v, d in laser.items()) + (f"; geometric {sync['geometric_offset_frames']:+.2f} frames from the slicing "
                                           f"(conf {sync['geometric_confidence']:.2f})" if sync.get("geometric_offset_frames") is not None
                                           else "; geometric: n/a"))
+        if f.get("one_view") and "seen_fraction" in f:
+            lines.append(f"  performer in view: {100 * f['seen_fraction']['v1']:.0f}% of the time")
         if "both_seen_fraction" in f:
             lines.append(f"  performer in both views: {100 * f['both_seen_fraction']:.0f}% of the time "
                          f"(v1 {100 * f['seen_fraction']['v1']:.0f}%, v2 {100 * f['seen_fraction']['v2']:.0f}%)")
@@ -117,6 +129,7 @@ def format_text(results: list[SequenceCheck]) -> str:
         if "tracking_jumps" in f:
             lines.append("  tracking jumps: " + ", ".join(f"{v} {n}" for v, n in f["tracking_jumps"].items()))
         lines += [f"  - {x}" for x in r.reasons]
+        lines += [f"  note: {x}" for x in r.notes]
     return "\n".join(lines)
 
 
@@ -130,10 +143,14 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
 
     t0 = time.perf_counter()
     res = SequenceCheck(entry.name)
-    caps = {v: open_capture(entry.views[v].capture) for v in VIEWS}
+    views = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
+    caps = {v: open_capture(entry.views[v].capture) for v in views}
+    res.figures["one_view"] = entry.one_view
+    if entry.one_view:
+        res.notes.append(ONE_VIEW_NOTE)
 
     # 1. Laser sync (manual frames of session.toml count as given).
-    manual = {v: entry.views[v].sync_frame for v in VIEWS}
+    manual = {v: entry.views[v].sync_frame for v in views}
     events, record = first_record(caps, manual, cfg.sync, geometric=True, seq=entry.name)
     res.figures["sync"] = {"laser": {v: {k: d.get(k) for k in ("found", "frame", "confidence")}
                                      for v, d in record["sources"]["laser"]["views"].items()},
@@ -144,11 +161,11 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
         res.fail(f"the views do not overlap after sync: {err}")
         res.seconds = time.perf_counter() - t0
         return res
-    T = len(maps[VIEWS[0]])
+    T = len(maps[views[0]])
     stride = max(1, math.ceil(T / cfg.max_frames))
     seq_idx = np.arange(0, T, stride)
-    fps = maps[VIEWS[0]].fps / stride
-    res.figures.update({"frames": T, "seconds": round(T / maps[VIEWS[0]].fps, 2), "sampled_every": stride})
+    fps = maps[views[0]].fps / stride
+    res.figures.update({"frames": T, "seconds": round(T / maps[views[0]].fps, 2), "sampled_every": stride})
 
     # 2. Performer.
     kps = _performer(cfg, entry, caps, maps, seq_idx, res)
@@ -156,13 +173,16 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
     # 3. Registration and world cameras of the sampled frames.
     world = _register(cfg, lay, entry, caps, maps, seq_idx, kps, indexes, res)
 
-    # 4. Geometry: view angle, geometric sync.
-    if world is not None and kps is not None:
+    # 4. Geometry: view angle, geometric sync (two views: one view has no angle and no sync).
+    if world is not None and kps is not None and not entry.one_view:
         _angle(cfg, world, kps, caps, res)
         _geosync(cfg, world, kps, caps, maps, seq_idx, fps, record, res)
-    if world is not None:
+    if world is not None and not entry.one_view:
         _dot_check(cfg, world, caps, maps, seq_idx, record, res)
-    _sync_verdict(cfg, record, res)
+    if entry.one_view:
+        res.figures["sync"]["found"] = ["one_view"]
+    else:
+        _sync_verdict(cfg, record, res)
 
     # 5. Tracking jumps.
     _jumps(cfg, caps, maps, res)
@@ -173,24 +193,36 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
 
 def _performer(cfg: CheckConfig, entry, caps, maps, seq_idx, res: SequenceCheck) -> dict | None:
     from embodmocap.perception.precomputed import PrecomputedKeypoints
-    from embodmocap.perception.tracking import performer_keypoints, select_performer_two_views, track_people
+    from embodmocap.perception.tracking import (performer_keypoints, select_performer, select_performer_two_views,
+                                                track_people)
 
-    if any(entry.views[v].keypoints is None for v in VIEWS):
+    views = entry.view_names
+    if any(entry.views[v].keypoints is None for v in views):
         res.warn("no keypoint folder in session.toml for every view: performer, view angle and geometric sync not checked")
         return None
     tracks, sizes = {}, {}
-    for v in VIEWS:
+    for v in views:
         raw = maps[v].raw_frames[seq_idx]
         people = PrecomputedKeypoints(entry.views[v].keypoints).read(raw)
         sizes[v] = (caps[v].rgb_intrinsics.width, caps[v].rgb_intrinsics.height)
         tracks[v] = track_people(people, sizes[v])
     n = len(seq_idx)
     frames = np.arange(n)
-    best = select_performer_two_views(tracks["v1"], tracks["v2"], frames, frames, sizes["v1"], sizes["v2"], n, n)
-    kps = {v: performer_keypoints(tr, n)[0] for v, tr in zip(VIEWS, best)}
-    seen = {v: (kps[v][..., 2] >= cfg.geosync.min_keypoint_confidence).sum(axis=1) >= cfg.min_joints for v in VIEWS}
+    if len(views) == 1:
+        best = (select_performer(tracks[views[0]], n, sizes[views[0]]),)
+    else:
+        best = select_performer_two_views(tracks["v1"], tracks["v2"], frames, frames, sizes["v1"], sizes["v2"], n, n)
+    kps = {v: performer_keypoints(tr, n)[0] for v, tr in zip(views, best)}
+    seen = {v: (kps[v][..., 2] >= cfg.geosync.min_keypoint_confidence).sum(axis=1) >= cfg.min_joints for v in views}
+    res.figures["seen_fraction"] = {v: round(float(seen[v].mean()), 3) for v in views}
+    if len(views) == 1:  # one phone: the same limits on the time the one view sees the performer
+        one = float(seen[views[0]].mean()) if n else 0.0
+        if one < cfg.both_seen_reshoot:
+            res.fail(f"the performer is in the view only {100 * one:.0f}% of the time (need {100 * cfg.both_seen_reshoot:.0f}%)")
+        elif one < cfg.both_seen_warn:
+            res.warn(f"the performer is in the view only {100 * one:.0f}% of the time")
+        return kps
     both = float(np.mean(seen["v1"] & seen["v2"])) if n else 0.0
-    res.figures["seen_fraction"] = {v: round(float(seen[v].mean()), 3) for v in VIEWS}
     res.figures["both_seen_fraction"] = round(both, 3)
     if both < cfg.both_seen_reshoot:
         res.fail(f"the performer is in both views only {100 * both:.0f}% of the time (need {100 * cfg.both_seen_reshoot:.0f}%)")
@@ -238,7 +270,7 @@ def _register(cfg: CheckConfig, lay: SessionLayout, entry, caps, maps, seq_idx, 
     index = indexes[entry.scene]
     world, reg_fig = {}, {}
     n = len(seq_idx)
-    for v in VIEWS:
+    for v in caps:
         cap = caps[v]
         size = (cap.rgb_intrinsics.width, cap.rgb_intrinsics.height)
         pick = np.unique(np.linspace(0, n - 1, min(cfg.register_frames, n)).round().astype(int))
@@ -272,7 +304,7 @@ def _register(cfg: CheckConfig, lay: SessionLayout, entry, caps, maps, seq_idx, 
         elif frac < cfg.registered_warn:
             res.warn(f"view {v} registers to the scene in only {fig['registered']} of {len(pick)} sampled frames")
     res.figures["registration"] = reg_fig
-    return world if len(world) == len(VIEWS) else None
+    return world if len(world) == len(caps) else None
 
 
 def _midpoints(world: dict, kps: dict, caps, conf: float) -> tuple[NDArray, NDArray]:
@@ -383,7 +415,7 @@ def _jumps(cfg: CheckConfig, caps, maps, res: SequenceCheck) -> None:
     from embodmocap.geometry.transforms import rotation_angle
 
     out = {}
-    for v in VIEWS:
+    for v in caps:
         cap, fm = caps[v], maps[v]
         lo, hi = int(fm.raw_frames.min()), int(fm.raw_frames.max())
         traj = cap.trajectory

@@ -9,9 +9,10 @@ and RTE against the truth:
 
 - ``monocular``: view v1's camera-space body prior alone, moved into the world with v1's cameras
   (what a monocular regressor with a calibrated camera gives);
-- ``single_v1`` / ``single_v2``: that view calibrated alone (registration + single-view
-  refinement: Chamfer and reprojection, no track term) and the motion fitted to that view alone
-  (reprojection + smoothness + prior; no triangulation is possible);
+- ``single_v1`` / ``single_v2``: that view as a one-phone session runs it: calibrated alone
+  (registration + single-view refinement: Chamfer and reprojection, no track term) and Stage IV's
+  one-view path (its keypoints lifted with its LiDAR depth on the person mask in place of the
+  triangulation, :func:`embodmocap.motion.solve.lift_view`, then the same fit);
 - ``dual``: the full pipeline;
 - ``mono_colmap`` / ``mono_vio``: ``embodmocap mono`` on view v1 alone (issue 15): the camera
   path and scene from SfM on the video (metric scale from the feet on the SfM floor) or from the
@@ -23,8 +24,9 @@ detector; ``hard``: every adversity of real detectors, ``embodmocap synth --perc
 ``both``: each seed synthesised both ways, the hard sessions named ``<preset>_<seed>_hard``) and
 the body prior: every row above uses the camera-space prior (``realistic``); ``dual`` is also
 fitted without it (``prior = none``: the start from the keypoints alone, no pose prior), on the
-same observations and cameras. Monocular and single-view rows need the prior (without it a single
-view has nothing to start from), so they exist for ``prior = realistic`` only.
+same observations and cameras, and so are the single-view rows (the one-phone path starts from
+the depth-lifted keypoints). The monocular rows need the prior, so they exist for ``prior =
+realistic`` only.
 
 Loss ablation (the paper's optimisation table), quality metrics (mask IoU, reprojection error,
 depth error, jitter) and W-MPJPE: Stage III without the track / Chamfer / reprojection term, Stage IV
@@ -160,9 +162,9 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     mono = ctx.prior_in_world("v1", ctx.cameras("v1"))
     methods["monocular"] = scored(ctx.joints(mono), np.arange(len(mono)), truth,
                                   same_frames(frames, dual_valid, len(mono)))
+    single_cams = {v: ctx.single_view_cameras(v) for v in VIEWS}
     for v in VIEWS:
-        cams = ctx.single_view_cameras(v)
-        params = ctx.fit(single_view=v, cameras={v: cams})
+        params = ctx.fit(single_view=v, cameras={v: single_cams[v]})
         methods[f"single_{v}"] = scored(ctx.joints(params), np.arange(len(params)), truth,
                                         same_frames(frames, dual_valid, len(params)))
     for name in MONO_METHODS:
@@ -171,6 +173,10 @@ def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     if cfg.fit_without_prior:
         params, valid, suspect = ctx.fit(cameras={v: ctx.cameras(v) for v in VIEWS}, prior=False, flagged=True)
         result["methods_no_prior"] = {"dual": scored(ctx.joints(params), np.arange(len(params)), truth, valid, suspect)}
+        for v in VIEWS:  # the one-phone path without a prior (each view alone: the issue's figure)
+            params, valid, suspect = ctx.fit(single_view=v, cameras={v: single_cams[v]}, prior=False, flagged=True)
+            result["methods_no_prior"][f"single_{v}"] = scored(ctx.joints(params), np.arange(len(params)), truth,
+                                                               valid, suspect)
     if cfg.ablation:
         ablation: dict[str, dict] = {}
         for name in ABLATIONS:
@@ -266,12 +272,12 @@ class _Context:
         return read_cameras(self.sl.view(v).cameras_world).T_world_cam
 
     def _T(self) -> int:
-        return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in VIEWS)
+        return min(len(read_keypoints2d(self.sl.view(v).keypoints).keypoints) for v in self.sl.views())
 
     def _priors(self, min_fraction: float, T: int | None = None) -> dict:
         from embodmocap.io.body_prior import body_priors_by_frame
 
-        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in VIEWS}, self._T() if T is None else T,
+        return body_priors_by_frame({u: self.sl.view(u).body_prior for u in self.sl.views()}, self._T() if T is None else T,
                                     min_fraction, self.seq)
 
     def prior_in_world(self, v: str, T_world_cam: np.ndarray):
@@ -322,12 +328,12 @@ class _Context:
 
     def fit(self, cameras: dict[str, np.ndarray], single_view: str | None = None, variant: str = "all",
             prior: bool = True, flagged: bool = False):
-        """The motion fitted with ``cameras``: dual view through Stage IV's own steps
+        """The motion fitted with ``cameras`` through Stage IV's own steps: dual view
         (:func:`embodmocap.motion.solve.triangulate_views`, :func:`~embodmocap.motion.solve.fit_motion`)
-        with ``variant``'s terms switched off and, with ``prior=False``, no body prior; or one view
-        (reprojection + smoothness + prior only: no triangulation is possible, so not Stage IV).
-        ``flagged`` (dual view): return ``(params, valid, suspect)``, the (T,) placeable and
-        suspect frames too."""
+        or ``single_view`` (a one-phone sequence's path: :func:`~embodmocap.motion.solve.lift_view`
+        with the view's LiDAR depth, then the same fit), with ``variant``'s terms switched off and,
+        with ``prior=False``, no body prior. ``flagged``: return ``(params, valid, suspect)``, the
+        (T,) placeable and suspect frames too."""
         from embodmocap.motion import solve as s4
         from embodmocap.motion.config import MotionConfig
         from embodmocap.motion.stage import keypoint_layout
@@ -345,7 +351,15 @@ class _Context:
         views = [single_view] if single_view else list(VIEWS)
         kps = {v: read_keypoints2d(self.sl.view(v).keypoints).keypoints[:T] for v in views}
         cams = {v: {"K": read_cameras(self.sl.view(v).cameras).K, "T_world_cam": cameras[v]} for v in views}
-        if not single_view:
+        if single_view:
+            from embodmocap.motion.stage import view_depth
+
+            # A one-phone sequence's Stage IV on this view alone: its keypoints lifted with its
+            # LiDAR depth on the person mask, then the same fit (motion.solve.lift_view).
+            tri = s4.lift_view(mcfg, cams, kps, T, *view_depth(self.sl, single_view, mcfg), self.seq)
+            priors = {single_view: p for v, p in self._priors(mcfg.min_prior_fraction, T).items()
+                      if v == single_view} if prior else {}
+        else:
             from embodmocap.sequence.subframe import synced_views
 
             # As Stage IV: view 2's keypoints and cameras resampled at view 1's instants (the
@@ -355,18 +369,8 @@ class _Context:
             T = min(len(kps[v]) for v in VIEWS)
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
             priors = self._priors(mcfg.min_prior_fraction, T) if prior else {}
-            fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
-            return (fitted.params, fitted.valid, fitted.quality.suspect) if flagged else fitted.params
-        if not prior:
-            raise ValueError("a single view cannot be fitted without a body prior")
-        from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
-
-        points, conf = np.full((T, 17, 3), np.nan), np.zeros((T, 17))
-        obs = [ViewObservations(K=cams[single_view]["K"], T_world_cam=cameras[single_view][:T],
-                                keypoints=kps[single_view], name=single_view)]
-        init = self.prior_in_world(single_view, cameras[single_view])
-        return fit_world_smpl(self.model, points, conf, obs, init, init.body_pose, replace(scfg, w_kp3d=0.0),
-                              layout=layout).params
+        fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
+        return (fitted.params, fitted.valid, fitted.quality.suspect) if flagged else fitted.params
 
 
 def tables_markdown(rows: list[dict]) -> str:
@@ -390,10 +394,11 @@ def tables_markdown(rows: list[dict]) -> str:
                 vals = [np.mean([_err(r["methods"][m], k) for r in has]) for k in _ERR_KEYS + _FLAG_KEYS]
                 lines.append(f"| {m} | realistic | {perception} | {len(has)} | " + " | ".join(f"{x:.2f}" for x in vals)
                              + " |")
-        nop = [r for r in sel if "methods_no_prior" in r]
-        if nop:
-            vals = [np.mean([_err(r["methods_no_prior"]["dual"], k) for r in nop]) for k in _ERR_KEYS + _FLAG_KEYS]
-            lines.append(f"| dual | none | {perception} | {len(nop)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
+        for m in ("single_v1", "single_v2", "dual"):  # single rows: only in results written since session 7
+            nop = [r for r in sel if m in r.get("methods_no_prior", {})]
+            if nop:
+                vals = [np.mean([_err(r["methods_no_prior"][m], k) for r in nop]) for k in _ERR_KEYS + _FLAG_KEYS]
+                lines.append(f"| {m} | none | {perception} | {len(nop)} | " + " | ".join(f"{x:.2f}" for x in vals) + " |")
     lines += edge_table(ok)
     abl = [r for r in ok if "ablation" in r]
     if abl:

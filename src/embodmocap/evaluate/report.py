@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.io.atomic import write_bytes, write_text
-from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_files import read_cameras, read_keypoints3d, read_world_joints, sequence_fps
 
@@ -115,11 +115,11 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
             _calibration_table(page, json.loads(sl.calibration.read_text()))
         _stage_table(page, "Stage IV", sl.motion_manifest)
         _sim_check_section(page, sl.sim_check)
-        for v in VIEWS:
+        for v in sl.views():
             sheet = sl.root / f"sync_{v}.png"
             if sheet.is_file():
                 page.image(f"{name}_sync_{v}.png", sheet.read_bytes(), f"Sync contact sheet, {v}")
-        for v in VIEWS:
+        for v in sl.views():
             page.image(f"{name}_overlay_{v}.png", _overlays(lay, entry, name, v, manifest.body_model, cfg),
                        f"{v}: fitted body over the RGB frames")
         _robot_tables(page, sl.root / "robot")
@@ -192,7 +192,7 @@ def _floor_plan(lay: SessionLayout, scene: str, seq: str, cfg: ReportConfig) -> 
         p = p[np.argsort(p[:, 2])]
         sc = ax.scatter(p[:, 0], p[:, 1], c=p[:, 2], s=0.3, cmap="Greys", alpha=0.6)
         fig.colorbar(sc, ax=ax, fraction=0.04, label="height (m)")
-    for v, colour in zip(VIEWS, ("tab:blue", "tab:orange")):
+    for v, colour in zip(sl.views(), ("tab:blue", "tab:orange")):
         c = read_cameras(sl.view(v).cameras_final).T_world_cam[:, :3, 3]
         ax.plot(c[:, 0], c[:, 1], color=colour, lw=1.5, label=f"camera {v}")
         ax.plot(*c[0, :2], "o", color=colour)
@@ -229,9 +229,9 @@ def _error_plot(lay: SessionLayout, scene: str, seq: str, body_model, has_gt: bo
         ax.plot(t, np.nanmean(err, axis=1), color="k", lw=2, label="mean (MPJPE)")
         ax.set_ylabel("world error, no alignment (mm)")
     else:
-        for v in VIEWS:
+        for i, v in enumerate(sl.views()):
             k3 = read_keypoints3d(sl.keypoints3d)
-            e = k3["reproj_err_px"][..., VIEWS.index(v)]
+            e = k3["reproj_err_px"][..., i]
             ax.plot(t[: len(e)], np.nanmean(e, axis=1), lw=1, label=f"{v}: triangulation reprojection")
         ax.set_ylabel("pixels")
     ax.set_xlabel("time (s)")

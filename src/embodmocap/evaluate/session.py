@@ -79,18 +79,19 @@ def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
     gt = lay.ground_truth
     T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
     g = read_truth_sequence(gt.sequence(seq))
-    raw = read_cameras(lay.sequence(seq).view(VIEWS[0]).cameras).raw_frames.astype(np.int64)
-    motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
+    views = lay.sequence(seq).views()
+    raw = read_cameras(lay.sequence(seq).view(views[0]).cameras).raw_frames.astype(np.int64)
+    motion = int(g[f"{views[0]}_motion_start"]) + raw
     M_frames = len(g["joints_smpl24"])
     valid = (motion >= 0) & (motion < M_frames)
     j = g["joints_smpl24"][np.clip(motion, 0, M_frames - 1)]
     joints = j @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
     cams, vio = {}, {}
-    for v in VIEWS:
+    for v in views:
         raw_v = read_cameras(lay.sequence(seq).view(v).cameras).raw_frames.astype(np.int64)
         cams[v] = T_world_scene @ g[f"{v}_T_scene_cam"][raw_v]
         vio[v] = T_world_scene @ g[f"{v}_T_scene_vio"]
-    return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in VIEWS}, valid)
+    return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in views}, valid)
 
 
 def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
@@ -149,7 +150,7 @@ def sequence_quality(lay: SessionLayout, seq: str, body_model_path=None, cfg: Ev
     from embodmocap.io.smpl_file import read_smpl_npz
 
     params, _ = read_smpl_npz(lay.sequence(seq).smpl_world)
-    cams = {v: read_cameras(lay.sequence(seq).view(v).cameras_final).T_world_cam for v in VIEWS}
+    cams = {v: read_cameras(lay.sequence(seq).view(v).cameras_final).T_world_cam for v in lay.sequence(seq).views()}
     out = quality_metrics(lay, seq, load_body_model(body_model_path), params, cams, cfg)
     out.update(flag_counts(lay.sequence(seq).smpl_world))
     return out
@@ -191,7 +192,7 @@ def quality_metrics(lay: SessionLayout, seq: str, model, params, T_world_cam: di
     out: dict = {"frames": int(len(params)), "fps": float(params.fps),
                  "jitter": round(float(M.jitter(body.joints.numpy(), params.fps)), 4)}
     ious, reps, derrs = [], [], []
-    for v in VIEWS:
+    for v in T_world_cam:
         vl = lay.sequence(seq).view(v)
         cams = read_cameras(vl.cameras)
         K = Intrinsics.from_K(cams["K"], int(cams["width"]), int(cams["height"]))
@@ -261,7 +262,8 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     mm = lay.sequence(seq).motion_manifest
     motion_fig = json.loads(mm.read_text()).get("figures", {}) if mm.is_file() else {}
     T_align = np.asarray(motion_fig.get("T_align", np.eye(4).tolist()))
-    for v in VIEWS:
+    out["one_view"] = len(lay.sequence(seq).views()) == 1
+    for v in lay.sequence(seq).views():
         if calib is not None:
             T_est = T_align @ np.asarray(calib["views"][v]["T_world_vio"])
             centres = read_cameras(lay.sequence(seq).view(v).cameras).T_world_cam[:, :3, 3]
@@ -287,8 +289,8 @@ def subframe_sync_err_frames(lay: SessionLayout, seq: str) -> float | None:
     if not (sl.sync.is_file() and sl.manifest.is_file()):
         return None
     rec = json.loads(sl.sync.read_text())
-    if rec.get("version") != SYNC_RECORD_VERSION or not rec.get("chosen", {}).get("final"):
-        return None
+    if rec.get("version") != SYNC_RECORD_VERSION or not rec.get("chosen", {}).get("final") or len(rec["views"]) < 2:
+        return None  # (one view: no offset between views)
     gt = json.loads(lay.ground_truth.info.read_text())
     start = gt["view_motion_start"]
     phase = gt.get("view_time_offset_frames", {v: 0.0 for v in VIEWS})
@@ -386,8 +388,8 @@ def keypoint_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
     gt = lay.ground_truth
     g = read_truth_sequence(gt.sequence(seq))
     T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
-    raw = read_cameras(sl.view(VIEWS[0]).cameras).raw_frames.astype(np.int64)
-    motion = int(g[f"{VIEWS[0]}_motion_start"]) + raw
+    raw = read_cameras(sl.view(sl.views()[0]).cameras).raw_frames.astype(np.int64)
+    motion = int(g[f"{sl.views()[0]}_motion_start"]) + raw
     true_kp = g["joints_keypoints"] if "joints_keypoints" in g.files else g["joints_coco17"]
     M_frames = len(true_kp)
     k3 = read_keypoints3d(sl.keypoints3d)

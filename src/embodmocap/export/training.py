@@ -431,7 +431,7 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
         smpl_valid = read_smpl_valid(sl.smpl_world)
         if len(frames) == 0:
             raise InputError(sl.smpl_world, "the motion has no frame", fix)
-        for v in VIEWS:
+        for v in entry.view_names:
             vl = sl.view(v)
             inp = _ViewInputs(entry.name, v, sl.smpl_world, _need(vl.cameras_final, "Stage IV cameras", fix), vl.cameras,
                               _need(vl.keypoints, "Stage II keypoints",

@@ -49,7 +49,8 @@ def _inspect_session(root: Path) -> tuple[str, list[str]]:
         lines.append(f"  scene {name} ({'indoor' if scene.indoor else 'outdoor'}):")
         problems += _add_capture(lines, scene.capture, "    ")
     for name, seq in manifest.sequences.items():
-        lines.append(f"  sequence {name} (scene {seq.scene}, {len(seq.contacts)} contact markers)")
+        phones = "; one phone: no sync needed, no triangulation (less accurate)" if seq.one_view else ""
+        lines.append(f"  sequence {name} (scene {seq.scene}, {len(seq.contacts)} contact markers{phones})")
         for vname, view in seq.views.items():
             sync = f", sync frame {view.sync_frame}" if view.sync_frame is not None else ""
             lines.append(f"    view {vname}{sync}:")

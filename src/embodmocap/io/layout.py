@@ -8,7 +8,7 @@ like this (raw captures may also live elsewhere; the manifest names them)::
       body_model.npz                  optional body model file (synthetic sessions write one)
       captures/                       raw captures as the phone apps wrote them
         <scene>/                      scene capture
-        <seq>/v1/  <seq>/v2/          the two view captures of a sequence
+        <seq>/v1/  <seq>/v2/          the two view captures of a sequence (v1 alone: one phone)
       perception/<seq>/<view>/        precomputed perception of a view (synth or user tools)
         keypoints/NNNNNN_keypoints.json   OpenPose-style per-frame JSON (COCO-17 layout)
         masks/NNNNNN.png              person masks, 255 = person
@@ -112,6 +112,12 @@ class SequenceLayout:
 
     def view(self, name: str) -> ViewLayout:
         return ViewLayout(self.root / name)
+
+    def views(self) -> tuple[str, ...]:
+        """The views Stage II wrote (their ``cameras.npz``), in :data:`VIEWS` order: ``("v1", "v2")``,
+        or ``("v1",)`` for a one-phone sequence; ``VIEWS`` before Stage II ran (what to expect)."""
+        found = tuple(v for v in VIEWS if self.view(v).cameras.is_file())
+        return found or VIEWS
 
     @property
     def manifest(self) -> Path:

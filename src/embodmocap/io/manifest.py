@@ -143,7 +143,8 @@ class SequenceEntry:
     scene: str
     """Name of the scene (a key of ``SessionManifest.scenes``) the sequence was captured in."""
     views: dict[str, ViewEntry]
-    """The views by name; exactly ``v1`` and ``v2``."""
+    """The views by name: ``v1`` and ``v2`` (two phones), or ``v1`` alone (one phone: no
+    cross-view sync and no triangulation; see :attr:`view_names`)."""
     contacts: tuple[ContactMarker, ...] = ()
     """Contact markers used by the optional contact alignment of stage IV."""
     optim_scale: bool = False
@@ -152,6 +153,17 @@ class SequenceEntry:
     """Free text carried along (e.g. why the sequence failed)."""
     failed: bool = False
     """Marked as failed: ``run`` skips it unless forced."""
+
+    @property
+    def view_names(self) -> tuple[str, ...]:
+        """The sequence's views in :data:`~embodmocap.io.layout.VIEWS` order: ``("v1", "v2")``, or
+        ``("v1",)`` for a one-phone sequence. Every stage iterates over these."""
+        return tuple(v for v in VIEWS if v in self.views)
+
+    @property
+    def one_view(self) -> bool:
+        """Filmed by one phone: its outputs are flagged ``one_view``."""
+        return len(self.view_names) == 1
 
 
 @dataclass(frozen=True)
@@ -415,7 +427,7 @@ def _parse_sequence(name: str, raw: Any, scenes: dict[str, SceneEntry], r: _Read
     views_ok = True
     for vname, vraw in (r.table(table.get("views", {}), f"{key}.views") or {}).items():
         if vname not in VIEWS:
-            r.add(f"{key}.views.{vname}", f"unknown view (allowed: {', '.join(VIEWS)}; exactly two views)")
+            r.add(f"{key}.views.{vname}", f"unknown view (allowed: {', '.join(VIEWS)}; one view v1 or two views v1, v2)")
             continue
         view = _parse_view(f"{key}.views.{vname}", vraw, r)
         views_ok &= view is not None
@@ -487,8 +499,8 @@ def _parse_contact(
 def validate_manifest(manifest: SessionManifest) -> list[str]:
     """Every problem of a built manifest, one line each (``dotted.key: problem``); [] when fine.
 
-    Checks the version, gender, names usable as folder names, scene and marker references, the two
-    views, non-negative frames, and that every named folder or file exists.
+    Checks the version, gender, names usable as folder names, scene and marker references, the
+    views (v1 and v2, or v1 alone), non-negative frames, and that every named folder or file exists.
     """
     return _semantic_problems(manifest, declared_scenes=set())
 
@@ -515,8 +527,9 @@ def _semantic_problems(m: SessionManifest, declared_scenes: set[str]) -> list[st
         scene = m.scenes.get(seq.scene)
         if scene is None and seq.scene not in declared_scenes:
             add(f"{key}.scene", f"unknown scene {seq.scene!r} (scenes: {', '.join(m.scenes) or 'none'})")
-        if set(seq.views) != set(VIEWS):
-            add(f"{key}.views", f"need exactly the views {', '.join(VIEWS)}, got {', '.join(seq.views) or 'none'}")
+        if set(seq.views) not in (set(VIEWS), set(VIEWS[:1])):
+            add(f"{key}.views", f"need the views {', '.join(VIEWS)} (two phones) or {VIEWS[0]} alone (one phone), "
+                f"got {', '.join(seq.views) or 'none'}")
         for vname, view in seq.views.items():
             vkey = f"{key}.views.{vname}"
             _check_path(view.capture, f"{vkey}.capture", "folder", add)

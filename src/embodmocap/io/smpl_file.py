@@ -48,9 +48,11 @@ QUALITY_KEYS = ("suspect", "limb_off_m", "reproj_px", "kp3d_err_m", "quality_vie
 
 
 def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None = None,
-                   valid: NDArray | None = None, quality: Mapping[str, NDArray] | None = None) -> Path:
+                   valid: NDArray | None = None, quality: Mapping[str, NDArray] | None = None,
+                   one_view: bool = False) -> Path:
     """Write ``params`` (world frame) atomically; ``frames`` default to 0..T-1, ``valid`` (T,) bool
-    to all True; ``quality``: the per-frame quality keys (:data:`QUALITY_KEYS`; None or empty: none)."""
+    to all True; ``quality``: the per-frame quality keys (:data:`QUALITY_KEYS`; None or empty: none);
+    ``one_view``: fitted from one phone (no triangulation), stored as a () bool."""
     T = len(params)
     frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
     if frames.shape != (T,):
@@ -68,7 +70,7 @@ def write_smpl_npz(path: str | Path, params: SmplParams, frames: NDArray | None 
     write_npz(path, version=np.int64(SMPL_FILE_VERSION), poses=params.poses, trans=np.asarray(params.transl),
               betas=np.asarray(params.betas), gender=np.array(params.gender),
               mocap_framerate=np.float64(params.fps), framerate=np.float64(params.fps), frames=frames, valid=valid,
-              **quality)
+              one_view=np.bool_(one_view), **quality)
     return Path(path)
 
 
@@ -98,6 +100,12 @@ def read_smpl_suspect(path: str | Path) -> NDArray[np.bool_]:
     """(T,) the ``suspect`` flags of a world SMPL motion file (all False when the file has none)."""
     q = read_smpl_quality(path)
     return q["suspect"] if q else np.zeros(len(read_smpl_npz(path)[0]), dtype=bool)
+
+
+def read_smpl_one_view(path: str | Path) -> bool:
+    """Whether a world SMPL motion file was fitted from one phone (False for files without the key)."""
+    data = load_npz(path, what="SMPL motion file", fix="", versions=None)
+    return bool(data["one_view"]) if "one_view" in data else False
 
 
 def read_smpl_valid(path: str | Path) -> NDArray[np.bool_]:

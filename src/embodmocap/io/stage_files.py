@@ -326,6 +326,8 @@ class Keypoints3DFile(_FileRecord):
         reproj_err_px: (T, 17, V) per view; filled: (T, 17) bool; views: (V,) str.
         keypoints2d: (T, V, 17, 3) the 2D keypoints as triangulated (swaps undone).
         swapped: (T, V, G) bool; swap_groups: (G,) str.
+        one_view: () bool, True when the points were lifted from one view with its depth (a
+            one-phone sequence, V = 1) instead of triangulated.
     Only ``points`` and ``conf`` are required; older files may lack the rest (then None).
     """
 
@@ -338,6 +340,7 @@ class Keypoints3DFile(_FileRecord):
     keypoints2d: np.ndarray | None = None
     swapped: np.ndarray | None = None
     swap_groups: np.ndarray | None = None
+    one_view: np.ndarray | None = None
 
 
 def read_keypoints3d(path: str | Path) -> Keypoints3DFile:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from embodmocap.geometry.triangulation import TriangulationConfig
 from embodmocap.motion.label_track import LabelTrackConfig
+from embodmocap.motion.lift import LiftConfig
 from embodmocap.motion.quality import QualityConfig
 from embodmocap.motion.temporal import TemporalConfig
 
@@ -191,6 +192,9 @@ class MotionConfig:
     :data:`TRIANGULATION_MIN_CONF` here (the geometry default, 0.3, is Pose2Sim's)."""
     smplify: SmplifyConfig = field(default_factory=SmplifyConfig)
     """The two-phase world SMPLify (weights, iterations, windows, device)."""
+    lift: LiftConfig = field(default_factory=LiftConfig)
+    """One-phone sequences only: how the view's keypoints are lifted into the world with its
+    LiDAR depth in place of the triangulation (:mod:`embodmocap.motion.lift`)."""
     contact: ContactConfig = field(default_factory=ContactConfig)
     """Contact-marker alignment (used when the manifest lists contacts for the sequence)."""
     use_body_prior: bool = True

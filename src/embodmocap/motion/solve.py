@@ -53,7 +53,7 @@ class Triangulated:
 
 def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray], T: int,
                       label: str = "") -> Triangulated:
-    """Both views' 2D keypoints triangulated with their world cameras.
+    """Both views' 2D keypoints triangulated with their world cameras (one view: :func:`lift_view`).
 
     Args:
         cams: view -> mapping with ``K`` (3, 3) and ``T_world_cam`` (>= T, 4, 4) (both views on
@@ -92,6 +92,45 @@ def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mappi
     return Triangulated(file, figures, list(tri.long_gaps))
 
 
+def lift_view(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray], T: int,
+              depth_at, rgb_size: tuple[int, int], label: str = "") -> Triangulated:
+    """A one-phone sequence's 3D keypoints: its view's 2D keypoints (limb labels tracked, guessed
+    runs dropped, as before a triangulation) lifted into the world with the view's person depth
+    (:mod:`embodmocap.motion.lift`); the file has the triangulation's layout with ``one_view`` true.
+
+    Args:
+        cams: the one view -> mapping with ``K`` (3, 3) and ``T_world_cam`` (>= T, 4, 4);
+        kps: the view -> (>= T, 17, 3) keypoints; T: frames;
+        depth_at: frame -> (h, w) the view's depth in metres on the person only (0 elsewhere,
+            :func:`embodmocap.motion.lift.person_depth`); rgb_size: (width, height) of its images.
+    """
+    from embodmocap.motion.lift import lift_figures, lift_keypoints, reprojection_px
+
+    (v,) = cams
+    kp = np.asarray(kps[v][:T], dtype=np.float64)[:, None]  # (T, 1, 17, 3)
+    kp, tracked = track_labels(kp, cfg.label_track)
+    kp, guessed = drop_guessed_runs(kp, cfg.temporal)
+    K, T_wc = np.asarray(cams[v]["K"]), np.asarray(cams[v]["T_world_cam"])[:T]
+    min_conf = cfg.triangulation.min_conf
+    lifted = lift_keypoints(kp[:, 0], K, T_wc, depth_at, rgb_size, cfg.lift, min_conf, cfg.triangulation.max_gap_frames)
+    file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=lifted.points, conf=lifted.conf,
+                           reproj_err_px=reprojection_px(lifted.points, K, T_wc, kp[:, 0]), filled=lifted.filled,
+                           views=np.array([v]), keypoints2d=kp, swapped=np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), bool),
+                           swap_groups=np.array(list(COCO17_SWAP_GROUPS)), one_view=np.bool_(True))
+    figures = {
+        "one_view": True,
+        "lifted_fraction": round(float(np.isfinite(lifted.points[..., 0]).mean()), 4),
+        "filled_fraction": round(float(lifted.filled.mean()), 4),
+        "long_gaps": len(lifted.long_gaps),
+        "keypoints_dropped_temporal": int(guessed.sum()),
+        "limb_labels_tracked": {f"{v}_{g}": int(tracked[:, 0, k].sum()) for k, g in enumerate(TRACKED_GROUPS)},
+        **lift_figures(lifted, kp[:, 0], min_conf),
+    }
+    log.info("%s: one view: %.0f%% of the 3D keypoints lifted with %s's depth (no triangulation)", label,
+             100 * figures["lifted_fraction"], v)
+    return Triangulated(file, figures, list(lifted.long_gaps))
+
+
 @dataclass(frozen=True)
 class Fitted:
     """The fit step's results: the world motion (with the frame rate and gender), (T,) frames
@@ -121,11 +160,12 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     """
     if cfg.kp3d_conf not in ("mean", "min"):
         raise ValueError(f"MotionConfig.kp3d_conf must be 'mean' or 'min', got {cfg.kp3d_conf!r}")
+    names = [v for v in VIEWS if v in cams]  # two views, or one (its 3D points lifted with depth)
     valid = placeable_frames(source, label, k3["points"], k3["conf"], cfg)
     # The 2D keypoints as the triangulation step left them (left/right swaps undone).
-    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in names], axis=1)
     views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
-             for i, v in enumerate(VIEWS)]
+             for i, v in enumerate(names)]
     min_conf = cfg.smplify.min_conf
     points, conf3 = k3["points"], k3["conf"]
     if cfg.kp3d_conf == "min":
@@ -188,8 +228,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         # Limbs whose start both views and the 3D points reject take the pose carried over from
         # the frames where the limb fits its evidence.
         init, carried = propagate_limbs(
-            KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in VIEWS]),
-            np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
+            KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in names]),
+            np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
             cfg.smplify.reproj_scale_px, min_conf)
         n_propagated = int(carried.sum())
     n_turned = 0
@@ -202,8 +242,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
 
         # Unplaceable frames hold a neighbour's orientation; face them the way the views that see them say.
         init, turn = turn_unplaced(
-            KeypointBody(model, layout=layout), init, valid, np.stack([cams[v]["K"] for v in VIEWS]),
-            np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d, cfg.smplify.reproj_scale_px, min_conf)
+            KeypointBody(model, layout=layout), init, valid, np.stack([cams[v]["K"] for v in names]),
+            np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d, cfg.smplify.reproj_scale_px, min_conf)
         n_turned = int((turn != 0).sum())
     res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
                          prior_weight=prior_w, valid=valid)
@@ -226,7 +266,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         "suspect_frames": int((quality.suspect & valid).sum()),
         "edge_limb_frames_carried": n_repaired,
         "terms_before": res.terms_before, "terms_after": res.terms_after,
-        **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in VIEWS},
+        **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in names},
+        "one_view": len(names) == 1,
         "fit_seconds": {**{k: round(float(x), 2) for k, x in res.phase_seconds.items()},
                         "quality": round(t_quality, 2)},
     }
@@ -250,7 +291,8 @@ def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: s
         return params, 0
     from embodmocap.motion.edge_repair import repair_edges
 
-    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in VIEWS], axis=1)
+    names = [v for v in VIEWS if v in cams]
+    kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in names], axis=1)
     return repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T).joint_off_m,
                         cfg.quality.suspect_m, cfg.quality.repair_frames,
                         None if quality is None else quality.joint_off_m)
@@ -270,9 +312,10 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
         out = model.from_params(params, dtype=torch.float64)
         fitted = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
     filled = k3["filled"] if "filled" in k3.files else None
-    return frame_quality(fitted, np.stack([cams[v]["K"] for v in VIEWS]),
-                         np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1), kp2d,
-                         np.stack([kps[v][:T] for v in VIEWS], axis=1), k3["points"], filled, tuple(VIEWS), cfg.quality)
+    names = [v for v in VIEWS if v in cams]  # two views, or one (a one-phone sequence)
+    return frame_quality(fitted, np.stack([cams[v]["K"] for v in names]),
+                         np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d,
+                         np.stack([kps[v][:T] for v in names], axis=1), k3["points"], filled, tuple(names), cfg.quality)
 
 
 @dataclass(frozen=True)
@@ -327,7 +370,7 @@ def align_motion(cfg: MotionConfig, model, params, frames: NDArray, valid: NDArr
                              coco17=body.coco17.detach().numpy(), frames=frames)
     final = {v: CameraFile(version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"],
                            T_world_cam=apply_alignment_to_cameras(cams[v]["T_world_cam"], T_align),
-                           raw_frames=cams[v]["raw_frames"]) for v in VIEWS}
+                           raw_frames=cams[v]["raw_frames"]) for v in VIEWS if v in cams}
     figures["T_align"] = T_align.tolist()
     return Aligned(params, frames, valid, joints, final, figures)
 
@@ -347,6 +390,8 @@ class MotionInputs:
         priors: view -> (body prior per frame, (T,) has-estimate); empty: no prior.
         layout: the detector's keypoint layout; gender: the session's.
         contacts: (sequence frame, (3,) world point) per contact marker.
+        lift_depth: one-phone sequences: ``(depth_at, rgb_size)`` of the view, what
+            :func:`lift_view` reads (:func:`embodmocap.motion.stage.view_depth`).
     """
 
     sequence: str
@@ -360,6 +405,7 @@ class MotionInputs:
     layout: str = "COCO17"
     gender: str | None = None
     contacts: list = field(default_factory=list)
+    lift_depth: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -375,8 +421,13 @@ def solve(cfg: MotionConfig, inputs: MotionInputs) -> MotionResult:
     """Stage IV in memory: the same steps, in the same order, as :func:`embodmocap.motion.stage.run`."""
     cams = inputs.synced_cameras if inputs.synced_cameras is not None else inputs.cameras
     kps = inputs.synced_keypoints if inputs.synced_keypoints is not None else inputs.keypoints
-    T = min(len(kps[v]) for v in VIEWS)
-    tri = triangulate_views(cfg, cams, kps, T, inputs.sequence)
+    T = min(len(kps[v]) for v in kps)
+    if len(kps) == 1:  # one phone: lifted with its depth
+        if inputs.lift_depth is None:
+            raise ValueError("a one-view MotionInputs needs lift_depth (the view's depth reader and image size)")
+        tri = lift_view(cfg, cams, kps, T, *inputs.lift_depth, label=inputs.sequence)
+    else:
+        tri = triangulate_views(cfg, cams, kps, T, inputs.sequence)
     priors = inputs.priors if cfg.use_body_prior else {}
     fit = fit_motion(cfg, inputs.model, tri.file, cams, kps, T, inputs.fps, priors, inputs.layout, inputs.gender,
                      label=inputs.sequence)

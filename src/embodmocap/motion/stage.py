@@ -4,7 +4,10 @@
 
 1. ``triangulate``: both views' COCO-17 keypoints (Stage II), left/right swaps undone, triangulated
    with the cameras in the scene's world (Stage III): confidence-weighted DLT over all frames at
-   once, short gaps filled, long gaps flagged -> ``keypoints3d.npz``;
+   once, short gaps filled, long gaps flagged -> ``keypoints3d.npz``; a one-phone sequence runs
+   ``lift`` instead: its view's keypoints lifted with its LiDAR depth on the person mask
+   (:mod:`embodmocap.motion.lift`), the same file with ``one_view`` true, then the same fit (its
+   outputs carry ``one_view`` too);
 2. ``fit``: the world SMPLify (shape, translation and orientation first; then everything) on the
    3D keypoints, each view's 2D keypoints (both with the SMPL points of the detector's layout),
    smoothness, anatomical joint ranges and the pose prior, started from the camera-space body
@@ -69,7 +72,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     manifest = load_manifest(lay.manifest)
     entry = manifest.sequence(seq)
     out = lay.sequence(entry.name)
-    for v in VIEWS:
+    names = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
+    for v in names:
         vl = out.view(v)
         if not vl.keypoints.is_file():
             raise InputError(vl.keypoints, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
@@ -79,28 +83,37 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         Upstream(lay.scene(entry.scene).manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}"),
         Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}"),
         Upstream(out.calibrate_manifest, "calibrate", f"embodmocap calibrate {lay.root} --seq {entry.name}")],
-        inputs=[manifest.body_model, *[getattr(out.view(v), k) for v in VIEWS
-                                       for k in ("keypoints", "cameras_world", "body_prior")]])
+        inputs=[manifest.body_model, *[getattr(out.view(v), k) for v in names
+                                       for k in ("keypoints", "cameras_world", "body_prior")
+                                       + (("depth", "masks") if entry.one_view else ())]])
     label = f"sequence {entry.name}"
-    cams = {v: read_cameras(out.view(v).cameras_world) for v in VIEWS}
-    kps = {v: read_keypoints2d(out.view(v).keypoints).keypoints for v in VIEWS}
+    cams = {v: read_cameras(out.view(v).cameras_world) for v in names}
+    kps = {v: read_keypoints2d(out.view(v).keypoints).keypoints for v in names}
     # Sub-frame sync: view 2's keypoints and cameras at view 1's instants (cams_raw: each view's own frames).
     cams_raw, (cams, kps) = cams, synced_views(out, cams, kps)
-    T = min(len(kps[v]) for v in VIEWS)
+    T = min(len(kps[v]) for v in names)
     fps = sequence_fps(out)
 
-    # 1. Triangulation.
-    fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps, cfg.label_track, cfg.temporal,
-                         *[path_fingerprint(p) for v in VIEWS for p in (out.view(v).keypoints, out.view(v).cameras_world)])
-    with sm.step("triangulate", fp_tri, force=force, label=label) as step:
+    # 1. Triangulation (one view: its keypoints lifted with its LiDAR depth, motion.lift).
+    if entry.one_view:
+        vl = out.view(names[0])
+        fp_tri = fingerprint("lift", cfg.lift, cfg.triangulation, cfg.label_track, cfg.temporal,
+                             *[path_fingerprint(p) for p in (vl.keypoints, vl.cameras_world, vl.depth, vl.masks)])
+    else:
+        fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps, cfg.label_track, cfg.temporal,
+                             *[path_fingerprint(p) for v in names for p in (out.view(v).keypoints, out.view(v).cameras_world)])
+    with sm.step("lift" if entry.one_view else "triangulate", fp_tri, force=force, label=label) as step:
         if step.run:
-            tri = solve.triangulate_views(cfg, cams, kps, T, entry.name)
+            if entry.one_view:
+                tri = solve.lift_view(cfg, cams, kps, T, *view_depth(out, names[0], cfg), entry.name)
+            else:
+                tri = solve.triangulate_views(cfg, cams, kps, T, entry.name)
             write_keypoints3d(out.keypoints3d, tri.file)
             step.record([out.keypoints3d], tri.figures)
 
     # 2. SMPLify.
     model = load_body_model(manifest.body_model)
-    priors = body_priors_by_frame({v: out.view(v).body_prior for v in VIEWS}, T, cfg.min_prior_fraction,
+    priors = body_priors_by_frame({v: out.view(v).body_prior for v in names}, T, cfg.min_prior_fraction,
                                   entry.name) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
@@ -114,13 +127,14 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
                                    manifest.gender, label=entry.name, source=out.keypoints3d)
-            write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays())
+            write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays(),
+                           one_view=entry.one_view)
             step.record([out.smpl_fit], fit.figures)
 
     # 3. Contact alignment (always writes the final outputs).
     contacts = [(c.frame, np.asarray(c.xyz)) for c in entry.contacts] if cfg.align_contacts else []
     fp_align = fingerprint("align", cfg.contact, cfg.align_contacts, [(f, x.tolist()) for f, x in contacts],
-                           path_fingerprint(out.smpl_fit), *[path_fingerprint(out.view(v).cameras_world) for v in VIEWS])
+                           path_fingerprint(out.smpl_fit), *[path_fingerprint(out.view(v).cameras_world) for v in names])
     with sm.step("align", fp_align, force=force, label=label) as step:
         if step.run:
             params, frames = read_smpl_npz(out.smpl_fit)
@@ -128,11 +142,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                                     label=entry.name, source=lay.manifest)
             # The per-frame quality is the fit's: the alignment moves body and cameras together.
             write_smpl_npz(out.smpl_world, al.params, al.frames, valid=al.valid,
-                           quality=read_smpl_quality(out.smpl_fit))
+                           quality=read_smpl_quality(out.smpl_fit), one_view=entry.one_view)
             write_world_joints(out.joints_world, al.joints)
-            for v in VIEWS:
+            for v in names:
                 write_cameras(out.view(v).cameras_final, al.cameras_final[v])
-            step.record([out.smpl_world, out.joints_world, *[out.view(v).cameras_final for v in VIEWS]], al.figures)
+            step.record([out.smpl_world, out.joints_world, *[out.view(v).cameras_final for v in names]],
+                        al.figures | {"one_view": entry.one_view})
     return MotionOutputs(entry.name, out, sm.figures(), tuple(sm.skipped))
 
 
@@ -141,9 +156,30 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
     ``layout``; COCO17 for files written before it was recorded). Views that disagree fall back
     to COCO17 with a warning (one hip definition serves the 3D points of both)."""
     found = []
-    for v in VIEWS:
+    # the views Stage II wrote (v1 alone for a one-phone sequence; v1 read, and its error raised, when none)
+    for v in [v for v in VIEWS if out.view(v).keypoints.is_file()] or list(VIEWS[:1]):
         found.append(str(read_keypoints2d(out.view(v).keypoints).layout))  # COCO17 for files without it
     if len(set(found)) > 1:
         log.warning("%s: the views' keypoints come from different layouts %s; fitting with COCO-17 hips", seq, found)
         return "COCO17"
     return found[0]
+
+
+def view_depth(out: SequenceLayout, v: str, cfg: MotionConfig):
+    """``(depth_at, rgb_size)`` of view ``v`` for :func:`embodmocap.motion.solve.lift_view`: its
+    Stage II depth read frame by frame from the memory-mapped stack, kept on the person mask
+    (:func:`embodmocap.motion.lift.person_depth`; all pixels when the view has no masks)."""
+    from embodmocap.io.frame_stack import read_depth_m, read_mask
+    from embodmocap.motion.lift import person_depth
+
+    vl = out.view(v)
+    if not vl.depth.is_file():
+        raise InputError(vl.depth, "a one-phone sequence needs its view's depth (Stage II's depth.npy)",
+                         f"run `embodmocap sequence --seq {out.root.name}` (depth is not optional with one view)")
+    cams = read_cameras(vl.cameras)
+    width, height = int(cams["width"]), int(cams["height"])
+    mask_at = (lambda t: read_mask(vl.masks, t, width)) if vl.masks.is_file() else None
+    if mask_at is None:
+        log.warning("%s: one view without person masks: keypoint depth may read the background at the body's edges",
+                    out.root.name)
+    return person_depth(lambda t: read_depth_m(vl.depth, t), mask_at, cfg.lift.mask_erode_px), (width, height)

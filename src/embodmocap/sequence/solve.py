@@ -1,6 +1,6 @@
 """Stage II's decisions as a pure function: who the performer is in each view.
 
-:func:`solve_performer` takes every person's keypoints per sliced frame of both views (arrays, no
+:func:`solve_performer` takes every person's keypoints per sliced frame of the views (arrays, no
 paths), links them into tracks, picks the performer's track consistently across the views and
 returns the performer's per-frame keypoints and boxes with the figures the stage reports. The
 stage's ``run`` (:mod:`embodmocap.sequence.stage`) reads the inputs through the perception
@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from embodmocap.io.layout import VIEWS
 from embodmocap.perception.tracking import (
-    TrackingConfig, performer_keypoints, select_performer_two_views, track_people,
+    TrackingConfig, performer_keypoints, select_performer, select_performer_two_views, track_people,
 )
 
 
@@ -55,25 +55,30 @@ class PerformerView:
 
 def solve_performer(people: Mapping[str, Sequence[NDArray]], sizes: Mapping[str, tuple[int, int]],
                     fps: Mapping[str, float], cfg: TrackingConfig = TrackingConfig()) -> dict[str, PerformerView]:
-    """The performer's keypoints in both views.
+    """The performer's keypoints in every view (one or two).
 
     Args:
         people: view -> per sliced frame, (N_t, 17, 3) keypoints of every person (T frames, the
-            same T in both views).
+            same T in every view); two views are chosen jointly (seen at the same instants), one
+            view alone.
         sizes: view -> image ``(W, H)`` pixels.
         fps: view -> frame rate (for the gap length).
         cfg: tracking settings.
 
     Returns:
-        view -> :class:`PerformerView`, for :data:`~embodmocap.io.layout.VIEWS`.
+        view -> :class:`PerformerView`, for the views of ``people``.
     """
-    tracks = {v: track_people(people[v], sizes[v], cfg) for v in VIEWS}
-    T = len(people[VIEWS[0]])
+    views = [v for v in VIEWS if v in people]
+    tracks = {v: track_people(people[v], sizes[v], cfg) for v in views}
+    T = len(people[views[0]])
     frames = np.arange(T)
-    best = select_performer_two_views(tracks[VIEWS[0]], tracks[VIEWS[1]], frames, frames, sizes[VIEWS[0]],
-                                      sizes[VIEWS[1]], T, T)
+    if len(views) == 1:
+        best = (select_performer(tracks[views[0]], T, sizes[views[0]]),)
+    else:
+        best = select_performer_two_views(tracks[views[0]], tracks[views[1]], frames, frames, sizes[views[0]],
+                                          sizes[views[1]], T, T)
     out = {}
-    for v, track in zip(VIEWS, best):
+    for v, track in zip(views, best):
         kp, boxes = performer_keypoints(track, T)
         seen = kp[..., 2].max(axis=1) > 0
         out[v] = PerformerView(kp, boxes, seen, int(track.track_id) if track else -1, len(tracks[v]),

@@ -11,7 +11,7 @@
    for those frames (``<view>/frame_map.json``, ``<view>/cameras.npz``);
 3. ``keypoints``: every person's COCO-17 keypoints per frame from the chosen backend
    (:func:`embodmocap.perception.registry.make`), linked into tracks, and the performer's track
-   chosen consistently across both views by the pure :func:`~embodmocap.sequence.solve.solve_performer`
+   chosen consistently across the views by the pure :func:`~embodmocap.sequence.solve.solve_performer`
    (``<view>/keypoints2d.npz``: keypoints (T, 17, 3) and boxes (T, 4));
 4. ``masks``, ``depth``, ``body_prior``: the other observations, per sliced frame.
 
@@ -34,7 +34,7 @@ from embodmocap.io.atomic import write_json
 from embodmocap.io.frame_stack import depth_mm, pack_mask, write_stack
 from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
-from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout, ViewLayout
+from embodmocap.io.layout import SequenceLayout, SessionLayout, ViewLayout
 from embodmocap.io.manifest import SequenceEntry, load_manifest
 from embodmocap.io.stage_files import (
     CameraFile, Keypoints2DFile, read_keypoints2d, write_cameras, write_keypoints2d,
@@ -70,25 +70,26 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     entry = load_manifest(lay.manifest).sequence(seq)
     out = lay.sequence(entry.name)
     out.root.mkdir(parents=True, exist_ok=True)
+    views = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
     sm = StageManifest(out.manifest, "sequence", cfg, root=lay.root, inputs=[
-        p for v in VIEWS for p in (entry.views[v].capture, entry.views[v].keypoints, entry.views[v].masks,
+        p for v in views for p in (entry.views[v].capture, entry.views[v].keypoints, entry.views[v].masks,
                                    entry.views[v].depth, entry.views[v].body_prior)])
-    captures = {v: open_capture(entry.views[v].capture) for v in VIEWS}
+    captures = {v: open_capture(entry.views[v].capture) for v in views}
     label = f"sequence {entry.name}"
 
     # 1. Sync.
-    manual = {v: entry.views[v].sync_frame for v in VIEWS}
+    manual = {v: entry.views[v].sync_frame for v in views}
     geometric = cfg.sync_without_laser == "geometric"
-    fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in VIEWS},
+    fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in views},
                           manual, cfg.sync, geometric)
     with sm.step("sync", fp_sync, force=force, label=label) as step:
         if step.run:
             events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name)
             sheets = _contact_sheets(entry.name, captures, events, record, out)
             write_json(out.sync, record)
-            step.record([out.sync, *sheets], {f"{v}_sync_frame": events[v].frame for v in VIEWS} | {
-                f"{v}_sync_confidence": round(events[v].confidence, 3) for v in VIEWS} | {
-                "sync_slicing": record["slicing"]["source"]})
+            step.record([out.sync, *sheets], {f"{v}_sync_frame": events[v].frame for v in views} | {
+                f"{v}_sync_confidence": round(events[v].confidence, 3) for v in views} | {
+                "sync_slicing": record["slicing"]["source"], "one_view": entry.one_view})
     events = events_from_record(json.loads(out.sync.read_text()), out.sync)
 
     # 2. Slice.
@@ -97,27 +98,27 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
         if step.run:
             maps = slice_views(captures, events, cfg.fps, cfg.min_overlap_s)
             outs = []
-            for v in VIEWS:
+            for v in views:
                 vl = out.view(v)
                 vl.root.mkdir(parents=True, exist_ok=True)
                 write_json(vl.frame_map, frame_map_to_json(maps[v]))
                 _write_cameras(vl, captures[v], maps[v])
                 outs += [vl.frame_map, vl.cameras]
-            step.record(outs, {"frames": len(maps[VIEWS[0]].raw_frames), "fps": maps[VIEWS[0]].fps,
-                               **{f"{v}_dropped_frames": int(maps[v].dropped.sum()) for v in VIEWS}})
-    maps = {v: frame_map_from_json(json.loads(out.view(v).frame_map.read_text()), out.view(v).frame_map) for v in VIEWS}
+            step.record(outs, {"frames": len(maps[views[0]].raw_frames), "fps": maps[views[0]].fps,
+                               **{f"{v}_dropped_frames": int(maps[v].dropped.sum()) for v in views}})
+    maps = {v: frame_map_from_json(json.loads(out.view(v).frame_map.read_text()), out.view(v).frame_map) for v in views}
 
     # 3. Keypoints and the performer's identity.
     fp_kp = fingerprint("keypoints", fp_slice, cfg.keypoints, cfg.detector, cfg.keypoints_model, cfg.detector_model,
                         cfg.tracking, {v: path_fingerprint(entry.views[v].keypoints) if entry.views[v].keypoints else None
-                                       for v in VIEWS})
+                                       for v in views})
     with sm.step("keypoints", fp_kp, force=force, label=label) as step:
         if step.run:
             figs = _keypoints_step(cfg, entry, captures, maps, out)
-            step.record([out.view(v).keypoints for v in VIEWS], figs)
+            step.record([out.view(v).keypoints for v in views], figs)
 
     # 4. Masks, depth, body prior (per view; each its own step so a change redoes only it).
-    for v in VIEWS:
+    for v in views:
         vl, view, cap, fm = out.view(v), entry.views[v], captures[v], maps[v]
         if cfg.masks != "none":
             fp = fingerprint("masks", fp_kp, cfg.masks, cfg.masks_model, path_fingerprint(view.masks) if view.masks else None)
@@ -178,14 +179,15 @@ def _chunks(n: int, size: int):
 def _contact_sheets(name: str, captures, events, record: dict, out: SequenceLayout) -> list[Path]:
     """One contact sheet per view with a laser or manual event (noted in ``record``); their paths."""
     sheets = []
-    for v in VIEWS:
+    for v in captures:
         # The sheet shows the laser event when there is one (what a person confirms), else the
         # manual frame; a view sliced from its first frame has nothing to confirm.
         lz = record["sources"]["laser"]["views"][v]
         ev = (SyncEvent(lz["frame"], lz["confidence"], tuple(lz["dot_xy_before"]) if lz["dot_xy_before"] else None,
                         lz["frames_seen"]) if lz["found"] else events[v] if events[v].method == "manual" else None)
         if ev is None:
-            log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", name, v)
+            if len(captures) > 1:
+                log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", name, v)
             continue
         sheets.append(write_contact_sheet(captures[v], ev, out.root / f"sync_{v}.png"))
         lz["contact_sheet"] = sheets[-1].name
@@ -197,15 +199,16 @@ def _contact_sheets(name: str, captures, events, record: dict, out: SequenceLayo
 def _keypoints_step(cfg: SequenceConfig, entry: SequenceEntry, captures, maps, out: SequenceLayout) -> dict:
     """Every person per frame (the backends) -> the performer (:func:`solve_performer`) -> checks, files."""
     people, layouts, figs = {}, {}, {}
-    for v in VIEWS:
+    views = entry.view_names
+    for v in views:
         people[v], missing, layouts[v] = _all_people(cfg, entry.views[v], captures[v], maps[v])
         figs[f"{v}_frames_missing_keypoint_file"] = missing
         if missing:
             log.warning("%s %s: %d of %d frames have no keypoint file (kept as zero confidence)",
                         entry.name, v, missing, len(maps[v].raw_frames))
-    sizes = {v: (captures[v].rgb_intrinsics.width, captures[v].rgb_intrinsics.height) for v in VIEWS}
-    found = solve_performer(people, sizes, {v: maps[v].fps for v in VIEWS}, cfg.tracking)
-    for v in VIEWS:
+    sizes = {v: (captures[v].rgb_intrinsics.width, captures[v].rgb_intrinsics.height) for v in views}
+    found = solve_performer(people, sizes, {v: maps[v].fps for v in views}, cfg.tracking)
+    for v in views:
         p, T = found[v], len(maps[v].raw_frames)
         if p.seen_fraction < cfg.min_person_fraction:
             raise InputError(captures[v].path, f"the performer is seen in only {100 * p.seen_fraction:.0f}% of the "

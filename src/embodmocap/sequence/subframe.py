@@ -62,13 +62,13 @@ def synced_views(out: SequenceLayout, cams: Mapping[str, Mapping], kps: Mapping[
     Returns:
         ``(cams, kps)``: view 1 unchanged; view 2 resampled to view 1's length. Identity (view 2's
         own arrays) when the residual offset is 0 and the frame times agree, or when there is no
-        ``sync.json`` (sequences synced by older versions).
+        ``sync.json`` (sequences synced by older versions), or with one view (nothing to sync).
     """
-    v1, v2 = VIEWS
-    cams = {v: dict(cams[v].items()) for v in VIEWS}
+    cams = {v: dict(cams[v].items()) for v in VIEWS if v in cams}
     kps = dict(kps)
-    if not out.sync.is_file():
+    if len(cams) == 1 or not out.sync.is_file():
         return cams, kps
+    v1, v2 = VIEWS
     off = residual_s(json.loads(out.sync.read_text()))
     t1, t2 = (frame_times(read_cameras(out.view(v).cameras, "cameras")) if out.view(v).cameras.is_file() else
               frame_times(cams[v]) for v in VIEWS)

@@ -66,6 +66,8 @@ def first_record(captures: Mapping[str, Capture], manual: Mapping[str, int | Non
             frame, and ``geometric`` off.
     """
     views = list(captures)
+    if len(views) == 1:
+        return one_view_record(captures, manual, cfg, seq)
     laser: dict[str, dict] = {}
     laser_ev: dict[str, SyncEvent] = {}
     for v, cap in captures.items():
@@ -253,3 +255,45 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
                      "residual_frames": round(float(residual * fps), 4), "reason": reason, "final": True}
     rec["warnings"] = warnings
     return rec
+
+
+def one_view_record(captures: Mapping[str, Capture], manual: Mapping[str, int | None], cfg: SyncConfig,
+                    seq: str = "<seq>") -> tuple[dict[str, SyncEvent], dict]:
+    """:func:`first_record` of a one-phone sequence: nothing to synchronise, so the record is final.
+
+    The sequence starts at the view's ``sync_frame`` when session.toml gives one, else at its
+    laser-dot event when it has one (where a take is marked: the same start as a two-phone
+    recording of it), else at its first frame. ``chosen.source`` is ``one_view`` with a zero offset,
+    ``chosen.final`` is true (Stage III has no offset to decide) and ``one_view`` is true.
+    """
+    (v, cap), = captures.items()
+    frame = manual.get(v)
+    if frame is not None and not 0 <= int(frame) < cap.num_frames:
+        raise InputError(cap.path, f"sync_frame = {frame} of view {v} is outside the capture's {cap.num_frames} frames",
+                         f"give a frame in 0..{cap.num_frames - 1} under [sequences.{seq}.views.{v}] in session.toml")
+    ev = detect_laser_event(cap, cfg)
+    laser = ({"found": False, "reason": f"no laser-dot event in the first {cfg.search_s:g} s"} if ev is None else
+             {"found": True, "frame": ev.frame, "time_s": float(_clock(cap)[ev.frame]),
+              "confidence": round(float(ev.confidence), 4),
+              "dot_xy_before": None if ev.dot_xy_before is None else list(ev.dot_xy_before), "frames_seen": ev.frames_seen})
+    if frame is not None:
+        event, how, reason = SyncEvent(int(frame), 1.0, None, 0, "manual"), "manual", "sync_frame given in session.toml"
+    elif ev is not None:
+        event, how, reason = ev, "laser", "one view: the sequence starts at its laser-dot event"
+    else:
+        event, how, reason = SyncEvent(0, 0.0, None, 0, "auto"), "start", "one view: the sequence starts at its first frame"
+    record = {
+        "version": SYNC_RECORD_VERSION,
+        "one_view": True,
+        "views": {v: {"frame": event.frame, "confidence": event.confidence,
+                      "dot_xy_before": None if event.dot_xy_before is None else list(event.dot_xy_before),
+                      "frames_seen": event.frames_seen, "method": how, "time_s": float(_clock(cap)[event.frame])}},
+        "slicing": {"source": how, "offset_s": 0.0},
+        "sources": {"laser": {"views": {v: laser}, "offset_s": None},
+                    **({"manual": {"frames": {v: int(frame)}, "offset_s": 0.0}} if frame is not None else {})},
+        "agreement": None,
+        "chosen": {"source": "one_view", "offset_s": 0.0, "residual_s": 0.0, "residual_frames": 0.0,
+                   "reason": f"{reason}; no other view to synchronise with", "final": True},
+        "warnings": [],
+    }
+    return {v: event}, record

@@ -117,6 +117,10 @@ class SynthConfig:
     view_separation_deg: float | None = None
     """Fixed azimuth separation of the two operators about the performer, degrees; None = the
     normal 75-105 degrees. A "built to fail" session uses 20 (views nearly parallel)."""
+    views: int = 2
+    """Phones filming the performance: 2 (the product's two-phone session) or 1 (a one-phone
+    session: only ``v1`` is written, identical to ``v1`` of the two-phone session of the same seed,
+    so the two can be compared frame for frame)."""
     view2_away_fraction: float = 0.0
     """Fraction of the performance (after the sync event, at its end) during which operator 2
     turns the phone away from the performer ("built to fail": performer out of one view)."""
@@ -172,6 +176,8 @@ class SynthConfig:
             (self.view_separation_deg is None or 0 <= self.view_separation_deg <= 180, "view_separation_deg must be in [0, 180]"),
             (0 <= self.view2_away_fraction < 1, "view2_away_fraction must be in [0, 1)"),
             (self.edge_limb_frames >= 0, "edge_limb_frames must be >= 0"),
+            (self.views in (1, 2), "views must be 1 or 2"),
+            (self.edge_limb_frames == 0 or self.views == 2, "edge_limb_frames needs two views"),
             (all(0 < r[0] <= r[1] for r in (self.laser.core_px, self.laser.halo_px, self.laser.gain,
                                              self.laser.psf_sigma_px, self.laser.shutter, self.laser.whiteness,
                                              self.laser.shake_deg, self.laser.shake_hz))

@@ -170,11 +170,13 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     )
     frames_rendered += len(scene_T)
 
-    # 4. The two views.
+    # 4. The views (every draw above was made for both, so v1 of a one-phone session is v1 of the
+    # two-phone session of the same seed).
+    filmed = VIEWS[:cfg.views]
     seq_gt: dict[str, np.ndarray] = {}
     sync_frames = {}
     detected: dict[str, np.ndarray] = {}
-    for k, v in enumerate(VIEWS):
+    for k, v in enumerate(filmed):
         span = np.arange(starts[v], ends[v])
         # Each frame's instant in motion frames: view 2 may run a fraction of a frame off view 1.
         phase = cfg.phone_offset_frames if v == "v2" else 0.0
@@ -220,7 +222,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     if cfg.edge_limb_frames > 0:  # the start of the sequence made hard for the left arm (issue 29)
         detected = perception.edge_limb_trouble(detected, sync_frames, cfg.edge_limb_frames, cfg.edge_limb,
                                                 _rng(cfg.seed, 90))
-    for v in VIEWS:
+    for v in filmed:
         perc = lay.perception(cfg.sequence_name, v)
         for i, kp in enumerate(detected[v]):
             out_kp = perception.coco17_to_body25(kp) if layout == "BODY_25" else kp
@@ -242,10 +244,10 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         "sync_frames": sync_frames, "motion_frames": M, "event_motion_frame": event,
         "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
         # Raw frame j of view v is the motion's instant start_v + j + offset_v (motion frames).
-        "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in VIEWS},
+        "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in filmed},
         "laser": {"mode": cfg.laser.mode, "wall": wall_look if cfg.laser.mode != "easy" else "scene",
                   "red_clothes": clothes is not None,
-                  "views": {v: (asdict(looks[v]) if looks[v] is not None else None) for v in VIEWS}},
+                  "views": {v: (asdict(looks[v]) if looks[v] is not None else None) for v in filmed}},
         "segments": [{"name": n, "start": s, "end": e} for n, s, e in script.segments],
         "furniture": {n: {"centre_xy": f.centre_xy, "yaw": f.yaw, "size": f.size, "top_z": f.top_z}
                       for n, f in built.spec.furniture.items()},
@@ -260,7 +262,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
                 keypoints=lay.perception(cfg.sequence_name, v).keypoints_dir,
                 masks=lay.perception(cfg.sequence_name, v).masks_dir,
                 body_prior=lay.perception(cfg.sequence_name, v).body_prior if cfg.body_prior != "none" else None,
-            ) for v in VIEWS},
+            ) for v in filmed},
         )},
         body_model=lay.body_model,
     )

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io import stage_files
-from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.layout import SessionLayout
 from embodmocap.io.smpl_file import read_smpl_npz
 from embodmocap.types import Intrinsics, SmplParams
 
@@ -122,7 +122,7 @@ def load_sequence(session: str | Path, seq: str) -> SequenceData:
                          "pass one of the manifest's sequence names")
     out = lay.sequence(seq)
     params, frames = read_smpl_npz(out.smpl_world)
-    views = {v: read_cameras_final(out.view(v).cameras_final, v, seq) for v in VIEWS}
+    views = {v: read_cameras_final(out.view(v).cameras_final, v, seq) for v in manifest.sequences[seq].view_names}
     for v, cams in views.items():
         if len(frames) and (frames.min() < 0 or frames.max() >= len(cams.T_world_cam)):
             raise InputError(out.view(v).cameras_final, f"{len(cams.T_world_cam)} camera rows, but the motion "

@@ -1,0 +1,171 @@
+"""One-phone sessions (issue 28, part 2): a sequence filmed by one iPhone runs every stage.
+
+Fast tests of the pieces (the manifest, the performer in one view, the lift of one view's keypoints
+with its depth against known joint centres); one slow end-to-end test: a synthetic one-phone
+studio session through Stages I-IV, checked against its ground truth and for the one-view flags
+in every output.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from embodmocap.geometry.keypoint_depth import JOINT_DEPTH_BEHIND_SURFACE_M
+from embodmocap.io.manifest import ManifestError, load_manifest
+from embodmocap.motion.lift import LiftConfig, lift_keypoints, person_depth
+
+ONE_VIEW = """\
+version = 1
+[scenes.room]
+capture = "captures/room"
+[sequences.seq0]
+scene = "room"
+[sequences.seq0.views.{view}]
+capture = "captures/seq0/{view}"
+"""
+
+
+def _manifest(tmp_path: Path, view: str) -> Path:
+    for folder in ("captures/room", f"captures/seq0/{view}"):
+        (tmp_path / folder).mkdir(parents=True, exist_ok=True)
+    (tmp_path / "session.toml").write_text(ONE_VIEW.format(view=view))
+    return tmp_path / "session.toml"
+
+
+def test_a_sequence_may_have_one_view_named_v1(tmp_path):
+    entry = load_manifest(_manifest(tmp_path, "v1")).sequence("seq0")
+    assert entry.view_names == ("v1",) and entry.one_view
+    with pytest.raises(ManifestError) as info:
+        load_manifest(_manifest(tmp_path / "other", "v2"))
+    assert any("v1 alone (one phone)" in p for p in info.value.problems)
+
+
+def test_the_performer_is_found_in_one_view():
+    from embodmocap.sequence.solve import solve_performer
+
+    def person(x: float, conf: float = 0.9) -> np.ndarray:
+        kp = np.zeros((17, 3))
+        kp[:, 0], kp[:, 1], kp[:, 2] = x + np.arange(17), 100 + 5 * np.arange(17), conf
+        return kp
+
+    # The performer (large, centred, every frame) and a bystander in the first frames.
+    people = [np.stack([person(150 + t)] + ([person(10, 0.5)] if t < 4 else [])) for t in range(10)]
+    found = solve_performer({"v1": people}, {"v1": (320, 240)}, {"v1": 10.0})
+    assert list(found) == ["v1"] and found["v1"].seen.all()
+    np.testing.assert_allclose(found["v1"].keypoints[2], person(152))
+
+
+def _scene(T: int = 3):
+    """Joint centres of T frames in front of a camera, the depth map a LiDAR would see of them
+    (each joint's surface a patch at its depth minus its half thickness) and the person mask."""
+    rng = np.random.default_rng(0)
+    W, H, w, h = 128, 96, 64, 48  # RGB and depth sizes (depth at half resolution)
+    K = np.array([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]])
+    # Depth pixel (row, col) centre <-> RGB pixel 2 col + 0.5: each joint on a depth pixel centre.
+    cols, rows = np.meshgrid(np.arange(6, 60, 12), np.arange(6, 44, 10))
+    cols, rows = cols.ravel()[:17], rows.ravel()[:17]
+    xy = np.stack([2 * cols + 0.5, 2 * rows + 0.5], -1)
+    z = 2.5 + rng.uniform(-0.3, 0.3, (T, 17))
+    ray = np.stack([(xy[:, 0] - K[0, 2]) / K[0, 0], (xy[:, 1] - K[1, 2]) / K[1, 1], np.ones(17)], -1)
+    p_cam = ray[None] * z[..., None]
+    behind = np.asarray(JOINT_DEPTH_BEHIND_SURFACE_M)
+    surface = z - behind / np.linalg.norm(ray, axis=-1)  # the ray enters the body this much earlier
+    depth = np.full((T, h, w), 4.0)  # the wall behind
+    mask = np.zeros((T, H, W), dtype=bool)
+    for t in range(T):
+        for j in range(17):
+            depth[t, rows[j] - 2:rows[j] + 3, cols[j] - 2:cols[j] + 3] = surface[t, j]
+            mask[t, 2 * rows[j] - 5:2 * rows[j] + 6, 2 * cols[j] - 5:2 * cols[j] + 6] = True
+    # A camera turned and moved in the world.
+    c, s = np.cos(0.7), np.sin(0.7)
+    T_wc = np.tile(np.array([[c, -s, 0, 1.0], [s, c, 0, -2.0], [0, 0, 1, 1.2], [0, 0, 0, 1]]), (T, 1, 1))
+    world = np.einsum("tij,tkj->tki", T_wc[:, :3, :3], p_cam) + T_wc[:, None, :3, 3]
+    kp = np.concatenate([np.broadcast_to(xy, (T, 17, 2)), np.full((T, 17, 1), 0.9)], -1)
+    return kp, K, T_wc, depth, mask, world, (W, H)
+
+
+def test_lifted_keypoints_are_the_joint_centres():
+    kp, K, T_wc, depth, mask, world, size = _scene()
+    depth_at = person_depth(lambda t: depth[t], lambda t: mask[t], erode_px=1)
+    got = lift_keypoints(kp, K, T_wc, depth_at, size)
+    np.testing.assert_allclose(got.points, world, atol=1e-9)
+    assert got.depth_found.all() and not got.filled.any() and not got.dropped_far.any()
+    np.testing.assert_allclose(got.conf, 0.9)
+
+
+def test_a_keypoint_off_the_person_or_far_from_the_body_is_not_lifted():
+    kp, K, T_wc, depth, mask, world, size = _scene()
+    r, c = int((kp[1, 9, 1] - 0.5) / 2), int((kp[1, 9, 0] - 0.5) / 2)
+    depth[1, r - 2:r + 3, c - 2:c + 3] = 3.9  # frame 1, left wrist: an occluder's depth 1.4 m behind the torso
+    x, y = kp[1, 0, :2].astype(int)
+    r0, c0 = int((y - 0.5) / 2), int((x - 0.5) / 2)
+    mask[1, y - 8:y + 9, x - 8:x + 9] = False  # frame 1, nose: outside the person mask (the wall there)
+    depth[1, r0 - 4:r0 + 5, c0 - 4:c0 + 5] = 4.0
+    depth_at = person_depth(lambda t: depth[t], lambda t: mask[t], erode_px=1)
+    got = lift_keypoints(kp, K, T_wc, depth_at, size, LiftConfig(max_from_body_m=0.8), max_gap_frames=0)
+    assert got.dropped_far[1, 9] and not got.depth_found[1, 0]
+    assert np.isnan(got.points[1, [0, 9]]).all() and (got.conf[1, [0, 9]] == 0).all()
+    others = np.ones((3, 17), bool)
+    others[1, [0, 9]] = False
+    np.testing.assert_allclose(got.points[others], world[others], atol=1e-9)
+    # Without the mask the nose reads the wall (4 m): still dropped, as far from the body.
+    got = lift_keypoints(kp, K, T_wc, lambda t: depth[t], size, max_gap_frames=0)
+    assert got.dropped_far[1, 0]
+    # A one-frame gap is interpolated (and flagged) as the triangulation's gaps are.
+    got = lift_keypoints(kp, K, T_wc, depth_at, size, max_gap_frames=1)
+    assert got.filled[1, 9] and np.isfinite(got.points[1, 9]).all()
+
+
+# ------------------------------------------------------------------------------ end to end
+
+
+@pytest.mark.slow
+def test_a_one_phone_session_runs_every_stage(tmp_path):
+    from embodmocap.check.config import CheckConfig
+    from embodmocap.check.core import check_session
+    from embodmocap.evaluate.session import evaluate_session
+    from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.smpl_file import read_smpl_one_view
+    from embodmocap.io.stage_files import read_keypoints3d
+    from embodmocap.pipeline import PipelineConfig, run_session
+    from embodmocap.synth.config import SynthConfig
+    from embodmocap.synth.studio import synthesize
+
+    cfg = SynthConfig(seed=1, views=1, seconds=3.0, scene_seconds=15.0, body_prior="none")
+    synthesize(cfg, tmp_path / "s")
+    lay = SessionLayout(tmp_path / "s")
+    assert not lay.view_capture(cfg.sequence_name, "v2").exists()
+    res = run_session(PipelineConfig(), lay.root)
+    assert res.ok, res.failed()
+    sl = lay.sequence(cfg.sequence_name)
+    assert sl.views() == ("v1",)
+    # Every output says it came from one view.
+    sync = json.loads(sl.sync.read_text())
+    assert sync["one_view"] and sync["chosen"]["source"] == "one_view" and sync["chosen"]["final"]
+    assert json.loads(sl.calibration.read_text())["one_view"]
+    assert bool(read_keypoints3d(sl.keypoints3d)["one_view"])
+    assert read_smpl_one_view(sl.smpl_world) and read_smpl_one_view(sl.smpl_fit)
+    for m in (sl.manifest, sl.calibrate_manifest, sl.motion_manifest):
+        assert json.loads(m.read_text())["figures"]["one_view"] is True, m
+    # Against the truth: the motion is placed in the scene within a one-phone error.
+    ev = evaluate_session(lay.root)["sequences"][cfg.sequence_name]
+    assert ev["one_view"] and ev["invalid_frames"] <= 5
+    assert ev["w_mpjpe_mm"] < 150.0 and ev["v1_view_translation_err_cm"] < 10.0, ev
+    # The benchmark's single-view row is this path: the same fit from the same files.
+    from embodmocap.body.model import load_body_model
+    from embodmocap.evaluate.benchmark import _Context
+    from embodmocap.io.smpl_file import read_smpl_npz
+
+    ctx = _Context(lay, cfg.sequence_name, cfg.scene_name, load_body_model(lay.body_model))
+    params = ctx.fit(single_view="v1", cameras={"v1": ctx.cameras("v1")}, prior=False)
+    fitted, _ = read_smpl_npz(sl.smpl_fit)
+    np.testing.assert_allclose(params.poses, fitted.poses, atol=1e-6)
+    np.testing.assert_allclose(params.transl, fitted.transl, atol=1e-6)
+    # `check` says what one view cannot give, without calling the take unusable for it.
+    (chk,) = check_session(CheckConfig(), lay.root)
+    assert chk.figures["one_view"] and any("no triangulation" in n for n in chk.notes)
+    assert chk.verdict != "reshoot", chk.reasons
