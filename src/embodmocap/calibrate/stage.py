@@ -43,6 +43,7 @@ from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.sequence.laser_check import observe_laser_dots
+from embodmocap.sequence.sync_record import UNPAIRED_SLICING
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import VIEWS, SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
@@ -127,7 +128,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
 
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
-    use_tracks = slicing != "start"
+    use_tracks = slicing not in UNPAIRED_SLICING
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in VIEWS],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
                          cfg.scene_points, cfg.track_frames, use_tracks)
@@ -154,13 +155,15 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     fp_geo = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
                          rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in VIEWS},
                          *[path_fingerprint(out.view(v).keypoints) for v in VIEWS],
-                         *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync)
+                         *[path_fingerprint(out.view(v).cameras) for v in VIEWS], cfg.geosync,
+                         (entry.subframe_sync, entry.sync_force))
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
         if step.run:
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
             dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in VIEWS})
-            geo = solve.geometric_sync(cfg, rec, views, T_world_vio, sequence_fps(out), sheets, entry.name, dots)
+            geo = solve.geometric_sync(cfg, rec, views, T_world_vio, sequence_fps(out), sheets, entry.name, dots,
+                                       entry.subframe_sync, entry.sync_force)
             write_json(out.sync, geo.record)
             amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
             for w in geo.record["warnings"]:

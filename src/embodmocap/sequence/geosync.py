@@ -88,7 +88,18 @@ class GeoSyncConfig:
     laser offset is then not used (see :mod:`embodmocap.sequence.laser_check`)."""
     prefer: str = "auto"
     """Which source wins when both exist: ``auto`` (geometric when it agrees with the laser within
-    ``agree_frames`` or is more confident, else laser), ``laser`` or ``geometric``."""
+    ``agree_frames``, when it disagrees with every laser candidate at confidence >=
+    ``override_confidence``, or when it is more confident than the laser; else laser), ``laser``
+    or ``geometric``."""
+    override_confidence: float = 0.6
+    """A geometric offset at least this confident that no pair of laser events agrees with (within
+    ``agree_frames``) replaces the laser, with a warning; below it the more confident source wins."""
+    manual_error_frames: float = 5.0
+    """Manual ``sync_frame`` values that a confident geometric sync (>= ``manual_error_confidence``)
+    puts further off than this many frames are an error (``sync_force = true`` in session.toml keeps
+    them); between ``agree_frames`` and this, a warning."""
+    manual_error_confidence: float = 0.8
+    """Confidence of the geometric sync above which it may call manual sync frames wrong."""
 
     def __post_init__(self) -> None:
         if self.prefer not in ("auto", "laser", "geometric"):
