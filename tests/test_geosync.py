@@ -290,8 +290,18 @@ def test_the_laser_pair_the_geometry_agrees_with_wins_over_the_best_scoring_one(
     assert rec["agreement"]["agree"] and rec["chosen"]["source"] == "geometric"
     assert rec["chosen"]["offset_s"] * FPS == pytest.approx(4.4, abs=0.15) and not rec["chosen"]["overrides_laser"]
     assert any("v1 10" in w and "taken over" in w for w in rec["warnings"])
-    # No confident geometry: the best-scoring pair, with a warning that says the choice was blind.
-    blind = decide(_candidates_record(), _geo(30.4, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    # Not confident about the offset, the geometry still says which pair's rays meet better: the
+    # laser offset of that pair is used (its cost is far lower than the other pair's).
+    weak = decide(_candidates_record(), _geo(30.4, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    assert weak["chosen"]["source"] == "laser" and weak["chosen"]["residual_frames"] == pytest.approx(30.0)
+    c = weak["sources"]["laser"]["pair_costs_px2"]
+    assert c[1] < 0.9 * c[0] and any("fit the geometry better" in w for w in weak["warnings"])
+    # A flat cost curve tells nothing: the best-scoring pair, with a warning that the choice was blind.
+    from dataclasses import replace
+
+    g = _geo(30.4, confidence=0.1)
+    blind = decide(_candidates_record(), replace(g, costs=np.where(np.isfinite(g.costs), 50.0, np.nan)), GeoSyncConfig(),
+                   FPS, {}, "s")
     assert blind["chosen"]["source"] == "laser" and blind["chosen"]["residual_s"] == 0.0
     assert any("score alike" in w for w in blind["warnings"])
 

@@ -94,6 +94,11 @@ class GeoSyncConfig:
     override_confidence: float = 0.6
     """A geometric offset at least this confident that no pair of laser events agrees with (within
     ``agree_frames``) replaces the laser, with a warning; below it the more confident source wins."""
+    pair_cost_ratio: float = 0.9
+    """A geometric sync not confident enough to give the offset still chooses between pairs of
+    laser events: the pair whose shift has the lowest reprojection cost (best of the shifts within
+    a frame of it) wins when that cost is at most this fraction of every other pair's. Pairs are
+    seconds apart, where the cost differs by far more than between neighbouring shifts."""
     manual_error_frames: float = 5.0
     """Manual ``sync_frame`` values that a confident geometric sync (>= ``manual_error_confidence``)
     puts further off than this many frames are an error (``sync_force = true`` in session.toml keeps

@@ -301,6 +301,25 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
                             + ", ".join(f"{v} {f_old[v]}" for v in moved) + f" (check the contact sheets {names})")
             laser_offset, laser_rejected = near["offset_s"], False
             laser_conf = min(laser_conf or 1.0, math.sqrt(near["score"]))
+    elif geo_ok and how != "manual" and len(pairs) > 1:
+        # Not confident about the offset, the geometry still tells pairs seconds apart: the pair at
+        # whose shift the keypoint rays meet clearly better wins.
+        costs = [_pair_cost(geo, (p["offset_s"] - slicing) * fps) for p in pairs]
+        rec["sources"]["laser"]["pair_costs_px2"] = [None if not math.isfinite(c) else round(c, 3) for c in costs]
+        known = [i for i, c in enumerate(costs) if math.isfinite(c)]
+        if len(known) > 1:
+            i = min(known, key=lambda k: costs[k])
+            if all(costs[i] <= cfg.pair_cost_ratio * costs[k] for k in known if k != i) and pairs[i] is not best_pair:
+                near = pairs[i]
+                f_new, f_old = near["frames"], best_pair["frames"]
+                rec["sources"]["laser"]["consistent_pair"] = near
+                warnings.append(f"{seq}: the laser events at frames " + ", ".join(f"{v} {f_new[v]}" for v in views)
+                                + f" fit the geometry better (reprojection cost {costs[i]:.1f} px^2 against "
+                                + ", ".join(f"{costs[k]:.1f}" for k in known if k != i) + ") and were taken over the "
+                                + "best-scoring " + ", ".join(f"{v} {f_old[v]}" for v in views if f_new[v] != f_old[v])
+                                + f" (check the contact sheets {names})")
+                laser_offset, laser_rejected = near["offset_s"], False
+                laser_conf = min(laser_conf or 1.0, math.sqrt(near["score"]))
     agreement = None
     if geo_ok and laser_offset is not None:
         diff = (geo_offset - laser_offset) * fps
@@ -315,7 +334,7 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         reason = ("prefer = laser" if cfg.prefer == "laser" else
                   "geometric sync not confident enough" if geo_ok else
                   "geometric sync not run" if geo is None else f"geometric sync failed: {geo.message}")
-        if how == "candidates":
+        if how == "candidates" and "consistent_pair" not in rec["sources"]["laser"]:
             warnings.append(f"{seq}: laser events that score alike and no confident geometric sync to choose between "
                             f"them ({reason}): the best-scoring pair is used; check the contact sheets {names}")
     elif laser_offset is not None:
@@ -357,6 +376,14 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
                      "final": True}
     rec["warnings"] = warnings
     return rec
+
+
+def _pair_cost(geo: GeoSyncResult, shift_frames: float) -> float:
+    """The geometric cost curve's lowest value within a frame of ``shift_frames`` (inf if none)."""
+    near = np.abs(np.asarray(geo.shifts, dtype=np.float64) - shift_frames) <= 1.0
+    c = np.asarray(geo.costs, dtype=np.float64)[near]
+    c = c[np.isfinite(c)]
+    return float(c.min()) if len(c) else math.inf
 
 
 def _manual_choice(rec: dict, record: dict, geo: GeoSyncResult | None, geo_offset: float | None, trusted: bool,
