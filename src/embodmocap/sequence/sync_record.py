@@ -193,10 +193,13 @@ def first_record(captures: Mapping[str, Capture], manual: Mapping[str, int | Non
 
 def search_half_width_s(record: dict, cfg: GeoSyncConfig) -> float:
     """Half-width of the geometric sync's search around the slicing, seconds: ``search_s_without_laser``
-    without a laser event; otherwise ``search_s`` around every feasible pair of laser events (so the
-    geometry can tell which pair is right), at most ``search_s_without_laser``."""
+    without a laser event; ``search_s`` around manual frames; otherwise ``search_s`` around every
+    feasible pair of laser events (so the geometry can tell which pair is right), at most
+    ``search_s_without_laser``."""
     if record["slicing"]["source"] == "start":
         return cfg.search_s_without_laser
+    if record["slicing"]["source"] == "manual":
+        return cfg.search_s
     slicing = float(record["slicing"]["offset_s"])
     far = max((abs(p["offset_s"] - slicing) for p in record["sources"]["laser"].get("pairs", []) if p["feasible"]),
               default=0.0)
