@@ -229,10 +229,85 @@ def test_disagreement_is_a_warning_with_both_numbers_and_the_sheets():
     assert rec["chosen"]["source"] == "geometric"
 
 
-def test_manual_frames_override_and_no_source_is_an_error():
-    rec = decide(_record(1.0, slicing="manual"), _geo(0.3), GeoSyncConfig(), FPS, {}, "s")
-    assert rec["chosen"]["source"] == "manual" and rec["chosen"]["residual_s"] == 0.0
+def _manual_record():
+    rec = _record(1.0, slicing="manual")
+    rec["sources"]["manual"] = {"frames": {"v1": 10, "v2": 14}, "offset_s": 1.0}
+    return rec
+
+
+def test_manual_frames_give_the_integer_and_the_geometry_the_sub_frame_part():
+    rec = decide(_manual_record(), _geo(0.3), GeoSyncConfig(), FPS, {}, "s")
+    assert rec["chosen"]["source"] == "manual" and rec["chosen"]["residual_frames"] == pytest.approx(0.3, abs=0.1)
+    m = rec["sources"]["manual"]
+    assert m["subframe_applied"] and m["subframe_frames"] == rec["chosen"]["residual_frames"]
+    assert m["geometric_minus_manual_frames"] == pytest.approx(0.3, abs=0.1) and rec["warnings"] == []
+    # Turned off in session.toml: measured and recorded, not applied.
+    off = decide(_manual_record(), _geo(0.3), GeoSyncConfig(), FPS, {}, "s", subframe_sync=False)
+    assert off["chosen"]["residual_s"] == 0.0 and not off["sources"]["manual"]["subframe_applied"]
+    assert off["sources"]["manual"]["geometric_minus_manual_frames"] == m["geometric_minus_manual_frames"]
+    # An unconfident geometric sync adds nothing.
+    low = decide(_manual_record(), _geo(0.3, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    assert low["chosen"]["residual_s"] == 0.0 and low["warnings"] == []
+
+
+def test_manual_frames_the_geometry_contradicts_warn_then_stop_unless_forced():
+    rec = decide(_manual_record(), _geo(3.0), GeoSyncConfig(), FPS, {}, "s")
+    assert rec["chosen"]["residual_s"] == 0.0 and len(rec["warnings"]) == 1
+    w = rec["warnings"][0]
+    assert "view v2's sync_frame = 14" in w and "frame 17.0" in w  # the view, the given frame, the estimate
+    # Beyond five frames at high confidence: one clear error naming the key that forces the frames.
+    with pytest.raises(InputError) as err:
+        decide(_manual_record(), _geo(8.0, confidence=0.95), GeoSyncConfig(), FPS, {}, "s")
+    msg = str(err.value)
+    assert "v2" in msg and "sync_frame = 14" in msg and "frame 22.0" in msg and "sync_force = true" in msg
+    forced = decide(_manual_record(), _geo(8.0, confidence=0.95), GeoSyncConfig(), FPS, {}, "s", sync_force=True)
+    assert forced["chosen"]["source"] == "manual" and forced["chosen"]["residual_s"] == 0.0 and len(forced["warnings"]) == 1
+    # Not confident enough to call the frames wrong: a warning only.
+    assert decide(_manual_record(), _geo(8.0, confidence=0.5), GeoSyncConfig(), FPS, {}, "s")["chosen"]["source"] == "manual"
+
+
+def test_no_source_is_an_error():
     rec = decide(_record(None, slicing="start"), _geo(2.0), GeoSyncConfig(), FPS, {}, "s")
     assert rec["chosen"]["source"] == "geometric" and rec["chosen"]["residual_frames"] == pytest.approx(2.0, abs=0.1)
     with pytest.raises(InputError, match="no laser event"):
         decide(_record(None, slicing="start"), _geo(2.0, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+
+
+def _candidates_record():
+    """View 1 went dark twice (frames 40 and 10, alike); view 2 once (frame 14): sliced at the
+    best-scoring pair 40/14 (offset -26 frames); the pair 10/14 (offset +4 frames) is the other."""
+    rec = _record(-26 / FPS, slicing="candidates")
+    rec["slicing"]["offset_s"] = -26 / FPS
+    rec["sources"]["laser"]["pairs"] = [
+        {"frames": {"v1": 40, "v2": 14}, "offset_s": -26 / FPS, "score": 0.72, "overlap_s": 5.0, "feasible": True},
+        {"frames": {"v1": 10, "v2": 14}, "offset_s": 4 / FPS, "score": 0.64, "overlap_s": 6.0, "feasible": True}]
+    return rec
+
+
+def test_the_laser_pair_the_geometry_agrees_with_wins_over_the_best_scoring_one():
+    rec = decide(_candidates_record(), _geo(30.4), GeoSyncConfig(), FPS, {}, "s")
+    assert rec["sources"]["laser"]["consistent_pair"]["frames"] == {"v1": 10, "v2": 14}
+    assert rec["agreement"]["agree"] and rec["chosen"]["source"] == "geometric"
+    assert rec["chosen"]["offset_s"] * FPS == pytest.approx(4.4, abs=0.15) and not rec["chosen"]["overrides_laser"]
+    assert any("v1 10" in w and "taken over" in w for w in rec["warnings"])
+    # Not confident about the offset, the geometry still says which pair's rays meet better: the
+    # laser offset of that pair is used (its cost is far lower than the other pair's).
+    weak = decide(_candidates_record(), _geo(30.4, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    assert weak["chosen"]["source"] == "laser" and weak["chosen"]["residual_frames"] == pytest.approx(30.0)
+    c = weak["sources"]["laser"]["pair_costs_px2"]
+    assert c[1] < 0.9 * c[0] and any("fit the geometry better" in w for w in weak["warnings"])
+    # A flat cost curve tells nothing: the best-scoring pair, with a warning that the choice was blind.
+    from dataclasses import replace
+
+    g = _geo(30.4, confidence=0.1)
+    blind = decide(_candidates_record(), replace(g, costs=np.where(np.isfinite(g.costs), 50.0, np.nan)), GeoSyncConfig(),
+                   FPS, {}, "s")
+    assert blind["chosen"]["source"] == "laser" and blind["chosen"]["residual_s"] == 0.0
+    assert any("score alike" in w for w in blind["warnings"])
+
+
+def test_a_confident_geometry_that_no_laser_pair_agrees_with_replaces_the_laser():
+    rec = decide(_record(1.0), _geo(12.0, confidence=0.7), GeoSyncConfig(), FPS, {}, "s")
+    assert rec["chosen"]["source"] == "geometric" and rec["chosen"]["overrides_laser"]
+    assert rec["chosen"]["residual_frames"] == pytest.approx(12.0, abs=0.15) and rec["chosen"]["confidence"] == 0.7
+    assert any("disagree" in w and "the geometric offset is used" in w for w in rec["warnings"])

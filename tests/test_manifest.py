@@ -76,6 +76,7 @@ def test_load_resolves_everything(session: Path) -> None:
     assert room.markers == {"door": (1.5, -2.0, 0.25)}
     seq = m.sequences["seq0"]
     assert seq.scene == "room" and seq.note == "first take" and not seq.failed and not seq.optim_scale
+    assert seq.subframe_sync and not seq.sync_force  # the defaults: sub-frame part applied, nothing forced
     assert seq.contacts == (
         ContactMarker(120, (1.0, 2.0, 0.0)),
         ContactMarker(300, (1.5, -2.0, 0.25), marker="door"),
@@ -117,7 +118,7 @@ def test_round_trip_of_a_built_manifest_with_outside_path(tmp_path: Path) -> Non
                 name="s", scene="room",
                 views={v: ViewEntry(capture=Path("cap") / v) for v in ("v1", "v2")},
                 contacts=[ContactMarker(5, [0, 1, 2], marker="7"), ContactMarker(9, (3, 4, 5))],
-                optim_scale=True, failed=True, note="n",
+                optim_scale=True, failed=True, note="n", subframe_sync=False, sync_force=True,
             )
         },
         gender="female",
@@ -172,6 +173,8 @@ def test_unknown_scene(session: Path) -> None:
         ("version = 1", "version = true", "version", "an integer"),
         ("[1.5, -2, 0.25]", "[1.5, -2]", "scenes.room.markers.door", "a list of 3 finite numbers"),
         ('capture = "captures/room"', "capture = 3", "scenes.room.capture", "a path string"),
+        ('note = "first take"', 'note = "first take"\nsubframe_sync = "no"', "sequences.seq0.subframe_sync", "a boolean"),
+        ('note = "first take"', 'note = "first take"\nsync_force = 1', "sequences.seq0.sync_force", "a boolean"),
     ],
 )
 def test_wrong_types(session: Path, old: str, new: str, key: str, expected: str) -> None:

@@ -172,3 +172,19 @@ def test_without_a_laser_event_the_views_are_sliced_from_their_start(session, tm
     assert rec["sources"]["laser"]["offset_s"] is None and "geometrically" in rec["chosen"]["reason"]
     with pytest.raises(InputError, match="no laser-dot sync event"):
         stage.run(replace(blind, sync_without_laser="error"), _copy(session, tmp_path / "b"))
+
+
+def test_manual_frame_outside_the_view_names_the_view_the_frame_and_the_laser_estimate(session, tmp_path):
+    work = _copy(session, tmp_path)
+    gt = json.loads(SessionLayout(work).ground_truth.info.read_text())["sync_frames"]
+    m = load_manifest(work)
+    from dataclasses import replace
+
+    seq = m.sequences["seq0"]
+    views = {"v1": replace(seq.views["v1"], sync_frame=gt["v1"]), "v2": replace(seq.views["v2"], sync_frame=100000)}
+    write_manifest(replace(m, sequences={"seq0": replace(seq, views=views)}), work / "session.toml")
+    with pytest.raises(InputError) as err:
+        stage.run(CFG, work)
+    msg = str(err.value)
+    assert "sync_frame = 100000 of view v2 is outside" in msg and f"goes out at frame {gt['v2']}" in msg
+    assert "[sequences.seq0.views.v2]" in msg and not SessionLayout(work).sequence("seq0").sync.exists()

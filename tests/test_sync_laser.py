@@ -243,3 +243,46 @@ def test_no_event_in_real_videos_without_a_laser():
         from embodmocap.sequence.sync import detect_laser_event_in_frames
 
         assert detect_laser_event_in_frames(frames, cfg) is None, path
+
+
+def _clip_on(scene, on, n: int, seed: int, distance: float = 3.0):
+    """A clip of the scene's wall with the easy-to-see realistic dot drawn where ``on(i)``."""
+    built = with_wall_look(scene, "beige", np.random.default_rng(seed))
+    room = np.asarray(built.spec.floor_max_xy) - np.asarray(built.spec.floor_min_xy)
+    T = _cameras(built, n, min(distance, float(room.min()) - 0.6), 1.0, seed)
+    r = Renderer(built)
+    lk = _look(built, T[n // 2], 3.0, halo_px=8.0)
+    frames = []
+    for i in range(n):
+        post = frame_effects(lk, K, T[max(i - 1, 0)], T[i], T[min(i + 1, n - 1)], built.spec.laser_dot, i)
+        frames.append(r.render(K, T[i], None, bool(on(i)), laser_look=lk, post=post,
+                               rng=np.random.default_rng([seed, i])).rgb)
+    return frames
+
+
+@pytest.mark.slow
+def test_two_disappearances_in_a_view_are_both_kept_and_the_pair_that_leaves_no_overlap_is_not_chosen(scene):
+    from embodmocap.sequence.sync import detect_laser_candidates
+    from embodmocap.sequence.sync_record import first_record
+
+    n = 48
+    # View 1: the dot leaves the frame at 8, is back at 20 and goes out for good at 30; view 2 sees
+    # it go out once, at 24 (the real switch-off, 6 frames later on its clock).
+    v1 = _capture(_clip_on(scene, lambda i: i < 8 or 20 <= i < 30, n, seed=3))
+    v2 = _capture(_clip_on(scene, lambda i: i < 24, n, seed=4))
+    found = detect_laser_candidates(v1)
+    assert sorted(e.frame for e in found) == [8, 30]
+    # Slicing at 30/24 leaves v1 only 17 frames (0.57 s): with 0.7 s required that pair is not
+    # feasible, so 8/24 is sliced at whichever of the two scored best.
+    events, rec = first_record({"v1": v1, "v2": v2}, {}, SyncConfig(), True, min_overlap_s=0.7)
+    assert events["v1"].frame == 8 and events["v2"].frame == 24 and rec["slicing"]["source"] == "laser"
+    pairs = {(p["frames"]["v1"], p["frames"]["v2"]): p for p in rec["sources"]["laser"]["pairs"]}
+    assert not pairs[(30, 24)]["feasible"] and pairs[(8, 24)]["feasible"]
+    assert pairs[(30, 24)]["overlap_s"] == pytest.approx(17 / 30, abs=1e-3)
+    assert [c["frame"] for c in rec["sources"]["laser"]["views"]["v1"]["candidates"]] == [e.frame for e in found]
+    # With no overlap required both pairs are feasible; if they score alike, Stage III chooses.
+    _, rec = first_record({"v1": v1, "v2": v2}, {}, SyncConfig(), True)
+    assert all(p["feasible"] for p in rec["sources"]["laser"]["pairs"])
+    s = sorted(p["score"] for p in rec["sources"]["laser"]["pairs"])
+    assert rec["slicing"]["source"] == ("candidates" if s[0] >= 0.8 * s[1] else "laser")
+    assert rec["sources"]["laser"]["ambiguous"] == (rec["slicing"]["source"] == "candidates")

@@ -42,7 +42,8 @@ class GeosyncResult:
 
 def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], T_world_vio: Mapping[str, NDArray],
                    fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "",
-                   laser_dots: Mapping[str, object] | None = None) -> GeosyncResult:
+                   laser_dots: Mapping[str, object] | None = None, subframe_sync: bool = True,
+                   sync_force: bool = False) -> GeosyncResult:
     """With both views in the scene's world (whatever their time offset), the offset at which the
     two views' keypoint rays meet (:mod:`embodmocap.sequence.geosync`); the final choice among
     laser, manual and geometric (:mod:`embodmocap.sequence.sync_record`); the per-frame world
@@ -53,12 +54,13 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         fps: the sequence frame rate; contact_sheets: view -> the laser contact sheet's path (text
         for the messages); label: the sequence (log lines); laser_dots: view -> the view's last
         sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`;
-        None: no same-dot check).
+        None: no same-dot check); subframe_sync, sync_force: the sequence's session.toml keys
+        (:func:`embodmocap.sequence.sync_record.decide`).
     """
     from embodmocap.sequence.geosync import geometric_sync as find_offset
     from embodmocap.sequence.laser_check import check_laser_dots
     from embodmocap.sequence.subframe import frame_times
-    from embodmocap.sequence.sync_record import decide
+    from embodmocap.sequence.sync_record import decide, search_half_width_s
 
     names = [v for v in VIEWS if v in views]
     cams = {v: views[v].cameras for v in names}
@@ -68,13 +70,13 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         return _one_view_result(record, cams, world)
     if cfg.geosync.enabled:
         data = [(cams[v]["K"], world[v], views[v].keypoints, frame_times(cams[v], fps)) for v in names]
-        search = cfg.geosync.search_s_without_laser if record["slicing"]["source"] == "start" else cfg.geosync.search_s
+        search = search_half_width_s(record, cfg.geosync)
         geo = find_offset(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
         log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,
                  geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
     # The laser events as places in the world: one dot is one place in both views.
     dot_check = check_laser_dots(laser_dots, T_world_vio, cfg.geosync.laser_dot_agree_m)
-    rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check)
+    rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check, subframe_sync, sync_force)
     cameras_world = {}
     for v in names:
         # time_offset_s: the sub-frame sync Stage IV applies to this view (sync.json's residual).
@@ -84,6 +86,7 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
     ch = rec["chosen"]
     figures = {
         "sync_source": ch["source"], "sync_offset_s": round(ch["offset_s"], 6), "sync_residual_frames": ch["residual_frames"],
+        "sync_confidence": ch.get("confidence"), "sync_overrides_laser": ch.get("overrides_laser", False),
         "geometric_offset_frames": None if geo is None or not geo.found else round(geo.offset_frames, 4),
         "geometric_confidence": None if geo is None else round(geo.confidence, 3),
         "laser_minus_geometric_frames": (rec["agreement"] or {}).get("laser_minus_geometric_frames"),

@@ -38,6 +38,7 @@ from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import rotation_angle
 from embodmocap.io.layout import VIEWS
 from embodmocap.io.stage_files import CameraFile, RegistrationFile
+from embodmocap.sequence.sync_record import UNPAIRED_SLICING
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -312,7 +313,7 @@ def place_by_performer(cfg: CalibrateConfig, v: str, views: Mapping[str, ViewInp
 
     others = [w for w in VIEWS if w != v and w in regs]
     note = "; placing it through the performer filmed by the other view did not fit the scene either"
-    if not others or slicing_source == "start":
+    if not others or slicing_source in UNPAIRED_SLICING:
         raise err
     w = others[0]
     r = regs[w]
@@ -514,6 +515,8 @@ class CalibrateInputs:
         contact_sheets: view -> the laser contact sheet's path (text for the sync messages).
         laser_dots: view -> its last sighting of the laser dot, read from its capture
             (:func:`embodmocap.sequence.laser_check.observe_laser_dots`; None: no same-dot check).
+        subframe_sync, sync_force: the sequence's session.toml keys for manual sync frames
+            (:func:`embodmocap.sequence.sync_record.decide`).
     """
 
     sequence: str
@@ -527,6 +530,8 @@ class CalibrateInputs:
     sources: dict[str, object] = field(default_factory=dict)
     contact_sheets: dict[str, str] = field(default_factory=dict)
     laser_dots: dict | None = None
+    subframe_sync: bool = True
+    sync_force: bool = False
 
 
 @dataclass(frozen=True)
@@ -577,9 +582,10 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
         files[v] = performer_registration(rv, T_place)
         regs[v] = dict(files[v].items())
     init, init_report = initial_offsets(cfg, inputs.views, regs)
-    report = refine_report(cfg, inputs.views, init, regs, init_report, points, slicing != "start",
+    report = refine_report(cfg, inputs.views, init, regs, init_report, points, slicing not in UNPAIRED_SLICING,
                            sequence=inputs.sequence, scene=inputs.scene)
     T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names}
     geo = geometric_sync(cfg, inputs.sync_record, drift_corrected(inputs.views, report), T_world_vio, inputs.fps,
-                         inputs.contact_sheets, inputs.sequence, inputs.laser_dots)
+                         inputs.contact_sheets, inputs.sequence, inputs.laser_dots, inputs.subframe_sync,
+                         inputs.sync_force)
     return CalibrateResult({v: files[v] for v in names}, report, geo.record, geo.cameras_world, T_world_vio)

@@ -47,6 +47,7 @@ from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.sequence.laser_check import observe_laser_dots
+from embodmocap.sequence.sync_record import UNPAIRED_SLICING
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
@@ -132,7 +133,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
 
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
-    use_tracks = slicing != "start" and len(names) > 1
+    use_tracks = slicing not in UNPAIRED_SLICING and len(names) > 1
     fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in names],
                          cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
                          cfg.scene_points, cfg.track_frames, use_tracks)
@@ -160,7 +161,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                          rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in names},
                          {v: report["views"][v].get("drift") for v in names},
                          *[path_fingerprint(out.view(v).keypoints) for v in names],
-                         *[path_fingerprint(out.view(v).cameras) for v in names], cfg.geosync)
+                         *[path_fingerprint(out.view(v).cameras) for v in names], cfg.geosync,
+                         (entry.subframe_sync, entry.sync_force))
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
         if step.run:
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
@@ -168,7 +170,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in names}) \
                 if len(names) > 1 else None  # one dot seen by two views is one place; one view has nothing to compare
             geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
-                                       sheets, entry.name, dots)
+                                       sheets, entry.name, dots, entry.subframe_sync, entry.sync_force)
             write_json(out.sync, geo.record)
             amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
             for w in geo.record["warnings"]:

@@ -151,7 +151,7 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
 
     # 1. Laser sync (manual frames of session.toml count as given).
     manual = {v: entry.views[v].sync_frame for v in views}
-    events, record = first_record(caps, manual, cfg.sync, geometric=True, seq=entry.name)
+    events, record = first_record(caps, manual, cfg.sync, geometric=True, seq=entry.name, min_overlap_s=1.0)
     res.figures["sync"] = {"laser": {v: {k: d.get(k) for k in ("found", "frame", "confidence")}
                                      for v, d in record["sources"]["laser"]["views"].items()},
                            "slicing": record["slicing"]["source"]}
@@ -174,15 +174,17 @@ def check_sequence(cfg: CheckConfig, lay: SessionLayout, entry, indexes: dict) -
     world = _register(cfg, lay, entry, caps, maps, seq_idx, kps, indexes, res)
 
     # 4. Geometry: view angle, geometric sync (two views: one view has no angle and no sync).
+    geo = None
     if world is not None and kps is not None and not entry.one_view:
         _angle(cfg, world, kps, caps, res)
-        _geosync(cfg, world, kps, caps, maps, seq_idx, fps, record, res)
+        geo = _geosync(cfg, world, kps, caps, maps, seq_idx, fps, record, res)
     if world is not None and not entry.one_view:
         _dot_check(cfg, world, caps, maps, seq_idx, record, res)
     if entry.one_view:
         res.figures["sync"]["found"] = ["one_view"]
     else:
         _sync_verdict(cfg, record, res)
+        _sync_decision(cfg, entry, record, geo, maps[VIEWS[0]].fps, res)
 
     # 5. Tracking jumps.
     _jumps(cfg, caps, maps, res)
@@ -354,13 +356,14 @@ def _angle(cfg: CheckConfig, world: dict, kps: dict, caps, res: SequenceCheck) -
 
 def _geosync(cfg: CheckConfig, world, kps, caps, maps, seq_idx, fps: float, record: dict, res: SequenceCheck) -> None:
     from embodmocap.sequence.geosync import geometric_sync
+    from embodmocap.sequence.sync_record import search_half_width_s
 
     times = {}
     for v in VIEWS:
         cap, fm = caps[v], maps[v]
         ts = np.asarray(cap.timestamps_s, float)
         times[v] = (ts[fm.raw_frames] - ts[fm.event_frame])[seq_idx] if len(ts) >= cap.num_frames else fm.seq_times_s[seq_idx]
-    search = cfg.geosync.search_s_without_laser if record["slicing"]["source"] == "start" else cfg.geosync.search_s
+    search = search_half_width_s(record, cfg.geosync)
     geo = geometric_sync(caps["v1"].rgb_intrinsics.K, world["v1"], kps["v1"], times["v1"],
                          caps["v2"].rgb_intrinsics.K, world["v2"], kps["v2"], times["v2"], fps, search, cfg.geosync)
     s = res.figures["sync"]
@@ -369,6 +372,7 @@ def _geosync(cfg: CheckConfig, world, kps, caps, maps, seq_idx, fps: float, reco
     s["geometric_confidence"] = round(geo.confidence, 3)
     s["geometric_std_frames"] = round(geo.std_frames * full_fps / fps, 3) if math.isfinite(geo.std_frames) else None
     s["geometric_message"] = geo.message
+    return geo
 
 
 def _dot_check(cfg: CheckConfig, world, caps, maps, seq_idx, record: dict, res: SequenceCheck) -> None:
@@ -405,10 +409,48 @@ def _sync_verdict(cfg: CheckConfig, record: dict, res: SequenceCheck) -> None:
     elif not laser_ok:
         lost = [v for v, d in s["laser"].items() if not d["found"]]
         res.warn(f"no laser event in {', '.join(lost)}; the geometric sync will be used")
-    elif geo_ok and abs(s["geometric_offset_frames"]) > cfg.geosync.agree_frames and record["slicing"]["source"] != "start":
-        res.warn(f"laser and geometric sync disagree by {abs(s['geometric_offset_frames']):.1f} frames")
     # A laser event in both views is enough: the check's geometric sync rests on a handful of
     # registered frames and is reported as a cross-check, not required.
+
+
+def _sync_decision(cfg: CheckConfig, entry, record: dict, geo, fps: float, res: SequenceCheck) -> None:
+    """What Stage III's choice (:func:`embodmocap.sequence.sync_record.decide`) would make of the
+    check's sync sources: which laser events it takes, whether the geometric offset replaces the
+    laser, whether manual frames are contradicted; the check warns (or fails) where Stage III would."""
+    from embodmocap.sequence.laser_check import DotCheck
+    from embodmocap.sequence.sync_record import decide
+
+    if geo is None or not geo.found:
+        return
+    s = res.figures["sync"]
+    dot = s.get("laser_dot_check")
+    try:
+        rec = decide(record, geo, cfg.geosync, fps, {}, entry.name, DotCheck(**dot) if dot else None,
+                     entry.subframe_sync, entry.sync_force)
+    except InputError as err:
+        if record["slicing"]["source"] == "manual":
+            res.fail(f"manual sync frames contradicted: {err}")
+        return  # no usable source: the verdict above already says so
+    ch = rec["chosen"]
+    s["decision"] = {"source": ch["source"], "offset_frames": round(ch["offset_s"] * fps, 3), "reason": ch["reason"],
+                     "overrides_laser": ch["overrides_laser"]}
+    pair = rec["sources"]["laser"].get("consistent_pair")
+    if pair is not None:
+        res.warn("a view has several laser events: the geometric sync supports frames "
+                 + ", ".join(f"{v} {f}" for v, f in pair["frames"].items()) + ", which will be used")
+    elif ch["overrides_laser"]:
+        res.warn(f"laser and geometric sync disagree by {abs(rec['agreement']['laser_minus_geometric_frames']):.1f} "
+                 "frames; the geometric offset will be used")
+    elif rec["agreement"] is not None and not rec["agreement"]["agree"]:
+        res.warn(f"laser and geometric sync disagree by {abs(rec['agreement']['laser_minus_geometric_frames']):.1f} "
+                 "frames; the laser offset will be used")
+    elif record["slicing"]["source"] == "candidates" and ch["source"] == "laser":
+        res.warn("a view has laser events that score alike and the geometric sync cannot tell them apart; "
+                 "set sync_frame in session.toml")
+    elif record["slicing"]["source"] == "manual" and rec["sources"]["manual"].get("geometric_minus_manual_frames") is not None \
+            and abs(rec["sources"]["manual"]["geometric_minus_manual_frames"]) > cfg.geosync.agree_frames and geo.confidence >= cfg.geosync.min_confidence:
+        res.warn(f"the manual sync frames differ from the geometric sync by "
+                 f"{abs(rec['sources']['manual']['geometric_minus_manual_frames']):.1f} frames")
 
 
 def _jumps(cfg: CheckConfig, caps, maps, res: SequenceCheck) -> None:

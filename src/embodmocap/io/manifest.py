@@ -24,6 +24,8 @@ Format (version 1), see ``docs/formats.md``::
     scene = "room"
     contacts = [{frame = 120, xyz = [1.0, 2.0, 0.0]}, {frame = 300, marker = "door"}]
     optim_scale = false                 # optional
+    subframe_sync = true                # optional: apply the measured sub-frame part of manual sync
+    sync_force = false                  # optional: keep manual sync frames the geometry contradicts
     failed = false                      # optional: failed sequences are skipped unless forced
     note = ""                           # optional
     [sequences.seq0.views.v1]
@@ -153,6 +155,13 @@ class SequenceEntry:
     """Free text carried along (e.g. why the sequence failed)."""
     failed: bool = False
     """Marked as failed: ``run`` skips it unless forced."""
+    subframe_sync: bool = True
+    """With manual ``sync_frame`` values: Stage III still measures the sub-frame part of the offset
+    (geometric sync) and applies it when it agrees with the manual frames within a frame; False =
+    the manual frames are applied as given (integer frames)."""
+    sync_force: bool = False
+    """Keep the manual ``sync_frame`` values even when the geometric sync contradicts them by more
+    than ``geosync.manual_error_frames`` with high confidence (otherwise that is an error)."""
 
     @property
     def view_names(self) -> tuple[str, ...]:
@@ -318,7 +327,7 @@ _CHECKS: dict[str, Callable[[Any], Any]] = {
 
 _TOP_KEYS = ("version", "body_model", "gender", "scenes", "sequences")
 _SCENE_KEYS = ("capture", "indoor", "markers")
-_SEQUENCE_KEYS = ("scene", "views", "contacts", "optim_scale", "note", "failed")
+_SEQUENCE_KEYS = ("scene", "views", "contacts", "optim_scale", "note", "failed", "subframe_sync", "sync_force")
 _VIEW_KEYS = ("capture", "sync_frame", "keypoints", "masks", "depth", "body_prior")
 _CONTACT_KEYS = ("frame", "xyz", "marker")
 
@@ -422,6 +431,8 @@ def _parse_sequence(name: str, raw: Any, scenes: dict[str, SceneEntry], r: _Read
     optim_scale = r.get(table, "optim_scale", key, "a boolean", default=False)
     note = r.get(table, "note", key, "a string", default="")
     failed = r.get(table, "failed", key, "a boolean", default=False)
+    subframe_sync = r.get(table, "subframe_sync", key, "a boolean", default=True)
+    sync_force = r.get(table, "sync_force", key, "a boolean", default=False)
 
     views: dict[str, ViewEntry] = {}
     views_ok = True
@@ -447,7 +458,7 @@ def _parse_sequence(name: str, raw: Any, scenes: dict[str, SceneEntry], r: _Read
         return None
     return SequenceEntry(
         name=name, scene=scene, views=views, contacts=tuple(contacts),
-        optim_scale=optim_scale, note=note, failed=failed,
+        optim_scale=optim_scale, note=note, failed=failed, subframe_sync=subframe_sync, sync_force=sync_force,
     )
 
 

@@ -49,6 +49,11 @@ def _sequence_to_dict(seq: SequenceEntry, rel: Callable[[Path], str]) -> dict[st
     out: dict[str, Any] = {"scene": seq.scene, "optim_scale": seq.optim_scale, "failed": seq.failed}
     if seq.note:
         out["note"] = seq.note
+    # Written only when not the default, so older readers keep reading files that do not use them.
+    if not seq.subframe_sync:
+        out["subframe_sync"] = False
+    if seq.sync_force:
+        out["sync_force"] = True
     if seq.contacts:
         out["contacts"] = [
             {"frame": c.frame, "marker": c.marker} if c.marker is not None else {"frame": c.frame, "xyz": list(c.xyz)}

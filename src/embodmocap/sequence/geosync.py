@@ -88,7 +88,23 @@ class GeoSyncConfig:
     laser offset is then not used (see :mod:`embodmocap.sequence.laser_check`)."""
     prefer: str = "auto"
     """Which source wins when both exist: ``auto`` (geometric when it agrees with the laser within
-    ``agree_frames`` or is more confident, else laser), ``laser`` or ``geometric``."""
+    ``agree_frames``, when it disagrees with every laser candidate at confidence >=
+    ``override_confidence``, or when it is more confident than the laser; else laser), ``laser``
+    or ``geometric``."""
+    override_confidence: float = 0.6
+    """A geometric offset at least this confident that no pair of laser events agrees with (within
+    ``agree_frames``) replaces the laser, with a warning; below it the more confident source wins."""
+    pair_cost_ratio: float = 0.9
+    """A geometric sync not confident enough to give the offset still chooses between pairs of
+    laser events: the pair whose shift has the lowest reprojection cost (best of the shifts within
+    a frame of it) wins when that cost is at most this fraction of every other pair's. Pairs are
+    seconds apart, where the cost differs by far more than between neighbouring shifts."""
+    manual_error_frames: float = 5.0
+    """Manual ``sync_frame`` values that a confident geometric sync (>= ``manual_error_confidence``)
+    puts further off than this many frames are an error (``sync_force = true`` in session.toml keeps
+    them); between ``agree_frames`` and this, a warning."""
+    manual_error_confidence: float = 0.8
+    """Confidence of the geometric sync above which it may call manual sync frames wrong."""
 
     def __post_init__(self) -> None:
         if self.prefer not in ("auto", "laser", "geometric"):

@@ -117,6 +117,13 @@ class SyncConfig:
     """Events scoring below this are not reported (the caller then asks for a manual frame). A
     bare foot's pink-white highlight walking out of a real lab video scored 0.38; switch-offs of
     the benchmark's realistic dots score 0.51-0.93, of its easy dots 0.70-0.89."""
+    max_events: int = 4
+    """At most this many plausible events (scoring >= ``min_confidence``) are kept per view, best
+    first; the sync chooses among them with the other view's events and the geometric sync."""
+    rival_ratio: float = 0.8
+    """A runner-up pair of events scoring at least this fraction of the best pair's score makes
+    the laser ambiguous: the views are then sliced at the best pair but Stage III does not take
+    their frames as simultaneous, and the geometric sync decides among the pairs."""
     search_s: float = 10.0
     """Only events in the first this many seconds of a capture are searched (the laser is
     switched off near the start of a recording)."""

@@ -81,10 +81,11 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     manual = {v: entry.views[v].sync_frame for v in views}
     geometric = cfg.sync_without_laser == "geometric"
     fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in views},
-                          manual, cfg.sync, geometric)
+                          manual, cfg.sync, geometric, cfg.min_overlap_s)
     with sm.step("sync", fp_sync, force=force, label=label) as step:
         if step.run:
-            events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name)
+            events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name,
+                                          min_overlap_s=cfg.min_overlap_s)
             sheets = _contact_sheets(entry.name, captures, events, record, out)
             write_json(out.sync, record)
             step.record([out.sync, *sheets], {f"{v}_sync_frame": events[v].frame for v in views} | {

@@ -292,10 +292,10 @@ def _weigh_drops(scored: list[tuple[float, _Track]], cfg: SyncConfig) -> list[tu
     return [(s * (1.0 - w + w * float(np.clip(_drop(t, cfg) / top, 0.0, 1.0))), t) for s, t in scored]
 
 
-def detect_laser_event_in_frames(
+def detect_laser_candidates_in_frames(
     frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig = SyncConfig(), max_event_frame: int | None = None,
-) -> SyncEvent | None:
-    """Find the laser-dot event in a stream of (H, W, 3) uint8 RGB frames (frame 0 first).
+) -> list[SyncEvent]:
+    """Every plausible laser-dot event in a stream of (H, W, 3) uint8 RGB frames (frame 0 first).
 
     Args:
         frames: the frames in order; each is read once.
@@ -303,11 +303,15 @@ def detect_laser_event_in_frames(
         max_event_frame: the event frame must be <= this (None: anywhere with enough frames after).
 
     Returns:
-        The best event, or None if no track qualifies with confidence >= ``cfg.min_confidence``.
+        The events scoring at least ``cfg.min_confidence``, best first (at most
+        ``cfg.max_events``); empty when none qualifies. A view may show several disappearances (a
+        dot swept off the part of the wall a phone films and back, a red speck covered by a hand):
+        the sync chooses among them with the other view's events and the geometry
+        (:mod:`embodmocap.sequence.sync_record`).
     """
     tracks, n_read, size = _track_dots(frames, cfg)
     if n_read == 0:
-        return None
+        return []
     last_allowed = n_read if max_event_frame is None else max_event_frame
     scored = [(s, t) for t in tracks if (s := _score(t, cfg, size, n_read, last_allowed)) is not None]
     scored = _weigh_drops(scored, cfg)
@@ -315,13 +319,29 @@ def detect_laser_event_in_frames(
     if not scored or scored[0][0] < cfg.min_confidence:
         log.info("no laser-dot event: %d dot tracks, best score %s", len(tracks),
                  f"{scored[0][0]:.2f}" if scored else "none")
+        return []
+    return [SyncEvent(frame=t.frames[-1] + 1, confidence=round(s, 4), dot_xy_before=tuple(t.xy[-1]),
+                      frames_seen=len(t.frames), method="auto")
+            for s, t in scored[: max(1, cfg.max_events)] if s >= cfg.min_confidence]
+
+
+def detect_laser_event_in_frames(
+    frames: Iterable[NDArray[np.uint8]], cfg: SyncConfig = SyncConfig(), max_event_frame: int | None = None,
+) -> SyncEvent | None:
+    """The best of :func:`detect_laser_candidates_in_frames` (None if there is none); a warning
+    when the runner-up scores alike."""
+    found = detect_laser_candidates_in_frames(frames, cfg, max_event_frame)
+    if not found:
         return None
-    conf, best = scored[0]
-    if len(scored) > 1 and scored[1][0] > 0.8 * conf:
-        log.warning("two laser-dot disappearances score alike (frames %d: %.2f and %d: %.2f); check the contact sheet",
-                    best.frames[-1] + 1, conf, scored[1][1].frames[-1] + 1, scored[1][0])
-    return SyncEvent(frame=best.frames[-1] + 1, confidence=round(conf, 4), dot_xy_before=tuple(best.xy[-1]),
-                     frames_seen=len(best.frames), method="auto")
+    _warn_rival(found, cfg)
+    return found[0]
+
+
+def _warn_rival(found: list[SyncEvent], cfg: SyncConfig, where: str = "") -> None:
+    if len(found) > 1 and found[1].confidence >= cfg.rival_ratio * found[0].confidence:
+        log.warning("%stwo laser-dot disappearances score alike (frames %d: %.2f and %d: %.2f); the other view's event "
+                    "and the geometric sync decide, check the contact sheet", where, found[0].frame,
+                    found[0].confidence, found[1].frame, found[1].confidence)
 
 
 def _search_frames(capture: Capture, cfg: SyncConfig) -> int:
@@ -332,26 +352,36 @@ def _search_frames(capture: Capture, cfg: SyncConfig) -> int:
     return min(capture.num_frames, int(math.ceil(cfg.search_s * capture.fps)))
 
 
-def detect_laser_event(capture: Capture, cfg: SyncConfig = SyncConfig()) -> SyncEvent | None:
-    """Find the laser-dot event in the first ``cfg.search_s`` seconds of ``capture``.
+def detect_laser_candidates(capture: Capture, cfg: SyncConfig = SyncConfig()) -> list[SyncEvent]:
+    """Every plausible laser-dot event in the first ``cfg.search_s`` seconds of ``capture``, best
+    first (:func:`detect_laser_candidates_in_frames`).
 
     Frames are read once, in increasing order (cheap for video captures), and downscaled to at
     most ``cfg.max_width`` wide. ``dot_xy_before`` is returned in full-resolution pixels.
     """
     n_search = _search_frames(capture, cfg)
     n_read = min(capture.num_frames, n_search + cfg.absent_frames + 1)
-    ev = detect_laser_event_in_frames((capture.frames.rgb(i) for i in range(n_read)), cfg,
-                                      max_event_frame=n_search - 1)
-    if ev is None or ev.dot_xy_before is None:
-        return ev
+    found = detect_laser_candidates_in_frames((capture.frames.rgb(i) for i in range(n_read)), cfg,
+                                              max_event_frame=n_search - 1)
     W = capture.rgb_intrinsics.width
     s = min(1.0, cfg.max_width / W) if W > 0 else 1.0
-    # Back to full-resolution pixels (pixel centres at integers in both images).
-    x, y = ((c + 0.5) / s - 0.5 for c in ev.dot_xy_before)
-    ev = SyncEvent(ev.frame, ev.confidence, (float(x), float(y)), ev.frames_seen, ev.method)
-    log.info("%s: laser dot gone at frame %d (seen %d frames, confidence %.2f)",
-             capture.path, ev.frame, ev.frames_seen, ev.confidence)
-    return ev
+    out = []
+    for ev in found:
+        # Back to full-resolution pixels (pixel centres at integers in both images).
+        x, y = ((c + 0.5) / s - 0.5 for c in ev.dot_xy_before)
+        out.append(SyncEvent(ev.frame, ev.confidence, (float(x), float(y)), ev.frames_seen, ev.method))
+    if out:
+        log.info("%s: laser dot gone at frame %d (seen %d frames, confidence %.2f)%s", capture.path, out[0].frame,
+                 out[0].frames_seen, out[0].confidence,
+                 "; other candidates: " + ", ".join(f"{e.frame} ({e.confidence:.2f})" for e in out[1:]) if len(out) > 1 else "")
+        _warn_rival(out, cfg, f"{capture.path}: ")
+    return out
+
+
+def detect_laser_event(capture: Capture, cfg: SyncConfig = SyncConfig()) -> SyncEvent | None:
+    """The best of :func:`detect_laser_candidates` (None when there is none)."""
+    found = detect_laser_candidates(capture, cfg)
+    return found[0] if found else None
 
 
 # --------------------------------------------------------------------------- both views

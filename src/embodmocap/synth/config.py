@@ -61,6 +61,19 @@ class LaserConfig:
     red_clothes_prob: float = 0.35
     """Chance that the performer wears red (a red distractor for the detector), realistic and
     none modes."""
+    false_event: bool = False
+    """A second, false disappearance in one view (``false_event_view``): shortly before the real
+    switch-off the dot leaves that view's frame (the pointer swept off the part of the wall it
+    films) and comes back, so the view shows two disappearances that look alike and only the
+    other view's event and the geometry tell which is the sync. The view records long enough
+    before the event to see both (views then start up to 1.3 s before it)."""
+    false_event_view: Literal["v1", "v2"] = "v1"
+    """The view that sees the false disappearance."""
+    false_event_lead_s: tuple[float, float] = (0.6, 0.9)
+    """Range of how long before the real switch-off the dot leaves the view, seconds."""
+    false_event_gone_s: tuple[float, float] = (0.33, 0.4)
+    """Range of how long the dot stays out of the view, seconds (longer than the detector's
+    ``absent_frames``, so it reads as a disappearance; shorter than the lead, so it comes back)."""
 
 
 @dataclass(frozen=True)
@@ -184,6 +197,9 @@ class SynthConfig:
              and len(self.laser.walls) > 0 and 0 <= self.laser.occlusion_frames[0] <= self.laser.occlusion_frames[1]
              and 0 <= self.laser.occlusion_prob <= 1 and 0 <= self.laser.red_clothes_prob <= 1,
              "laser ranges must be (low, high) with 0 < low <= high, walls not empty, probabilities in [0, 1]"),
+            (not self.laser.false_event or (0 < self.laser.false_event_gone_s[0] <= self.laser.false_event_gone_s[1]
+                                            < self.laser.false_event_lead_s[0] <= self.laser.false_event_lead_s[1] <= 1.0),
+             "laser.false_event_gone_s and false_event_lead_s must be ranges with gone < lead <= 1 s"),
         ]
         bad = [msg for ok, msg in checks if not ok]
         if bad:

@@ -102,7 +102,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     brng = _rng(cfg.seed, 2)
     betas = np.zeros(body.num_betas)
     betas[:4] = brng.normal(0.0, [0.8, 0.6, 0.5, 0.5])
-    lead_max_s = max(cfg.lead_min_s + 0.6, 1.0)
+    # A false disappearance needs the view to see the dot before it, gone, and back before the event.
+    lead_max_s = max(cfg.lead_min_s + 0.6, 1.0, cfg.laser.false_event_lead_s[1] + 0.4 if cfg.laser.false_event else 0.0)
     total_s = lead_max_s + cfg.seconds + 0.2
     script = script_motion(built.spec, body, betas, total_s, cfg.fps, _rng(cfg.seed, 3), MotionScriptConfig())
     params = script.params
@@ -121,9 +122,17 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     idle_end = next((end for name, start, end in script.segments if name == "idle"), int(lead_max_s * cfg.fps))
     event = int(min(round(lead_max_s * cfg.fps), max(idle_end - 3, round(cfg.lead_min_s * cfg.fps) + 1)))
     trng = _rng(cfg.seed, 4)
+    false_off = None  # motion frames [a, b) in which the dot is out of the false-event view
+    if cfg.laser.false_event:
+        frng = _rng(cfg.seed, 90)
+        a = event - int(round(frng.uniform(*cfg.laser.false_event_lead_s) * cfg.fps))
+        false_off = (a, a + int(round(frng.uniform(*cfg.laser.false_event_gone_s) * cfg.fps)))
     starts, ends = {}, {}
     for v in VIEWS:
-        lead = int(trng.integers(round(cfg.lead_min_s * cfg.fps), event + 1))
+        lo = round(cfg.lead_min_s * cfg.fps)
+        if false_off is not None and v == cfg.laser.false_event_view:
+            lo = max(lo, event - false_off[0] + 8)  # the dot seen >= 8 frames before it leaves
+        lead = int(trng.integers(min(lo, event), event + 1))
         starts[v] = event - lead
         ends[v] = M - int(trng.integers(0, round(cfg.tail_max_s * cfg.fps) + 1))
 
@@ -192,6 +201,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         T_vio_cam = add_path_errors(T_vio_cam, _rng(cfg.seed, 90 + k), cfg.vio_errors())
         # The laser goes off half-way between motion frames e-1 and e.
         laser_on = (t_motion < event - 0.5) & (cfg.laser.mode != "none")
+        if false_off is not None and v == cfg.laser.false_event_view:
+            laser_on &= ~((t_motion >= false_off[0] - 0.5) & (t_motion < false_off[1] - 0.5))
         log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
         gt_px, vis, masks_dir = _write_capture(
             cfg, lay.view_capture(cfg.sequence_name, v), renderers[v], T_scene_cam, T_vio_cam, K, K_depth,
@@ -245,6 +256,11 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
         # Raw frame j of view v is the motion's instant start_v + j + offset_v (motion frames).
         "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in filmed},
+        # The false disappearance: its view and the raw frames of that view without the dot.
+        "false_event": None if false_off is None else {
+            "view": cfg.laser.false_event_view,
+            "raw_frames": [int(false_off[0] - starts[cfg.laser.false_event_view]),
+                           int(false_off[1] - starts[cfg.laser.false_event_view])]},
         "laser": {"mode": cfg.laser.mode, "wall": wall_look if cfg.laser.mode != "easy" else "scene",
                   "red_clothes": clothes is not None,
                   "views": {v: (asdict(looks[v]) if looks[v] is not None else None) for v in filmed}},
