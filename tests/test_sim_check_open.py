@@ -111,8 +111,10 @@ def test_thighs_under_a_table_top_seen_from_above_are_not_inside_it(seated):
     assert s["penetration_max_cm"] < 0.5
     assert s["unseen_side_frames"] == s["frames"]
     assert s["contact_fraction"]["left_leg"] == 0.0  # 6 cm below the sheet: not touching it
-    # The same top pushed 3 cm down into the thighs: the body crosses a seen surface.
-    sunk = _add(sq, *_open_box(np.subtract(lo, [0, 0, 0.09]), np.subtract(hi, [0, 0, 0.09])))
+    # The same top lowered until its upper face is 3 cm below the thighs' highest point: the body
+    # crosses a seen surface (and reads as deep as the thighs under it, down to max_depth_m: the
+    # scan does not know how thick the top is).
+    sunk = _add(sq, *_open_box(np.subtract(lo, [0, 0, 0.13]), np.subtract(hi, [0, 0, 0.13])))
     assert plausibility(sunk, residual=False)["summary"]["penetration_max_cm"] > 2.5
 
 

@@ -175,23 +175,25 @@ class SceneQuery:
             inside[check] = self.up_gap(p[check]) < self.enclosed_m
         return np.where(inside, -dist, dist), n
 
-    def exits(self, inner: NDArray, outer: NDArray) -> NDArray[np.bool_]:
+    def exits(self, inner: NDArray, outer: NDArray) -> tuple[NDArray[np.bool_], NDArray]:
         """(N,) whether the segment from ``inner`` (N, 3) to ``outer`` (N, 3) leaves through the
         seen side of a face: its first surface lies on the segment and faces the way it goes
-        (the face's voted normal, :meth:`face_side`, points toward ``outer``)."""
+        (the face's voted normal, :meth:`face_side`, points toward ``outer``); and (N, 3) that
+        face's voted normal (0 where none is crossed)."""
         p0 = np.asarray(inner, np.float32).reshape(-1, 3)
         d = np.asarray(outer, np.float32).reshape(-1, 3) - p0
+        out, normal = np.zeros(len(p0), dtype=bool), np.zeros((len(p0), 3))
         if len(p0) == 0:
-            return np.zeros(0, dtype=bool)
+            return out, normal
         r = self.scene.cast_rays(self._o3d.core.Tensor(np.concatenate([p0, d], axis=1)))
         t = r["t_hit"].numpy()  # in units of |d|: <= 1 is on the segment
         hit = np.flatnonzero(t <= 1.0)
-        out = np.zeros(len(p0), dtype=bool)
         if len(hit):
             ids = r["primitive_ids"].numpy()[hit].astype(np.int64)
             n = self._normal[ids] * self.face_side(ids)[:, None]
             out[hit] = np.einsum("nc,nc->n", n, d[hit]) > 0
-        return out
+            normal[hit] = np.where(out[hit, None], n, 0.0)
+        return out, normal
 
     def up_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight up to the first surface (inf where none)."""
@@ -253,7 +255,7 @@ def entered_through_surface(query: SceneQuery, verts: NDArray, sd: NDArray, norm
         t, e = np.nonzero(ab | ba)  # edges from behind to outside
         inner = np.where(ab[t, e], a[e], b[e])
         outer = np.where(ab[t, e], b[e], a[e])
-        crossed = query.exits(v[t, inner], v[t, outer])
+        crossed, cross_n = query.exits(v[t, inner], v[t, outer])
         if not crossed.any():
             continue
         nv = normals[s:s + chunk]
@@ -261,8 +263,22 @@ def entered_through_surface(query: SceneQuery, verts: NDArray, sd: NDArray, norm
         t2, e2 = np.nonzero(bh[:, a] & bh[:, b] & same)  # edges within the behind patches
         g = coo_matrix((np.ones(len(e2), np.int8), (t2 * V + a[e2], t2 * V + b[e2])), shape=(n * V, n * V))
         _, label = connected_components(g, directed=False)
-        hit = np.unique(label[t[crossed] * V + inner[crossed]])
-        entered[s:s + chunk] = np.isin(label, hit).reshape(n, V) & bh
+        # A patch penetrates the sheet it went through: its vertices behind that sheet (normal
+        # within 60 degrees of a crossed face's), not those behind another one it borders (a
+        # thigh through a seat's rounded front edge does not put the buttocks above the seat
+        # behind a sliver of its top). Crossed normals per patch, deduplicated on a coarse grid.
+        key = np.unique(np.column_stack([label[t[crossed] * V + inner[crossed]],
+                                         np.round(cross_n[crossed] * 4).astype(np.int64)]), axis=0)
+        cand = np.flatnonzero(bh.reshape(-1) & np.isin(label, key[:, 0]))
+        lo = np.searchsorted(key[:, 0], label[cand], "left")
+        cnt = np.searchsorted(key[:, 0], label[cand], "right") - lo
+        vi = np.repeat(cand, cnt)
+        ki = np.repeat(lo - np.cumsum(cnt) + cnt, cnt) + np.arange(cnt.sum())
+        kn = key[ki, 1:] / np.linalg.norm(key[ki, 1:], axis=1, keepdims=True).clip(1e-9)
+        ok = np.einsum("pc,pc->p", nv.reshape(-1, 3)[vi], kn) > same_sheet_cos
+        flat = np.zeros(n * V, dtype=bool)
+        flat[vi[ok]] = True
+        entered[s:s + chunk] = flat.reshape(n, V)
     return entered
 
 
