@@ -229,8 +229,10 @@ def entered_through_surface(query: SceneQuery, verts: NDArray, sd: NDArray, norm
     the outside (``sd >= 0``) crosses a face from behind (:meth:`SceneQuery.exits`): a foot through
     the floor, a seat pushed into, a hand in a table top. A patch that meets the outside only round
     an edge (a calf under a seat, thighs under a table top) lies on the unseen side of an open
-    sheet: outside. Splitting patches by sheet keeps a small true crossing (feet tucked 2 cm into
-    a chair's leg) from lending its "inside" to the calves under the seat top next to it.
+    sheet: outside. Of a patch that went through, only the vertices behind the sheet it crossed
+    (closest face's normal within 60 degrees of a crossed face's) penetrate: splitting patches by
+    sheet and this keep a small true crossing (a thigh through a seat's rounded front edge) from
+    lending its "inside" to vertices behind another face next to it.
 
     Args:
         query: the scene; verts: (T, V, 3) body vertices; sd: (T, V) their signed distances;
