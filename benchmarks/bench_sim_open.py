@@ -110,25 +110,12 @@ def rows_for(session: Path, interactions: tuple[str, ...]) -> list[dict]:
 def check_time_60s(session: Path) -> dict:
     """Seconds of ``plausibility`` (residual included, as ``sim check`` runs it) on the session's fit
     tiled to 60 s, with ``through_surface`` and without, vertex strides 1 and 4, one process."""
-    import dataclasses
+    import sys
 
-    from embodmocap.sim.check import plausibility
-    from embodmocap.sim.config import SimCheckConfig
-    from embodmocap.sim.session import load_sequence
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_sim_side import check_time_60s as timed
 
-    sq = load_sequence(session)
-    p = sq.params
-    idx = np.tile(np.arange(len(p)), int(np.ceil(60.0 * p.fps / len(p))))[: int(round(60.0 * p.fps))]
-    long = sq.with_params(dataclasses.replace(p, global_orient=p.global_orient[idx], body_pose=p.body_pose[idx],
-                                              transl=p.transl[idx]))
-    out = {"session": session.name, "frames": int(len(idx)), "scene_faces": int(len(sq.scene_faces))}
-    for stride in (1, 4):
-        for name, on in (("old", False), ("through_surface", True)):
-            t0 = time.perf_counter()
-            plausibility(long, SimCheckConfig(vertex_stride=stride, through_surface=on))
-            out[f"seconds_stride_{stride}_{name}"] = round(time.perf_counter() - t0, 2)
-            print(json.dumps(out), flush=True)
-    return out
+    return timed(session, (("old", {"through_surface": False}), ("through_surface", {})))
 
 
 def main() -> None:
