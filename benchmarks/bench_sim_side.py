@@ -84,8 +84,10 @@ def session_rows(session: Path) -> tuple[list[dict], dict]:
     return rows, floor
 
 
-def check_time_60s(session: Path) -> dict:
-    """Seconds of ``plausibility`` on the session's fit tiled to 60 s, old rule vs new, one process."""
+def check_time_60s(session: Path, variants: tuple[tuple[str, dict], ...] = (
+        ("closest_alone", {"side_radius_m": 0.0}), ("new", {"side_radius_m": 0.3}))) -> dict:
+    """Seconds of ``plausibility`` on the session's fit tiled to 60 s, per (name, SimCheckConfig
+    settings) variant (default: old rule vs new), vertex strides 1 and 4, one process."""
     from embodmocap.sim.check import plausibility
     from embodmocap.sim.config import SimCheckConfig
     from embodmocap.sim.session import load_sequence
@@ -97,9 +99,9 @@ def check_time_60s(session: Path) -> dict:
                                               transl=p.transl[idx]))
     out = {"session": session.name, "frames": int(len(idx)), "scene_faces": int(len(sq.scene_faces))}
     for stride in (1, 4):
-        for name, radius in (("closest_alone", 0.0), ("new", 0.3)):
+        for name, settings in variants:
             t0 = time.perf_counter()
-            plausibility(long, SimCheckConfig(vertex_stride=stride, side_radius_m=radius))
+            plausibility(long, SimCheckConfig(vertex_stride=stride, **settings))
             out[f"seconds_stride_{stride}_{name}"] = round(time.perf_counter() - t0, 2)
             print(json.dumps(out), flush=True)
     return out

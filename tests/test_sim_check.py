@@ -234,8 +234,11 @@ def test_a_turned_over_floor_patch_under_the_feet_is_not_solid(truth):
     pushed = plausibility(_shifted(floor_truth, dz=-0.05), residual=False)
     assert np.allclose(pushed["per_frame"]["penetration_cm"], 5.0 + np.array(base["penetration_cm"]), atol=0.5)
     # The closest triangle alone (side_radius_m = 0, the old rule) reads the lifted body as inside.
-    alone = plausibility(_shifted(floor_truth, dz=0.05), SimCheckConfig(side_radius_m=0.0), residual=False)
-    assert alone["summary"]["penetration_max_cm"] > 4.0
+    alone = SimCheckConfig(side_radius_m=0.0, through_surface=False)
+    assert plausibility(_shifted(floor_truth, dz=0.05), alone, residual=False)["summary"]["penetration_max_cm"] > 4.0
+    # The entry rule alone reads it right: the feet never went through the floor to get there.
+    entry = SimCheckConfig(side_radius_m=0.0)
+    assert plausibility(_shifted(floor_truth, dz=0.05), entry, residual=False)["summary"]["penetration_max_cm"] == 0.0
 
 
 def test_side_of_a_table_top_and_of_a_floor_turned_over_entirely():

@@ -28,7 +28,10 @@ residual root force/torque  the part of the root wrench that MuJoCo inverse dyna
 
 Vertices whose closest surface is more than ``max_depth_m`` (0.3 m) "inside" are not counted as
 penetrating or touching: a scanned mesh has holes, and there the closest surface is a far one
-whose normal says nothing. The summary gives the max and mean over frames of each figure and the fraction of frames in
+whose normal says nothing. A scan sees each surface from one side only (no seat has an underside
+in it), so a vertex behind its closest face penetrates only when the body went through a seen
+surface to get there (:func:`entered_through_surface`); feet tucked under a seat lie on the sheet's
+unseen side and read as outside (``SimCheckConfig.through_surface``). The summary gives the max and mean over frames of each figure and the fraction of frames in
 contact per part. Contact and the residual use the fitted mesh; the inverse dynamics use the
 MuJoCo model of :mod:`embodmocap.sim.model` (masses from its geoms).
 """
@@ -172,6 +175,26 @@ class SceneQuery:
             inside[check] = self.up_gap(p[check]) < self.enclosed_m
         return np.where(inside, -dist, dist), n
 
+    def exits(self, inner: NDArray, outer: NDArray) -> tuple[NDArray[np.bool_], NDArray]:
+        """(N,) whether the segment from ``inner`` (N, 3) to ``outer`` (N, 3) leaves through the
+        seen side of a face: its first surface lies on the segment and faces the way it goes
+        (the face's voted normal, :meth:`face_side`, points toward ``outer``); and (N, 3) that
+        face's voted normal (0 where none is crossed)."""
+        p0 = np.asarray(inner, np.float32).reshape(-1, 3)
+        d = np.asarray(outer, np.float32).reshape(-1, 3) - p0
+        out, normal = np.zeros(len(p0), dtype=bool), np.zeros((len(p0), 3))
+        if len(p0) == 0:
+            return out, normal
+        r = self.scene.cast_rays(self._o3d.core.Tensor(np.concatenate([p0, d], axis=1)))
+        t = r["t_hit"].numpy()  # in units of |d|: <= 1 is on the segment
+        hit = np.flatnonzero(t <= 1.0)
+        if len(hit):
+            ids = r["primitive_ids"].numpy()[hit].astype(np.int64)
+            n = self._normal[ids] * self.face_side(ids)[:, None]
+            out[hit] = np.einsum("nc,nc->n", n, d[hit]) > 0
+            normal[hit] = np.where(out[hit, None], n, 0.0)
+        return out, normal
+
     def up_gap(self, points: NDArray) -> NDArray:
         """(N,) distance straight up to the first surface (inf where none)."""
         p = np.asarray(points, np.float32).reshape(-1, 3)
@@ -183,6 +206,103 @@ class SceneQuery:
         p = np.asarray(points, np.float32).reshape(-1, 3)
         rays = np.concatenate([p, np.tile(np.float32([0, 0, -1]), (len(p), 1))], axis=1)
         return self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
+
+
+def mesh_edges(faces: NDArray) -> NDArray[np.int64]:
+    """(M, 2) the unique undirected edges (low index first) of a triangle mesh's faces (F, 3)."""
+    f = np.asarray(faces, np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def entered_through_surface(query: SceneQuery, verts: NDArray, sd: NDArray, normals: NDArray, near: NDArray,
+                            edges: NDArray, same_sheet_cos: float = 0.5, chunk: int = 256) -> NDArray[np.bool_]:
+    """(T, V) which body vertices behind a scene face got there through a seen surface.
+
+    A scan sees a surface from one side only: the top of a seat, not its underside; the top of a
+    table, not the space under it. Behind such a sheet the mesh says nothing, so "behind the
+    closest face" does not mean "inside a solid": a calf under a chair seat is behind the seat's
+    top. What the scan does tell is that a body cannot reach the far side of a seen surface without
+    passing through it or round its edge. So a connected patch of body vertices behind the scene
+    (``sd < 0`` and ``near``, connected by body mesh ``edges`` whose ends are behind the same
+    sheet: their closest faces' normals within 60 degrees) penetrates only when one of its edges to
+    the outside (``sd >= 0``) crosses a face from behind (:meth:`SceneQuery.exits`): a foot through
+    the floor, a seat pushed into, a hand in a table top. A patch that meets the outside only round
+    an edge (a calf under a seat, thighs under a table top) lies on the unseen side of an open
+    sheet: outside. Of a patch that went through, only the vertices behind the sheet it crossed
+    (closest face's normal within 60 degrees of a crossed face's) penetrate: splitting patches by
+    sheet and this keep a small true crossing (a thigh through a seat's rounded front edge) from
+    lending its "inside" to vertices behind another face next to it.
+
+    Args:
+        query: the scene; verts: (T, V, 3) body vertices; sd: (T, V) their signed distances;
+        normals: (T, V, 3) outward normals of their closest faces; near: (T, V) vertices not deeper
+        than the hole cut-off; edges: (M, 2) body mesh edges; same_sheet_cos: two behind vertices
+        are behind the same sheet when their normals' dot product exceeds this; chunk: frames per
+        connected-components graph (memory).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    behind = (sd < 0) & near
+    outside = sd >= 0
+    a, b = edges[:, 0], edges[:, 1]
+    entered = np.zeros_like(behind)
+    for s in range(0, len(sd), chunk):
+        bh, out, v = behind[s:s + chunk], outside[s:s + chunk], verts[s:s + chunk]
+        n, V = bh.shape
+        if not bh.any():
+            continue
+        ab, ba = bh[:, a] & out[:, b], bh[:, b] & out[:, a]
+        t, e = np.nonzero(ab | ba)  # edges from behind to outside
+        inner = np.where(ab[t, e], a[e], b[e])
+        outer = np.where(ab[t, e], b[e], a[e])
+        crossed, cross_n = query.exits(v[t, inner], v[t, outer])
+        if not crossed.any():
+            continue
+        nv = normals[s:s + chunk]
+        same = np.einsum("tmc,tmc->tm", nv[:, a], nv[:, b]) > same_sheet_cos
+        t2, e2 = np.nonzero(bh[:, a] & bh[:, b] & same)  # edges within the behind patches
+        g = coo_matrix((np.ones(len(e2), np.int8), (t2 * V + a[e2], t2 * V + b[e2])), shape=(n * V, n * V))
+        _, label = connected_components(g, directed=False)
+        # A patch penetrates the sheet it went through: its vertices behind that sheet (normal
+        # within 60 degrees of a crossed face's), not those behind another one it borders (a
+        # thigh through a seat's rounded front edge does not put the buttocks above the seat
+        # behind a sliver of its top). Crossed normals per patch, deduplicated on a coarse grid.
+        key = np.unique(np.column_stack([label[t[crossed] * V + inner[crossed]],
+                                         np.round(cross_n[crossed] * 4).astype(np.int64)]), axis=0)
+        cand = np.flatnonzero(bh.reshape(-1) & np.isin(label, key[:, 0]))
+        lo = np.searchsorted(key[:, 0], label[cand], "left")
+        cnt = np.searchsorted(key[:, 0], label[cand], "right") - lo
+        vi = np.repeat(cand, cnt)
+        ki = np.repeat(lo - np.cumsum(cnt) + cnt, cnt) + np.arange(cnt.sum())
+        kn = key[ki, 1:] / np.linalg.norm(key[ki, 1:], axis=1, keepdims=True).clip(1e-9)
+        ok = np.einsum("pc,pc->p", nv.reshape(-1, 3)[vi], kn) > same_sheet_cos
+        flat = np.zeros(n * V, dtype=bool)
+        flat[vi[ok]] = True
+        entered[s:s + chunk] = flat.reshape(n, V)
+    return entered
+
+
+def _unseen_side(query: SceneQuery, verts_all: NDArray, sd: NDArray, normals: NDArray, stride: int,
+                 body_faces: NDArray, max_depth_m: float) -> NDArray[np.bool_]:
+    """(T, V) the strided vertices behind a scene face that did not get there through it
+    (:func:`entered_through_surface`, on the full body mesh: a patch is connected through the
+    vertices a stride skips, whose signed distances are then measured on the frames that need them)."""
+    behind = (sd < 0) & (sd > -max_depth_m)
+    frames = np.flatnonzero(behind.any(axis=1))
+    if len(frames) == 0:
+        return np.zeros_like(behind)
+    v = verts_all[frames]
+    if stride == 1:
+        sd_f, n_f = sd[frames], normals[frames]
+    else:
+        sd_f, n_f = query.signed_distance(v.reshape(-1, 3))
+        sd_f, n_f = sd_f.reshape(v.shape[:2]), n_f.reshape(v.shape)
+    entered = entered_through_surface(query, v, sd_f, n_f, sd_f > -max_depth_m, mesh_edges(body_faces))[:, ::stride]
+    out = np.zeros_like(behind)
+    out[frames] = behind[frames] & ~entered
+    return out
 
 
 def _part_of_vertex(body_model) -> NDArray[np.int64]:
@@ -281,6 +401,11 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
     sd, normals = sd.reshape(T, V), normals.reshape(T, V, 3)
     gap = query.down_gap(verts.reshape(-1, 3)).reshape(T, V)
     near = sd > -cfg.max_depth_m  # farther inside than that: a hole in the scan, not a penetration
+    unseen = np.zeros((T, V), dtype=bool)
+    if cfg.through_surface:
+        unseen = _unseen_side(query, verts_all, sd, normals, stride, sq.body_model.faces, cfg.max_depth_m)
+        # On the unseen side of an open sheet: outside it, facing its far side.
+        sd, normals = np.where(unseen, -sd, sd), np.where(unseen[..., None], -normals, normals)
     gap = np.where((sd < 0) & near, 0.0, gap)  # inside a solid: no gap
     pen = np.clip(-np.where(near, sd, np.inf).min(axis=1), 0.0, None)
     import warnings
@@ -311,6 +436,7 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
         "floating_max_cm": float(floating[supported].max() * 100) if supported.any() else 0.0,
         "floating_mean_cm": float(floating[supported].mean() * 100) if supported.any() else 0.0,
         "unsupported_frames": int((~supported).sum()),
+        "unseen_side_frames": int(unseen.any(axis=1).sum()),
         "foot_skating_mean_cm": float(skate[:-1].mean() * 100) if T > 1 else 0.0,
         "foot_skating_max_cm": float(skate.max() * 100) if T else 0.0,
         "contact_fraction": {k: float(v.mean()) if T else 0.0 for k, v in contact.items()},

@@ -105,6 +105,13 @@ class SimCheckConfig:
     side_sheet_m: float = 0.01
     """Only surface within this distance of the closest triangle's plane votes (the same sheet;
     the far face of a 4 cm table top or a wall meeting the floor does not), metres."""
+    through_surface: bool = True
+    """A body vertex behind a scene face penetrates only when its patch of such vertices got
+    there through a seen surface (a body mesh edge from it to the outside crosses a face from
+    behind); a patch that meets the outside only round an edge lies on the unseen side of an open
+    sheet (a calf under a chair seat whose underside the scan never saw) and reads as outside,
+    its distance to the sheet as a gap. False = the closest face's side alone decides (the rule
+    before session 7)."""
 
 
 @dataclass(frozen=True)
