@@ -10,7 +10,7 @@ With ``--old-src OTHER/src`` the same is done for another checkout (e.g. main be
 interleaved stage by stage on two copies of the session (old then new for one stage, new then old
 for the next, so that a load spike on a shared machine does not fall on one side only); the table
 then has both rows per stage and the new / old ratios, and the evaluation's accuracy figures of both.
-``--device cuda`` passes ``--device`` to the new code's stages (the old code runs on its default).
+``--device cuda`` passes ``--device`` to the new code's Stage IV (the old code runs on its default).
 
 Targets: Stage III on a 60 s two-view sequence <= 3 min (issue 5, split between feature work =
 registration and optimisation = refinement); Stage IV fit of 1800 frames <= 2 min (issue 6);
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_out/pipeline"))
     ap.add_argument("--old-src", type=Path, default=None, help="src folder of the code to compare with (interleaved)")
-    ap.add_argument("--device", default=None, help="--device of the new code's stages (scene, calibrate, motion)")
+    ap.add_argument("--device", default=None, help="--device of the new code's Stage IV (auto, cpu, cuda)")
     args = ap.parse_args()
     from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize
@@ -97,7 +97,7 @@ def main() -> None:
         order = codes if i % 2 == 0 else codes[::-1]
         for code, src, sess in order:
             extra = [] if stage == "evaluate" else ["--force"]
-            if args.device and code == "new" and stage in ("scene", "calibrate", "motion"):
+            if args.device and code == "new" and stage == "motion":
                 extra += ["--device", args.device]
             wall, rss, cpu = run_cli_usage(stage, str(sess), *extra, src=src)
             rows[stage, code] = (wall, cpu, rss)
