@@ -131,7 +131,12 @@ def main() -> int:
     sys.path.insert(0, str(SRC))  # this checkout's package, installed or not
     out_dir = Path(os.environ.get("OUT") or "/tmp/out")
     out_dir.mkdir(parents=True, exist_ok=True)
-    import torch
+    try:
+        import scipy  # noqa: F401 (the fit's quaternion blending)
+        import torch
+    except ImportError as err:
+        print(f"gpu_check: cannot run the fit: {err} (needs numpy, scipy and torch; set PYTHON=... to another python)")
+        return 2
 
     info = {"python": platform.python_version(), "torch": torch.__version__, "cuda_build": torch.version.cuda,
             "cuda_available": torch.cuda.is_available(), "cpu_threads": torch.get_num_threads(),

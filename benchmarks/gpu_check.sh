@@ -17,9 +17,18 @@ SESSION_ARG="${2:-}"
 PY="${PYTHON:-python3}"
 command -v "$PY" >/dev/null || PY=python
 export PYTHONPATH="$PWD/src${PYTHONPATH:+:$PYTHONPATH}"
+# numpy or scipy missing and wheels carried (WHEELS, default ./wheels: e.g. `pip download numpy scipy
+# --only-binary=:all: --python-version 3.12 --platform manylinux2014_x86_64 -d wheels`): install them
+# offline into /tmp/gpu_check_site (not under $OUT; nothing else on the machine is touched).
+WHEELS="${WHEELS:-$PWD/wheels}"
+if ! "$PY" -c "import numpy, scipy" 2>/dev/null && [ -d "$WHEELS" ]; then
+  echo "numpy/scipy missing: installing from $WHEELS into /tmp/gpu_check_site"
+  "$PY" -m pip install --no-index --find-links "$WHEELS" --target "/tmp/gpu_check_site" numpy scipy 2>&1 | tail -2
+  export PYTHONPATH="$PYTHONPATH:/tmp/gpu_check_site"
+fi
 {
   echo "== $(date -u) on $(hostname); $($PY --version 2>&1)"
-  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 || echo "nvidia-smi: not found"
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null || echo "nvidia-smi: not found"
   # What imports and what does not (only numpy, scipy and torch are needed for the fit check).
   for m in numpy scipy torch cv2 open3d pycolmap av tyro trimesh; do
     $PY -c "import $m; print('import $m: ok', getattr($m, '__version__', ''))" 2>/dev/null || echo "import $m: MISSING"
