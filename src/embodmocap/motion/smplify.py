@@ -49,12 +49,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
+from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -430,52 +430,6 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     timing[f"{label}phase1"] = timing.get(f"{label}phase1", 0.0) + t1 - t0
     timing[f"{label}phase2"] = timing.get(f"{label}phase2", 0.0) + t2 - t1
     return _State(*(x.detach() for x in (s.betas, s.go, s.pose, s.transl)))
-
-
-# ---------------------------------------------------------------------------------------------
-# Windows
-# ---------------------------------------------------------------------------------------------
-
-
-def window_ranges(T: int, length: int, overlap: int) -> list[tuple[int, int]]:
-    """Evenly spaced windows ``[start, end)`` of ``length`` frames covering ``0..T``, neighbours
-    sharing at least ``overlap`` frames; one window when ``T <= length``."""
-    if length <= overlap or overlap < 0:
-        raise ValueError(f"window length {length} must exceed the overlap {overlap} >= 0")
-    if T <= length:
-        return [(0, T)]
-    n = math.ceil((T - overlap) / (length - overlap))
-    starts = np.round(np.linspace(0, T - length, n)).astype(int)
-    return [(int(s), int(s) + length) for s in starts]
-
-
-def _blend_weights(ranges: list[tuple[int, int]], T: int, ramp: int) -> NDArray[np.float64]:
-    """(n, T) blend weight of each window per frame: a trapezoid rising over ``ramp`` frames at
-    inner window edges, normalised to sum 1 per frame (linear cross-fade in a ``ramp`` overlap)."""
-    w = np.zeros((len(ranges), T))
-    for k, (s, e) in enumerate(ranges):
-        t = np.arange(s, e) + 0.5
-        up = np.ones(e - s) if s == 0 else np.clip((t - s) / max(ramp, 1), 0, 1)
-        down = np.ones(e - s) if e == T else np.clip((e - t) / max(ramp, 1), 0, 1)
-        w[k, s:e] = np.minimum(up, down)
-    return w / w.sum(0, keepdims=True)
-
-
-def _blend(ranges, states: list[_State], T: int, ramp: int) -> tuple[NDArray, NDArray, NDArray]:
-    """Blend window results: (T, 3) global_orient, (T, 69) body_pose, (T, 3) transl."""
-    w = _blend_weights(ranges, T, ramp)
-    quat = np.zeros((T, 24, 4))
-    transl = np.zeros((T, 3))
-    for k, ((s, e), st) in enumerate(zip(ranges, states)):
-        rot = np.concatenate([st.go.cpu().numpy(), st.pose.cpu().numpy()], 1).reshape(-1, 3)
-        q = Rotation.from_rotvec(rot).as_quat().reshape(e - s, 24, 4)
-        # q and -q are one rotation: flip to the hemisphere of what is accumulated so far.
-        sign = np.where((q * quat[s:e]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-        quat[s:e] += w[k, s:e, None, None] * sign * q
-        transl[s:e] += w[k, s:e, None] * st.transl.cpu().numpy()
-    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
-    rot = Rotation.from_quat(quat.reshape(-1, 4)).as_rotvec().reshape(T, 72)
-    return rot[:, :3], rot[:, 3:], transl
 
 
 # ---------------------------------------------------------------------------------------------
