@@ -27,10 +27,23 @@ def run_cli(*args: str, src: str | None = None) -> tuple[float, int]:
     """Run ``embodmocap ARGS`` in a child; returns (wall seconds, peak RSS in MB: the child's own
     high-water mark). ``src``: put this ``src`` folder (another checkout, e.g. the code before a
     change) first on the child's path."""
+    wall, rss, _ = run_cli_usage(*args, src=src)
+    return wall, rss
+
+
+def run_cli_usage(*args: str, src: str | None = None) -> tuple[float, int, float]:
+    """:func:`run_cli` plus the child's CPU seconds (user + system, all its threads), from the
+    kernel's accounting of the waited-for child (``RUSAGE_CHILDREN`` before and after)."""
     import os
+    import resource
 
     env = None if src is None else dict(os.environ, PYTHONPATH=src)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", _CODE, *args], check=True, capture_output=True, text=True, env=env)
+    proc = subprocess.run([sys.executable, "-c", _CODE, *args], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
-    return wall, int(proc.stdout.strip().splitlines()[-1]) // 1024
+    if proc.returncode != 0:
+        raise RuntimeError(f"embodmocap {' '.join(args)} failed ({proc.returncode}):\n{proc.stdout[-2000:]}{proc.stderr[-4000:]}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, int(proc.stdout.strip().splitlines()[-1]) // 1024, cpu

@@ -2,26 +2,70 @@
 
 Synthesises the session (indoor, 640x480, 15 s scene capture) unless OUT already holds it, then runs
 each stage from scratch in its own child process (`embodmocap <stage> SESSION --force`): wall time,
-peak RSS of that process, frames/s (sequence frames per second of wall time, per view where the
-stage works per view), and the split of each stage into its steps from the stage manifests.
+CPU time (user + system of all the child's threads), peak RSS of that process, frames/s (sequence
+frames per second of wall time, per view where the stage works per view), and the split of each
+stage into its steps from the stage manifests.
+
+With ``--old-src OTHER/src`` the same is done for another checkout (e.g. main before a change),
+interleaved stage by stage on two copies of the session (old then new for one stage, new then old
+for the next, so that a load spike on a shared machine does not fall on one side only); the table
+then has both rows per stage and the new / old ratios, and the evaluation's accuracy figures of both.
+``--device cuda`` passes ``--device`` to the new code's Stage IV (the old code runs on its default).
 
 Targets: Stage III on a 60 s two-view sequence <= 3 min (issue 5, split between feature work =
-registration and optimisation = refinement); Stage IV fit of 1800 frames <= 2 min (issue 6).
+registration and optimisation = refinement); Stage IV fit of 1800 frames <= 2 min (issue 6);
+issue 30: the four stages <= 1/3 of main's wall time, Stages I, III and IV each <= 1/2.
 
     .venv/bin/python benchmarks/bench_pipeline.py --seconds 60 --out /tmp/bench_pipeline
+    git worktree add --detach /tmp/main-src main
+    .venv/bin/python benchmarks/bench_pipeline.py --seconds 60 --out /tmp/bench_pipeline --old-src /tmp/main-src/src
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 from pathlib import Path
 
-from _child import run_cli
+from _child import run_cli_usage
 
 STAGES = (("scene", "scenes/scene0/manifest.json"), ("sequence", "sequences/seq0/manifest.json"),
           ("calibrate", "sequences/seq0/calibrate_manifest.json"), ("motion", "sequences/seq0/motion_manifest.json"),
           ("evaluate", None))
+#: Accuracy figures of ``evaluation.json``'s sequence entry shown for both codes.
+ACCURACY = ("w_mpjpe_mm", "wa_mpjpe_mm", "rte_pct", "camera_rot_err_deg", "camera_trans_err_m")
+
+
+def _steps(session: Path, manifest: str | None) -> dict[str, float]:
+    if manifest is None:
+        return {}
+    man = json.loads((session / manifest).read_text())
+    return {k: v["seconds"] for k, v in man["steps"].items()}
+
+
+def _accuracy(session: Path) -> dict[str, float]:
+    ev = json.loads((session / "evaluation.json").read_text())
+    seq = next(iter(ev["sequences"].values()))
+    flat: dict[str, float] = {}
+
+    def walk(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                flat[f"{prefix}{k}"] = v
+    walk(seq)
+    return {k: v for k, v in flat.items() if k.split(".")[-1] in ACCURACY}
+
+
+def _copy_session(src: Path, dst: Path) -> Path:
+    """A fresh copy of the synthesised inputs (no stage outputs), so each code starts from scratch."""
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("scenes", "sequences", "evaluation.json"))
+    return dst
 
 
 def main() -> None:
@@ -29,6 +73,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_out/pipeline"))
+    ap.add_argument("--old-src", type=Path, default=None, help="src folder of the code to compare with (interleaved)")
+    ap.add_argument("--device", default=None, help="--device of the new code's Stage IV (auto, cpu, cuda)")
     args = ap.parse_args()
     from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize
@@ -36,22 +82,49 @@ def main() -> None:
     session = args.out / f"indoor_{int(args.seconds)}s"
     if not (session / "ground_truth" / "ground_truth.json").is_file():
         synthesize(SynthConfig(seed=args.seed, seconds=args.seconds, scene_seconds=15.0), session)
+    new_src = str(Path(__file__).resolve().parents[1] / "src")
+    if args.old_src is None:
+        codes = [("new", new_src, session)]
+    else:
+        codes = [("old", str(args.old_src.resolve()), _copy_session(session, args.out / "run_old")),
+                 ("new", new_src, _copy_session(session, args.out / "run_new"))]
+    print(f"load average at start: {os.getloadavg()}", flush=True)
     frames = None
-    print("| stage | wall s | peak RSS MB | frames/s | steps (s) |")
-    print("|---|---|---|---|---|")
-    for stage, manifest in STAGES:
-        extra = [] if stage == "evaluate" else ["--force"]
-        wall, rss = run_cli(stage, str(session), *extra)
-        steps = {}
-        if manifest is not None:
-            man = json.loads((session / manifest).read_text())
-            steps = {k: v["seconds"] for k, v in man["steps"].items()}
+    rows: dict[tuple[str, str], tuple[float, float, int]] = {}
+    print("| stage | code | wall s | CPU s | peak RSS MB | frames/s | steps (wall s) |")
+    print("|---|---|---|---|---|---|---|")
+    for i, (stage, manifest) in enumerate(STAGES):
+        order = codes if i % 2 == 0 else codes[::-1]
+        for code, src, sess in order:
+            extra = [] if stage == "evaluate" else ["--force"]
+            if args.device and code == "new" and stage == "motion":
+                extra += ["--device", args.device]
+            wall, rss, cpu = run_cli_usage(stage, str(sess), *extra, src=src)
+            rows[stage, code] = (wall, cpu, rss)
+            steps = _steps(sess, manifest)
             if stage == "sequence":
-                frames = man["figures"]["frames"]
-        fps = f"{frames / wall:.1f}" if frames and stage != "scene" else "-"
-        print(f"| {stage} | {wall:.1f} | {rss} | {fps} | {', '.join(f'{k} {v:.1f}' for k, v in steps.items())} |",
-              flush=True)
-    print(f"\n{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps)")
+                frames = json.loads((sess / manifest).read_text())["figures"]["frames"]
+            fps = f"{frames / wall:.1f}" if frames and stage != "scene" else "-"
+            print(f"| {stage} | {code} | {wall:.1f} | {cpu:.1f} | {rss} | {fps} | "
+                  f"{', '.join(f'{k} {v:.1f}' for k, v in steps.items())} |", flush=True)
+    print(f"\n{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps); load average at the end: {os.getloadavg()}")
+    if args.old_src is None:
+        return
+    print("\n| stage | wall new / old | CPU new / old | peak RSS new / old |")
+    print("|---|---|---|---|")
+    four = [s for s, _ in STAGES[:4]]
+    for stage in four + ["evaluate"]:
+        (wo, co, ro), (wn, cn, rn) = rows[stage, "old"], rows[stage, "new"]
+        print(f"| {stage} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} |")
+    tot = {c: [sum(rows[s, c][k] for s in four) for k in range(2)] + [max(rows[s, c][2] for s in four)] for c in ("old", "new")}
+    print(f"| Stages I-IV | {tot['new'][0] / tot['old'][0]:.3f} ({tot['new'][0]:.0f} / {tot['old'][0]:.0f} s) | "
+          f"{tot['new'][1] / tot['old'][1]:.3f} | {tot['new'][2] / tot['old'][2]:.3f} ({tot['new'][2]} / {tot['old'][2]} MB) |")
+    acc = {c: _accuracy(s) for c, _, s in codes}
+    print("\n| figure | old | new | new / old |")
+    print("|---|---|---|---|")
+    for k in sorted(acc["old"]):
+        o, n = acc["old"][k], acc["new"].get(k, float("nan"))
+        print(f"| {k} | {o:.4g} | {n:.4g} | {n / o if o else float('nan'):.3f} |")
 
 
 if __name__ == "__main__":

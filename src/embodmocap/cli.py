@@ -21,6 +21,7 @@ from embodmocap.errors import EmbodMocapError, interrupted, os_error_line, stop_
 from embodmocap.scene.config import SceneConfig
 from embodmocap.batch.commands import Batch, Catalog
 from embodmocap.calibrate.config import CalibrateConfig
+from embodmocap.device import Device
 from embodmocap.check.config import CheckConfig
 from embodmocap.evaluate.benchmark import BenchmarkConfig
 from embodmocap.evaluate.report import ReportConfig
@@ -381,13 +382,17 @@ class Motion:
     """Sequence to process; needed only when the session has several."""
     force: bool = False
     """Redo every step even when its outputs are up to date."""
+    device: Device | None = None
+    """Where the fit runs: ``auto``, ``cpu`` or ``cuda`` (replaces ``--smplify.device`` when given;
+    ``cuda`` without a CUDA device is an error)."""
     config: Annotated[MotionConfig, tyro.conf.arg(name="")] = MotionConfig()
     """Stage settings."""
 
     def run(self) -> int:
+        from embodmocap.device import motion_on_device
         from embodmocap.motion.stage import run
 
-        out = run(self.config, self.session, self.seq, force=self.force)
+        out = run(motion_on_device(self.config, self.device), self.session, self.seq, force=self.force)
         print(f"sequence {out.name}: motion in {out.layout.smpl_world}")
         for k, v in out.figures.items():
             print(f"  {k}: {v}")
@@ -477,6 +482,11 @@ def _preflight(cmd) -> None:
     """Before a command that writes into a session: writable folders, stale temporary files gone."""
     from embodmocap.io.preflight import check_writable, prepare_session
 
+    device = cmd.device if isinstance(cmd, Motion) else cmd.config.device if isinstance(cmd, Run) else None
+    if device is not None:  # `--device cuda` without CUDA: one clear error before anything else
+        from embodmocap.device import resolve_device
+
+        resolve_device(device)
     if isinstance(cmd, (Scene, Sequence, Calibrate, Motion, Run, Evaluate, Report, Export, Render, RobotRetarget, SimCheck)):
         prepare_session(cmd.session)
     if isinstance(cmd, Mono):

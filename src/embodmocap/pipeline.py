@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from embodmocap.calibrate.config import CalibrateConfig
+from embodmocap.device import Device, motion_on_device
 from embodmocap.errors import EmbodMocapError, interrupted, os_error_line
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
@@ -45,6 +46,10 @@ class PipelineConfig:
     """Stage IV."""
     include_failed: bool = False
     """Also process sequences the manifest marks ``failed = true``."""
+    device: Device | None = None
+    """Where the torch work runs (Stage IV's fit): ``auto``, ``cpu`` or ``cuda``; replaces
+    ``motion.smplify.device`` when given. ``cuda`` without a CUDA device is an error before any
+    stage runs."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +88,7 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
 
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
+    motion_cfg = motion_on_device(cfg.motion, cfg.device)
     say = on_progress or log.info
     runs: list[StageRun] = []
 
@@ -123,7 +129,7 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
             continue
         steps = (("sequence", lambda: stage2.run(cfg.sequence, lay.root, name, force=force)),
                  ("calibrate", lambda: stage3.run(cfg.calibrate, lay.root, name, force=force)),
-                 ("motion", lambda: stage4.run(cfg.motion, lay.root, name, force=force)))
+                 ("motion", lambda: stage4.run(motion_cfg, lay.root, name, force=force)))
         for stage, fn in steps:
             if not attempt(target, stage, fn):
                 break

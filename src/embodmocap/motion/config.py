@@ -149,7 +149,8 @@ class SmplifyConfig:
     """Frames (spread evenly over the sequence) on which betas are fitted when there are several
     windows."""
     device: str = "auto"
-    """``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda``."""
+    """``auto`` (CUDA if available, else CPU), ``cpu`` or ``cuda`` (an error where torch sees no
+    CUDA device). The commands' ``--device`` sets it (:func:`embodmocap.device.motion_on_device`)."""
     dtype: str = "float64"
     """``float64`` or ``float32``; the keypoint body is cheap, so double precision costs little on
     CPU and keeps the finest steps exact."""

@@ -49,12 +49,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
+from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -376,14 +376,30 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
 
 
 def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, names: list[str], free_betas: bool,
-                smooth: bool, timing: dict[str, float], label: str = "") -> _State:
-    """Both phases on one window; returns the fitted (detached) state."""
+                smooth: bool, timing: dict[str, float], label: str = "", batched: bool = False) -> _State:
+    """Both phases on one window; returns the fitted (detached) state.
+
+    ``batched``: ``init`` and ``d`` hold n equal windows on a leading axis ((n, W, ...) per-frame
+    fields; betas and K shared, betas fixed). Each window's loss is its own (``torch.func.vmap``)
+    and Adam is elementwise, so every window follows the steps it would alone (up to the order of
+    floating-point sums); one autograd graph per step for all of them instead of one per window
+    (the keypoint body's small tensors make the fit cost per graph, not per frame)."""
     s = _State(*(x.detach().clone().requires_grad_(True) for x in (init.betas, init.go, init.pose, init.transl)))
     if not free_betas:
         s.betas.requires_grad_(False)
     gnc = {"k": 1.0, "w3d": cfg.w_kp3d_start if cfg.w_kp3d > 0 else 0.0}  # w_kp3d = 0: no 3D term at all
     total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
 
+    if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
+        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge)
+        dims = tuple(None if x is None or x is d.K else 0 for x in fields)
+
+        def total(phase):
+            def one(go, pose, transl, *dd):
+                return sum(_terms(body, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
+                                  gnc["k"], gnc["w3d"]).values())
+            vm = torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
+            return lambda: vm(s.go, s.pose, s.transl, *fields).sum()
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
     lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
@@ -417,62 +433,15 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
 
 
 # ---------------------------------------------------------------------------------------------
-# Windows
-# ---------------------------------------------------------------------------------------------
-
-
-def window_ranges(T: int, length: int, overlap: int) -> list[tuple[int, int]]:
-    """Evenly spaced windows ``[start, end)`` of ``length`` frames covering ``0..T``, neighbours
-    sharing at least ``overlap`` frames; one window when ``T <= length``."""
-    if length <= overlap or overlap < 0:
-        raise ValueError(f"window length {length} must exceed the overlap {overlap} >= 0")
-    if T <= length:
-        return [(0, T)]
-    n = math.ceil((T - overlap) / (length - overlap))
-    starts = np.round(np.linspace(0, T - length, n)).astype(int)
-    return [(int(s), int(s) + length) for s in starts]
-
-
-def _blend_weights(ranges: list[tuple[int, int]], T: int, ramp: int) -> NDArray[np.float64]:
-    """(n, T) blend weight of each window per frame: a trapezoid rising over ``ramp`` frames at
-    inner window edges, normalised to sum 1 per frame (linear cross-fade in a ``ramp`` overlap)."""
-    w = np.zeros((len(ranges), T))
-    for k, (s, e) in enumerate(ranges):
-        t = np.arange(s, e) + 0.5
-        up = np.ones(e - s) if s == 0 else np.clip((t - s) / max(ramp, 1), 0, 1)
-        down = np.ones(e - s) if e == T else np.clip((e - t) / max(ramp, 1), 0, 1)
-        w[k, s:e] = np.minimum(up, down)
-    return w / w.sum(0, keepdims=True)
-
-
-def _blend(ranges, states: list[_State], T: int, ramp: int) -> tuple[NDArray, NDArray, NDArray]:
-    """Blend window results: (T, 3) global_orient, (T, 69) body_pose, (T, 3) transl."""
-    w = _blend_weights(ranges, T, ramp)
-    quat = np.zeros((T, 24, 4))
-    transl = np.zeros((T, 3))
-    for k, ((s, e), st) in enumerate(zip(ranges, states)):
-        rot = np.concatenate([st.go.cpu().numpy(), st.pose.cpu().numpy()], 1).reshape(-1, 3)
-        q = Rotation.from_rotvec(rot).as_quat().reshape(e - s, 24, 4)
-        # q and -q are one rotation: flip to the hemisphere of what is accumulated so far.
-        sign = np.where((q * quat[s:e]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-        quat[s:e] += w[k, s:e, None, None] * sign * q
-        transl[s:e] += w[k, s:e, None] * st.transl.cpu().numpy()
-    quat /= np.linalg.norm(quat, axis=-1, keepdims=True)
-    rot = Rotation.from_quat(quat.reshape(-1, 4)).as_rotvec().reshape(T, 72)
-    return rot[:, :3], rot[:, 3:], transl
-
-
-# ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
 
 
 def _device(cfg: SmplifyConfig) -> torch.device:
-    if cfg.device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if cfg.device not in ("cpu", "cuda"):
-        raise ValueError(f"device must be auto, cpu or cuda, got {cfg.device!r}")
-    return torch.device(cfg.device)
+    """The fit's device; ``cuda`` without a CUDA device is one clear :class:`InputError`."""
+    from embodmocap.device import resolve_device
+
+    return torch.device(resolve_device(cfg.device))
 
 
 def _check_config(cfg: SmplifyConfig) -> torch.dtype:
@@ -502,12 +471,13 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
     b0, b1 = start.betas.cpu().numpy(), shape.betas.cpu().numpy()
     shift = torch.as_tensor(model.pelvis_offset(b0) - model.pelvis_offset(b1), dtype=start.transl.dtype,
                             device=start.transl.device)
-    states = []
-    for s, e in ranges:
-        w_init = _State(shape.betas, start.go[s:e], start.pose[s:e], start.transl[s:e] + shift)
-        states.append(_fit_window(body, data.slice(slice(s, e)), w_init, cfg, names, free_betas=False,
-                                  smooth=True, timing=timing))
-        log.debug("smplify window %d-%d done", s, e)
+    # All windows have the same length (window_ranges): fitted together, one batch, then blended.
+    idx = torch.as_tensor(np.stack([np.arange(s, e) for s, e in ranges]), device=start.go.device)  # (n, W)
+    w_init = _State(shape.betas, start.go[idx], start.pose[idx], start.transl[idx] + shift)
+    fitted = _fit_window(body, data.slice(idx), w_init, cfg, names, free_betas=False, smooth=True, timing=timing,
+                         batched=True)
+    states = [_State(fitted.betas, fitted.go[k], fitted.pose[k], fitted.transl[k]) for k in range(len(ranges))]
+    log.debug("smplify: %d windows of %d frames fitted in one batch", len(ranges), idx.shape[1])
     go, pose, transl = _blend(ranges, states, T, cfg.overlap_frames)
     return go, pose, transl, b1
 
