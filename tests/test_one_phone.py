@@ -9,6 +9,7 @@ in every output.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -59,9 +60,10 @@ def test_the_performer_is_found_in_one_view():
     np.testing.assert_allclose(found["v1"].keypoints[2], person(152))
 
 
-def _scene(T: int = 3):
+def _scene(T: int = 3, z=None):
     """Joint centres of T frames in front of a camera, the depth map a LiDAR would see of them
-    (each joint's surface a patch at its depth minus its half thickness) and the person mask."""
+    (each joint's surface a patch at its depth minus its half thickness) and the person mask;
+    z: (T, 17) the joints' z-depths (default: random around 2.5 m)."""
     rng = np.random.default_rng(0)
     W, H, w, h = 128, 96, 64, 48  # RGB and depth sizes (depth at half resolution)
     K = np.array([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]])
@@ -69,7 +71,7 @@ def _scene(T: int = 3):
     cols, rows = np.meshgrid(np.arange(6, 60, 12), np.arange(6, 44, 10))
     cols, rows = cols.ravel()[:17], rows.ravel()[:17]
     xy = np.stack([2 * cols + 0.5, 2 * rows + 0.5], -1)
-    z = 2.5 + rng.uniform(-0.3, 0.3, (T, 17))
+    z = 2.5 + rng.uniform(-0.3, 0.3, (T, 17)) if z is None else np.asarray(z, dtype=np.float64)
     ray = np.stack([(xy[:, 0] - K[0, 2]) / K[0, 0], (xy[:, 1] - K[1, 2]) / K[1, 1], np.ones(17)], -1)
     p_cam = ray[None] * z[..., None]
     behind = np.asarray(JOINT_DEPTH_BEHIND_SURFACE_M)
@@ -118,6 +120,34 @@ def test_a_keypoint_off_the_person_or_far_from_the_body_is_not_lifted():
     # A one-frame gap is interpolated (and flagged) as the triangulation's gaps are.
     got = lift_keypoints(kp, K, T_wc, depth_at, size, max_gap_frames=1)
     assert got.filled[1, 9] and np.isfinite(got.points[1, 9]).all()
+
+
+def test_an_unsure_keypoint_that_reads_an_occluder_is_put_behind_it():
+    # A still body 2.5 m away (so its bones keep their lengths); in frame 4 something 0.5 m in front
+    # of the left wrist hides it: its pixel shows the occluder's depth and the detector is unsure.
+    # This grid's forearm is 1.2 m long and seen from the side, so 0.5 m of depth changes its length
+    # by 9%: the tolerance is set below that (a real forearm, 0.25 m, changes far more).
+    T, t, j = 8, 4, 9
+    kp, K, T_wc, depth, mask, world, size = _scene(T, np.full((T, 17), 2.5))
+    r, c = int((kp[t, j, 1] - 0.5) / 2), int((kp[t, j, 0] - 0.5) / 2)
+    depth[t, r - 2:r + 3, c - 2:c + 3] -= 0.5
+    kp[t, j, 2] = 0.4
+    depth_at = person_depth(lambda i: depth[i], lambda i: mask[i], erode_px=1)
+    cfg = LiftConfig(bone_tol=0.05)
+    old = lift_keypoints(kp, K, T_wc, depth_at, size, replace(cfg, behind_occluder=False), max_gap_frames=0)
+    new = lift_keypoints(kp, K, T_wc, depth_at, size, cfg, max_gap_frames=0)
+    # Taken as an equality the depth puts the wrist on the occluder, 0.5 m (along z) in front of it;
+    # as a lower bound with the forearm's length (measured on the trusted frames) it is behind it.
+    err_old = np.linalg.norm(old.points[t, j] - world[t, j])
+    err_new = np.linalg.norm(new.points[t, j] - world[t, j])
+    assert err_old > 0.4 and err_new < 1e-6, (err_old, err_new)
+    # The points the depth saw are unchanged, and a confident keypoint's depth is trusted as it is.
+    others = np.ones((T, 17), bool)
+    others[t, j] = False
+    np.testing.assert_allclose(new.points[others], world[others], atol=1e-9)
+    kp[t, j, 2] = 0.9
+    sure = lift_keypoints(kp, K, T_wc, depth_at, size, cfg, max_gap_frames=0)
+    np.testing.assert_allclose(sure.points[t, j], old.points[t, j], atol=1e-12)
 
 
 # ------------------------------------------------------------------------------ end to end

@@ -12,9 +12,11 @@ lies a limb's half thickness further along the ray
 What one view cannot give, and what takes its place:
 
 - a joint hidden behind another body part reads the depth of what hides it (an arm in front of the
-  hip): a point far from the rest of the body is dropped here (``max_from_body_m``), one that breaks
-  a bone length by the fit's bone check, and the fit follows the 2D keypoint, smoothness and the
-  prior there;
+  hip, the torso in front of the far arm): that depth is only a lower bound (a joint is at or behind
+  the surface its pixel shows), so an unsure keypoint that breaks its bone is moved back along its
+  ray to where its bone reaches it (``behind_occluder``); a point far from the rest of the body is
+  dropped here (``max_from_body_m``), one that still breaks a bone length by the fit's bone check,
+  and the fit follows the 2D keypoint, smoothness and the prior there;
 - a joint outside the mask or hidden by furniture has no depth: no 3D point (short gaps are
   interpolated as the triangulation's are);
 - no second view undoes a left/right swap of the detector: only each view's own label tracking.
@@ -55,6 +57,17 @@ class LiftConfig:
     """Depths beyond this are not trusted (the iPhone LiDAR's range is about 5 m)."""
     behind_surface_m: tuple[float, ...] = JOINT_DEPTH_BEHIND_SURFACE_M
     """Per COCO-17 joint, how far behind the surface seen at its pixel the joint centre lies, m."""
+    behind_occluder: bool = True
+    """Treat the depth of an unsure keypoint as a lower bound when it breaks a bone: a joint lies at
+    or behind the surface its pixel shows, never in front of it. A keypoint below ``trusted_conf``
+    whose lifted point is more than ``bone_tol`` off its bone length (from its parent, measured on
+    trusted frames) read an occluder (the torso in front of the far arm): it is moved along its
+    ray to where the bone reaches it, at or behind the occluder (see :func:`_behind_occluders`)."""
+    trusted_conf: float = 0.7
+    """Keypoints at or above this 2D confidence are taken as seen (their depth is the joint's);
+    bone lengths are measured on them."""
+    bone_tol: float = 0.15
+    """Relative bone-length error above which an unsure keypoint's depth is taken as an occluder's."""
 
 
 @dataclass(frozen=True)
@@ -134,14 +147,62 @@ def lift_keypoints(kp: NDArray, K: NDArray, T_world_cam: NDArray, depth_at: Call
     ok = found & ~far
     t_ok, j_ok = np.nonzero(ok)
     behind = np.asarray(cfg.behind_surface_m, dtype=np.float64)
-    p_cam = backproject(kp[t_ok, j_ok, :2], z[t_ok, j_ok], K, behind[j_ok])
-    Tw = np.asarray(T_world_cam, dtype=np.float64)[t_ok]
-    pts = np.full((T, 17, 3), np.nan)
-    pts[t_ok, j_ok] = np.einsum("nij,nj->ni", Tw[:, :3, :3], p_cam) + Tw[:, :3, 3]
+    cam = np.full((T, 17, 3), np.nan)
+    cam[t_ok, j_ok] = backproject(kp[t_ok, j_ok, :2], z[t_ok, j_ok], K, behind[j_ok])
+    if cfg.behind_occluder:
+        cam = _behind_occluders(cam, kp, z, K, cfg)
+    ok = np.isfinite(cam[..., 0])
+    Tw = np.asarray(T_world_cam, dtype=np.float64)[:T]
+    pts = np.einsum("tij,tkj->tki", Tw[:, :3, :3], cam) + Tw[:, None, :3, 3]
     points, filled = fill_gaps(pts, ok, max_gap_frames)
     long_gaps = _unfilled_runs(ok | filled)
     conf = np.where(ok, kp[..., 2], 0.0)
     return Lifted(points, conf, filled, found, far, long_gaps)
+
+
+#: (joint, parent) in the order a chain is walked: a parent is settled before its children.
+#: Shoulders and hips hang on their opposite partner (shoulder and hip width).
+_CHAIN = ((5, 6), (6, 5), (11, 12), (12, 11), (7, 5), (8, 6), (13, 11), (14, 12), (9, 7), (10, 8), (15, 13), (16, 14))
+
+
+def _behind_occluders(cam: NDArray, kp: NDArray, z: NDArray, K: NDArray, cfg: LiftConfig) -> NDArray:
+    """Camera points (T, 17, 3) with unsure keypoints that read an occluder moved behind it.
+
+    The depth at a keypoint's pixel is a lower bound on the joint's depth: the joint is that surface
+    (seen) or behind it (hidden). For an unsure keypoint (confidence below ``trusted_conf``) whose
+    lifted point breaks its bone length from its parent by more than ``bone_tol``, the point is
+    placed on its ray (x = s * r, r = K^-1 [u, v, 1], s the z-depth) where the bone from the parent
+    reaches it: the roots of |s r - p| = L, the nearest one at or beyond the surface depth ``z``;
+    where the ray misses that sphere, its closest approach to it, never in front of the surface.
+    Bone lengths L are per-sequence medians over frames where both ends are trusted; a joint whose
+    parent has no point, or whose bone was never measured, keeps its lifted point.
+
+    Args:
+        cam: (T, 17, 3) lifted camera points (NaN = none); kp: (T, 17, 3) pixels and confidence;
+        z: (T, 17) the surface depth read at each pixel (0 = none); K: (3, 3) intrinsics.
+    """
+    cam = cam.copy()
+    conf = kp[..., 2]
+    rays = np.stack([(kp[..., 0] - K[0, 2]) / K[0, 0], (kp[..., 1] - K[1, 2]) / K[1, 1], np.ones(conf.shape)], -1)
+    for j, p in _CHAIN:
+        trusted = (conf[:, j] >= cfg.trusted_conf) & (conf[:, p] >= cfg.trusted_conf)
+        d = np.linalg.norm(cam[:, j] - cam[:, p], axis=-1)
+        lengths = d[trusted & np.isfinite(d)]
+        if len(lengths) < 5:  # too few trusted frames to know the bone
+            continue
+        L = float(np.median(lengths))
+        broke = (conf[:, j] < cfg.trusted_conf) & np.isfinite(d) & (np.abs(d - L) > cfg.bone_tol * L)
+        if not broke.any():
+            continue
+        r, P, zs = rays[broke, j], cam[broke, p], z[broke, j]
+        a, b = (r * r).sum(-1), (r * P).sum(-1)
+        disc = b * b - a * ((P * P).sum(-1) - L * L)
+        root = np.sqrt(np.maximum(disc, 0.0))
+        near, far = (b - root) / a, (b + root) / a
+        s = np.where(near >= zs, near, far)  # the nearest root at or behind the surface
+        s = np.where(disc < 0, b / a, s)  # the ray misses the sphere: its closest approach
+        cam[broke, j] = r * np.maximum(s, zs)[:, None]
+    return cam
 
 
 def reprojection_px(points: NDArray, K: NDArray, T_world_cam: NDArray, kp: NDArray) -> NDArray[np.float64]:
