@@ -24,14 +24,27 @@ def test_benchmarks_page_stays_one_page():
     assert any(line.startswith("## Session 8") for line in lines)
 
 
-def test_relative_links_point_to_files_that_exist():
+def _anchors(doc: Path) -> set[str]:
+    from embodmocap.settings_doc import slug
+
+    text = doc.read_text()
+    fenced = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    heads = {slug(m) for m in re.findall(r"^#{1,6} (.+)$", fenced, flags=re.M)}
+    return heads | set(re.findall(r'<a id="([^"]+)"', text))
+
+
+def test_relative_links_point_to_files_and_headings_that_exist():
     missing = []
     for doc in _documents():
-        for target, _anchor in LINK.findall(doc.read_text()):
+        text = re.sub(r"^```.*?^```", "", doc.read_text(), flags=re.S | re.M)
+        for target, anchor in LINK.findall(text):
             if re.match(r"[a-z]+:", target):  # http:, https:, mailto:
                 continue
-            if not (doc.parent / target).exists():
+            path = doc.parent / target
+            if not path.exists():
                 missing.append(f"{doc.relative_to(ROOT)} -> {target}")
+            elif anchor and path.suffix == ".md" and anchor[1:] not in _anchors(path):
+                missing.append(f"{doc.relative_to(ROOT)} -> {target}{anchor}")
     assert not missing, missing
 
 
@@ -42,3 +55,35 @@ def test_history_index_lists_every_history_file():
     files = [p.name for p in history.glob("*.md") if p.name != "README.md" and not re.match(r"\d{4}-\d\d-\d\d-s\d+-", p.name)]
     assert files, "no history files"
     assert [f for f in files if f"]({f})" not in index] == []
+
+
+def test_generated_settings_tables_and_contents_are_up_to_date():
+    # docs/settings.md is generated from the config dataclasses' field docstrings and formats.md's
+    # contents list from its headings; a change to either without rerunning the generator fails here.
+    from embodmocap.settings_doc import generated
+
+    stale = [str(p.relative_to(ROOT)) for p, text in generated().items() if p.read_text() != text]
+    assert not stale, f"{stale} stale: run `python -m embodmocap.settings_doc`"
+
+
+def test_settings_tables_cover_every_config_field():
+    # every field of every command's settings appears as a row, with the meaning its docstring gives
+    import dataclasses
+    import typing
+
+    from embodmocap.pipeline import PipelineConfig
+    from embodmocap.settings_doc import field_docstrings, rows
+
+    def leaves(cls, prefix=""):
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if dataclasses.is_dataclass(hints[f.name]):
+                yield from leaves(hints[f.name], f"{prefix}{f.name}.")
+            else:
+                yield f"{prefix}{f.name}", field_docstrings(cls).get(f.name, "")
+
+    table = "\n".join(rows(PipelineConfig))
+    for key, doc in leaves(PipelineConfig):
+        assert f"| `{key}` |" in table, key
+        assert doc, f"PipelineConfig.{key} has no docstring"
+        assert " ".join(doc.split()).replace("|", "\\|") in table, key
