@@ -87,3 +87,19 @@ def test_settings_tables_cover_every_config_field():
         assert f"| `{key}` |" in table, key
         assert doc, f"PipelineConfig.{key} has no docstring"
         assert " ".join(doc.split()).replace("|", "\\|") in table, key
+
+
+def test_readme_starts_with_demo_and_test_names_every_command_and_links_every_doc():
+    from embodmocap.cli import Commands
+    from embodmocap.cli_settings import subcommands
+
+    readme = (ROOT / "README.md").read_text()
+    first_block = readme.split("```")[1]
+    assert "./run demo" in first_block and "./run test" in first_block
+    missing = [n for n in subcommands(Commands) if f"embodmocap {n.replace(':', ' ')} " not in readme]
+    assert not missing, f"commands not in the README: {missing}"
+    for fmt in ("mjcf", "trc", "smplx", "amass", "bvh", "glb", "training"):
+        assert fmt in readme, fmt
+    linked = {target for target, _ in LINK.findall(readme)}
+    docs = [p.relative_to(ROOT).as_posix() for p in sorted((ROOT / "docs").rglob("*")) if p.suffix in (".md", ".toml")]
+    assert [d for d in docs if d not in linked] == []
