@@ -21,9 +21,10 @@ from embodmocap.errors import InputError
 from embodmocap.geometry.similarity import similarity_matrix, transform_poses
 from embodmocap.io.layout import MonoLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, Upstream, tracked_stage
 from embodmocap.mono.config import MonoConfig
 from embodmocap.mono.files import plan_chunks, write_mono_cameras, write_points_ply
+from embodmocap.mono.steps import STEPS
 from embodmocap.mono.roles import HumanModel, PrecomputedHuman, PrecomputedScene, PriorHuman, SceneModel, VioScene
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,7 @@ class MonoOutputs:
     skipped: tuple[str, ...]
 
 
-def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> tuple[SceneModel, HumanModel, list[Path]]:
+def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> tuple[SceneModel, HumanModel, list[Path], Path]:
     vl, pl = lay.sequence(seq).view(view), lay.perception(seq, view)
     if cfg.scene_model == "colmap":
         scene = _colmap_scene(cfg, lay, seq, view, cams)
@@ -67,7 +68,7 @@ def _models(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams) -> t
     else:
         human = PrecomputedHuman(pl.mono_human)
         human_input = pl.mono_human
-    return scene, human, scene_inputs + [human_input]
+    return scene, human, scene_inputs, human_input
 
 
 def _colmap_scene(cfg: MonoConfig, lay: SessionLayout, seq: str, view: str, cams):
@@ -102,24 +103,22 @@ def run(cfg: MonoConfig, session: str | Path, seq: str | None = None, view: str 
     vl = sl.view(view)
     ml = sl.mono(view)
     cams = read_cameras(vl.cameras)
-    scene, human, model_inputs = _models(cfg, lay, entry.name, view, cams)
+    scene, human, scene_inputs, human_input = _models(cfg, lay, entry.name, view, cams)
     kp_path = vl.keypoints if cfg.human_depth == "keypoints" and vl.keypoints.is_file() else None
-    inputs = [vl.cameras, vl.masks, *([kp_path] if kp_path else []), *model_inputs]
+    inputs = [vl.cameras, vl.masks, *([kp_path] if kp_path else []), *scene_inputs, human_input]
     sm = StageManifest(ml.manifest, "mono", {"view": view, **_plain(cfg)}, inputs=inputs, root=lay.root,
                        upstream=[Upstream(sl.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")])
     label = f"mono {entry.name} {view}"
     ml.root.mkdir(parents=True, exist_ok=True)
-    fp_in = [path_fingerprint(p) for p in inputs]
-    with sm.step("stitch", fingerprint("stitch", cfg, view, fp_in), force=force, label=label) as step:
+    body_path = manifest.body_model
+    fp_stitch = STEPS.fingerprint("stitch", cfg, context={"view": view}, reads={
+        "<view>/cameras.npz": vl.cameras, "<view>/masks.npy": vl.masks, "<view>/keypoints2d.npz": kp_path,
+        "scene model files": scene_inputs, "human model file": human_input, "body model": body_path})
+    with sm.step("stitch", fp_stitch, force=force, label=label) as step:
         if step.run:
             figs = _stitch_step(cfg, lay, entry, view, cams, scene, human, ml, kp_path)
             step.record([ml.cameras_world, ml.points], figs)
-    body_path = manifest.body_model
-    with sm.step("body", fingerprint("body", cfg.human_model, fp_in[-1], path_fingerprint(ml.cameras_world),
-                                     path_fingerprint(body_path) if body_path else None,
-                                     cfg.human_depth, cfg.depth_refine, cfg.scale.height_m,
-                                     path_fingerprint(kp_path) if kp_path else None),
-                 force=force, label=label) as step:
+    with sm.step("body", STEPS.fingerprint("body", cfg, after={"stitch": fp_stitch}), force=force, label=label) as step:
         if step.run:
             figs = _body_step(cfg, cams, human, ml, body_path, sequence_fps(sl.root), kp_path)
             step.record([ml.smpl_world], figs)
