@@ -21,9 +21,10 @@ import numpy as np
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json, write_npz
 from embodmocap.io.layout import SessionLayout
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.robot import solve
 from embodmocap.robot.config import RetargetConfig, RobotConfig, load_robot_config
+from embodmocap.robot.steps import STEPS
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +93,9 @@ def run(config: RetargetConfig, session: str | Path, seq: str | None = None, *, 
     inputs = [sl.smpl_world, mesh_path, manifest.body_model, rm.mjcf]
     sm = StageManifest(out_dir / "manifest.json", "robot", {"robot": asdict(rcfg), "retarget": asdict(config)},
                        inputs=inputs, root=layout.root)
-    fp_in = fingerprint(asdict(rcfg), asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
+    fp_in = STEPS.fingerprint("retarget", config, context={"robot": asdict(rcfg)}, reads={
+        "sequences/<seq>/smpl_world.npz": sl.smpl_world, "scene mesh": mesh_path, "body model": manifest.body_model,
+        "robot MJCF": rm.mjcf})
 
     params, frames = read_amass(sl.smpl_world)
     if frames is not None and len(frames) > 1 and np.any(np.diff(np.asarray(frames)) != 1):
@@ -130,9 +133,8 @@ def run(config: RetargetConfig, session: str | Path, seq: str | None = None, *, 
                                     "retarget_frames_per_s": round(len(q) / max(seconds, 1e-9), 1)})
     qd = files.read_qpos(qpos_path)
     q = rm.qpos(qd["root_pos"], qd["root_quat_wxyz"], qd["joint_pos"])
-    fp_q = fingerprint(fp_in, path_fingerprint(qpos_path))
-
-    with sm.step("export", fp_q, force=force) as st:
+    with sm.step("export", STEPS.fingerprint("export", config, after={"retarget": fp_in}, reads={"qpos.npz": qpos_path}),
+                 force=force) as st:
         if st.run:
             outs = [files.write_motion_csv(out_dir / "motion.csv", rm, q),
                     files.write_tracking_npz(out_dir / "motion.npz", rm, q, params.fps, config.tracking_fps),
@@ -141,7 +143,8 @@ def run(config: RetargetConfig, session: str | Path, seq: str | None = None, *, 
             st.record(outs)
 
     report_path = out_dir / "robot_report.json"
-    with sm.step("report", fp_q, force=force) as st:
+    with sm.step("report", STEPS.fingerprint("report", config, after={"retarget": fp_in}, reads={"qpos.npz": qpos_path}),
+                 force=force) as st:
         if st.run:
             rep = solve.motion_report(rm, q, inp, config)
             rep["version"] = files.ROBOT_FILES_VERSION

@@ -19,9 +19,10 @@ import numpy as np
 
 from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.skills.config import SkillsConfig
 from embodmocap.skills.solve import clip_figures, clips_of_motion  # noqa: F401 (re-exported)
+from embodmocap.skills.steps import STEPS
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,8 @@ def run(config: SkillsConfig, session: str | Path, seq: str | None = None, *, fo
     out_dir.mkdir(parents=True, exist_ok=True)
     inputs = [sl.smpl_world, mesh_path, manifest.body_model]
     sm = StageManifest(out_dir / "manifest.json", "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
-    fp = fingerprint(asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
+    fp = STEPS.fingerprint("clips", config, reads={"sequences/<seq>/smpl_world.npz": sl.smpl_world,
+                                                   "scene mesh": mesh_path, "body model": manifest.body_model})
     path = out_dir / "skills.json"
     with sm.step("clips", fp, force=force) as st:
         if st.run:
