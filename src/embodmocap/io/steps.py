@@ -24,7 +24,7 @@ Everything else derives from the declaration:
 from __future__ import annotations
 
 import typing
-from dataclasses import dataclass, fields, is_dataclass
+from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -74,11 +74,9 @@ class StageSteps:
     stage: str
     config: type
     steps: tuple[Step, ...]
-    not_fingerprinted: Mapping[str, str] = None  # type: ignore[assignment]
+    not_fingerprinted: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.not_fingerprinted is None:
-            object.__setattr__(self, "not_fingerprinted", {})
         names = [s.name for s in self.steps]
         if len(set(names)) != len(names):
             raise ValueError(f"{self.stage}: a step is declared twice: {names}")
