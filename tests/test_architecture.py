@@ -182,7 +182,8 @@ def test_solve_modules_do_no_file_work():
     assert solve_problems(SRC) == []
     assert {p.relative_to(SRC).as_posix() for p in (SRC / "embodmocap").glob("*/solve.py")} >= {
         "embodmocap/scene/solve.py", "embodmocap/sequence/solve.py", "embodmocap/calibrate/solve.py",
-        "embodmocap/motion/solve.py"}
+        "embodmocap/motion/solve.py", "embodmocap/mono/solve.py", "embodmocap/skills/solve.py",
+        "embodmocap/robot/solve.py"}
 
 
 def test_the_solve_scan_finds_each_kind_of_file_work(tmp_path):

@@ -303,3 +303,57 @@ def test_missing_keypoints_fall_back_to_the_model_depth_with_a_warning(noisy):
     assert len(warn) == 1 and "keypoints2d.npz is missing" in warn[0] and st["source"] == "model"
     ref = human.estimate(T)
     assert np.array_equal(hum.transl, ref.transl) and np.array_equal(hum.betas, ref.betas)
+
+
+class _ChunksInMemory:
+    """The precomputed scene model's chunks, read before the session is deleted."""
+
+    name = "precomputed"
+
+    def __init__(self, chunks: dict) -> None:
+        self.chunks = chunks
+
+    def predict(self, frames):
+        return self.chunks[int(frames[0])]
+
+
+def test_solve_gives_the_runs_files_from_inputs_held_in_memory(noisy, tmp_path):
+    """``mono.solve`` on the view's inputs read into memory from a copy of the session, deleted
+    before it runs (so it can read no file), gives the run's files array by array."""
+    from embodmocap.body.model import load_body_model
+    from embodmocap.io.captures import open_capture
+    from embodmocap.io.manifest import load_manifest
+    from embodmocap.mono import solve
+    from embodmocap.mono.files import chunk_file_name, read_human_npz
+
+    root, _, out = noisy
+    work = _copy(root, tmp_path / "s")
+    lay = SessionLayout(work)
+    vl, pl = lay.sequence(out.name).view("v1"), lay.perception(out.name, "v1")
+    cams = read_cameras(vl.cameras)
+    T, W = cams.num_frames, int(cams.width)
+    masks = np.unpackbits(np.load(vl.masks), axis=-1)[..., :W].astype(bool)
+    capture = open_capture(load_manifest(lay.manifest).sequence(out.name).views["v1"].capture)
+    rgb = {f: capture.frames.rgb(int(cams.raw_frames[f])) for f in range(T)}
+    chunks = {s: read_chunk(pl.mono_scene_dir / chunk_file_name(s), np.arange(s, e)) for s, e in plan_chunks(T, CHUNK, OVERLAP)}
+    human = read_human_npz(pl.mono_human, T)
+    model = load_body_model(None)
+    view = solve.MonoView(K=np.asarray(cams.K, np.float64), size=(W, int(cams.height)), T_vio=np.array(cams.T_world_cam),
+                          tracked=~np.asarray(cams.untracked, bool), fps=float(cams.fps), mask=lambda f: masks[f],
+                          rgb=lambda f: rgb[f])
+    shutil.rmtree(work)
+
+    hum, _ = solve.camera_body(CFG, human, model, None, "COCO17", view.K, view.rate)
+    res = solve.stitch_view(CFG, _ChunksInMemory(chunks), hum, model, view)
+    files = read_mono_cameras(out.layout.cameras_world)
+    assert np.array_equal(res.T_world_cam, files["T_world_cam"])
+    assert np.array_equal(res.segment, files["segment"])
+    assert np.array_equal(res.metric_scale, files["metric_scale"], equal_nan=True)
+    P, C = read_points_ply(out.layout.points)
+    assert np.array_equal(np.asarray(res.points, np.float32), P) and np.array_equal(res.colours, C)
+    assert json.dumps(res.figures["metric_scale"], sort_keys=True) == json.dumps(out.figures["metric_scale"], sort_keys=True)
+    params, valid = solve.body_world(hum, res.T_world_cam, res.metric_scale, model, view.rate)
+    want, _ = read_smpl_npz(out.layout.smpl_world)
+    for k in ("transl", "global_orient", "body_pose"):
+        got, ref = np.asarray(getattr(params, k)), np.asarray(getattr(want, k))
+        assert np.array_equal(got.astype(ref.dtype), ref), k

@@ -43,6 +43,7 @@ from embodmocap.calibrate.offset import YawOffset
 from embodmocap.calibrate.refine import ViewData
 from embodmocap.calibrate.register import load_or_build_scene_index
 from embodmocap.calibrate.solve import CALIBRATION_VERSION, REGISTER_VERSION, ViewInputs  # noqa: F401 (re-exported)
+from embodmocap.calibrate.steps import STEPS
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
@@ -53,7 +54,7 @@ from embodmocap.io.layout import SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps, write_cameras, \
     write_registration
-from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, tracked_stage
 
 log = logging.getLogger(__name__)
 
@@ -87,8 +88,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in names
                                                   for k in ("cameras", "keypoints", "masks", "depth")]])
     label = f"sequence {entry.name}"
-    upstream = fingerprint(path_fingerprint(scene.sfm_dir / "sparse"), path_fingerprint(scene.mesh_raw),
-                           *[path_fingerprint(out.view(v).cameras) for v in names])
+    upstream = {"scenes/<scene>/sfm/sparse": scene.sfm_dir / "sparse", "scenes/<scene>/mesh_raw.ply": scene.mesh_raw,
+                "<view>/cameras.npz": {v: out.view(v).cameras for v in names}}
     views = {v: view_inputs(out, v, entry.views[v].capture) for v in names}
 
     @functools.lru_cache(maxsize=1)
@@ -101,12 +102,13 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # 1. Registration per view.
     index = None
     regs = {}
+    fp_reg = {}
     pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
     for v in names:
         vl = out.view(v)
-        fp = fingerprint("register", REGISTER_VERSION, upstream, path_fingerprint(vl.masks) if vl.masks.is_file() else None,
-                         cfg.register, cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
-        with sm.step(f"register_{v}", fp, force=force, label=label) as step:
+        fp_reg[v] = STEPS.fingerprint("register", cfg, reads={**upstream, "<view>/masks.npy": vl.masks if vl.masks.is_file()
+                                                              else None})
+        with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
             if step.run:
                 # One index per scene, cached next to the scene's outputs and reused by every sequence.
                 index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.root / "register_index.npz")
@@ -134,9 +136,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
     use_tracks = slicing not in UNPAIRED_SLICING and len(names) > 1
-    fp_ref = fingerprint("refine", upstream, *[path_fingerprint(out.view(v).registration) for v in names],
-                         cfg.offset, cfg.refine, cfg.refine_views, cfg.chamfer_frames, cfg.chamfer_points_per_frame,
-                         cfg.scene_points, cfg.track_frames, use_tracks)
+    fp_ref = STEPS.fingerprint("refine", cfg, after={"register": fp_reg}, context={"use_tracks": use_tracks}, reads={
+        **upstream, "<view>/registration.npz": {v: out.view(v).registration for v in names}})
     calib_path = out.calibration
     with sm.step("refine", fp_ref, force=force, label=label) as step:
         if step.run:
@@ -152,17 +153,16 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # where both views' keypoint rays meet (sequence.geosync); sync.json gets the final choice
     # among laser, manual and geometric (sequence.sync_record); the per-frame world cameras carry
     # the sub-frame offset Stage IV applies.
-    from embodmocap.sequence.geosync import GEOSYNC_VERSION
-
     rec = _sync_record(out, entry.name)
     # The refined offsets, not calibration.json's bytes: the report also holds the solver's timings,
     # which would make every rerun of the refinement redo this step (and differ between two runs).
-    fp_geo = fingerprint("geosync", GEOSYNC_VERSION, {k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
-                         rec["sources"].get("manual"), {v: report["views"][v]["T_world_vio"] for v in names},
-                         {v: report["views"][v].get("drift") for v in names},
-                         *[path_fingerprint(out.view(v).keypoints) for v in names],
-                         *[path_fingerprint(out.view(v).cameras) for v in names], cfg.geosync,
-                         (entry.subframe_sync, entry.sync_force))
+    fp_geo = STEPS.fingerprint("geosync", cfg, context={"subframe_sync": entry.subframe_sync, "sync_force": entry.sync_force},
+                               reads={"sync.json": [{k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
+                                                    rec["sources"].get("manual")],
+                                      "calibration.json": [{v: report["views"][v]["T_world_vio"] for v in names},
+                                                           {v: report["views"][v].get("drift") for v in names}],
+                                      "<view>/keypoints2d.npz": {v: out.view(v).keypoints for v in names},
+                                      "<view>/cameras.npz": {v: out.view(v).cameras for v in names}})
     with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
         if step.run:
             sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()

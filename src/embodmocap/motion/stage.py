@@ -42,11 +42,12 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.smpl_file import read_smpl_quality
 from embodmocap.io.stage_files import (read_cameras, read_keypoints2d, read_keypoints3d, read_smpl_npz, read_smpl_valid,
                                        sequence_fps, write_cameras, write_keypoints3d, write_smpl_npz, write_world_joints)
-from embodmocap.io.stage_manifest import StageManifest, Upstream, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, Upstream, tracked_stage
 from embodmocap.motion import solve
 from embodmocap.motion.config import MotionConfig  # noqa: F401 (re-exported: defined in config.py)
 from embodmocap.motion.solve import (KEYPOINTS3D_VERSION, placeable_frames, prefer_keypoints,  # noqa: F401 (re-exported)
                                      running_median)
+from embodmocap.motion.steps import STEPS
 from embodmocap.sequence.subframe import synced_views
 
 log = logging.getLogger(__name__)
@@ -95,13 +96,12 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     fps = sequence_fps(out)
 
     # 1. Triangulation (one view: its keypoints lifted with its LiDAR depth, motion.lift).
-    if entry.one_view:
-        vl = out.view(names[0])
-        fp_tri = fingerprint("lift", cfg.lift, cfg.triangulation, cfg.label_track, cfg.temporal,
-                             *[path_fingerprint(p) for p in (vl.keypoints, vl.cameras_world, vl.depth, vl.masks)])
-    else:
-        fp_tri = fingerprint("triangulate", cfg.triangulation, cfg.fix_swaps, cfg.label_track, cfg.temporal,
-                             *[path_fingerprint(p) for v in names for p in (out.view(v).keypoints, out.view(v).cameras_world)])
+    fp_tri = STEPS.fingerprint("triangulate", cfg, context={"one_view": entry.one_view}, reads={
+        "<view>/keypoints2d.npz": {v: out.view(v).keypoints for v in names},
+        "<view>/cameras_world.npz": {v: out.view(v).cameras_world for v in names},
+        # the lift (one view) reads its view's depth on the person mask too
+        "<view>/depth.npy": {v: out.view(v).depth for v in names} if entry.one_view else None,
+        "<view>/masks.npy": {v: out.view(v).masks for v in names} if entry.one_view else None})
     with sm.step("lift" if entry.one_view else "triangulate", fp_tri, force=force, label=label) as step:
         if step.run:
             if entry.one_view:
@@ -116,13 +116,10 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = body_priors_by_frame({v: out.view(v).body_prior for v in names}, T, cfg.min_prior_fraction,
                                   entry.name) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
-    fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.torso_tol_m,
-                         cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.turn_unplaced, cfg.kp3d_conf,
-                         cfg.init_median_frames, cfg.quality, layout,
-                         path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
-                         # the model's content, not its absolute path: a moved session redoes nothing
-                         path_fingerprint(manifest.body_model) if manifest.body_model else model.source)
+    fp_fit = STEPS.fingerprint("fit", cfg, after={"triangulate": fp_tri}, context={"layout": layout, "gender": manifest.gender},
+                               reads={"<view>/body_prior.npz": {v: out.view(v).body_prior for v in priors},
+                                      # the model's content, not its absolute path: a moved session redoes nothing
+                                      "body model": Path(manifest.body_model) if manifest.body_model else model.source})
     with sm.step("fit", fp_fit, force=force, label=label) as step:
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
@@ -133,8 +130,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
 
     # 3. Contact alignment (always writes the final outputs).
     contacts = [(c.frame, np.asarray(c.xyz)) for c in entry.contacts] if cfg.align_contacts else []
-    fp_align = fingerprint("align", cfg.contact, cfg.align_contacts, [(f, x.tolist()) for f, x in contacts],
-                           path_fingerprint(out.smpl_fit), *[path_fingerprint(out.view(v).cameras_world) for v in names])
+    fp_align = STEPS.fingerprint("align", cfg, after={"fit": fp_fit}, context={"contacts": [(f, x.tolist()) for f, x in contacts]},
+                                 reads={"<view>/cameras_world.npz": {v: out.view(v).cameras_world for v in names}})
     with sm.step("align", fp_align, force=force, label=label) as step:
         if step.run:
             params, frames = read_smpl_npz(out.smpl_fit)

@@ -31,9 +31,9 @@ class RobotRetarget:
     """Retargeting settings."""
 
     def run(self) -> int:
-        from embodmocap.robot.stage import retarget_sequence
+        from embodmocap.robot.stage import run
 
-        path = retarget_sequence(self.session, self.seq, robot=self.robot, robot_config_path=self.robot_config,
-                                 config=self.config, out=self.out, force=self.force)
-        print(f"wrote {path}")
+        res = run(self.config, self.session, self.seq, robot=self.robot, robot_config_path=self.robot_config,
+                  out=self.out, force=self.force)
+        print(f"wrote {res.folder}")
         return 0

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,8 +21,10 @@ import numpy as np
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_json, write_npz
 from embodmocap.io.layout import SessionLayout
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
+from embodmocap.robot import solve
 from embodmocap.robot.config import RetargetConfig, RobotConfig, load_robot_config
+from embodmocap.robot.steps import STEPS
 
 log = logging.getLogger(__name__)
 
@@ -48,24 +50,34 @@ def _scene_mesh_path(layout: SessionLayout, scene: str) -> Path:
                      f"run `embodmocap scene {layout.root}` first")
 
 
+@dataclass(frozen=True)
+class RobotOutputs:
+    """What ``embodmocap robot retarget`` produced for one sequence."""
+
+    name: str
+    robot: str
+    folder: Path
+    """The robot folder (``sequences/<seq>/robot/<robot>/`` unless ``out`` was given)."""
+    figures: dict
+    """Quality figures and timings, as in the stage manifest."""
+    skipped: tuple[str, ...]
+    """Steps that were up to date and not redone."""
+
+
 @tracked_stage
-def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str = "g1",
-                      robot_config_path: str | Path | None = None, config: RetargetConfig = RetargetConfig(),
-                      out: str | Path | None = None, force: bool = False) -> Path:
-    """Retarget sequence ``seq`` of ``session`` to a robot and write every robot file; returns the folder.
+def run(config: RetargetConfig, session: str | Path, seq: str | None = None, *, robot: str = "g1",
+        robot_config_path: str | Path | None = None, out: str | Path | None = None,
+        force: bool = False) -> RobotOutputs:
+    """Retarget sequence ``seq`` of ``session`` to a robot and write every robot file.
 
     ``robot`` names a built-in robot, ``robot_config_path`` a TOML robot config (it wins);
     ``out`` replaces the default folder ``sequences/<seq>/robot/<robot>/``."""
-    import torch
-
     from embodmocap.body.model import load_body_model
     from embodmocap.export.amass import read_amass
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.robot import files
     from embodmocap.robot.model import RobotModel
-    from embodmocap.robot.report import robot_report
-    from embodmocap.robot.retarget import HumanRest, ground_heightmap, human_targets, retarget
 
     layout = SessionLayout(Path(session))
     manifest = load_manifest(layout.manifest)
@@ -81,18 +93,16 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
     inputs = [sl.smpl_world, mesh_path, manifest.body_model, rm.mjcf]
     sm = StageManifest(out_dir / "manifest.json", "robot", {"robot": asdict(rcfg), "retarget": asdict(config)},
                        inputs=inputs, root=layout.root)
-    fp_in = fingerprint(asdict(rcfg), asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
+    fp_in = STEPS.fingerprint("retarget", config, context={"robot": asdict(rcfg)}, reads={
+        "sequences/<seq>/smpl_world.npz": sl.smpl_world, "scene mesh": mesh_path, "body model": manifest.body_model,
+        "robot MJCF": rm.mjcf})
 
     params, frames = read_amass(sl.smpl_world)
     if frames is not None and len(frames) > 1 and np.any(np.diff(np.asarray(frames)) != 1):
         log.warning("%s: the sequence frames have gaps; the robot motion plays its rows back to back at %.3f fps "
                     "(speed limits and velocities across a gap are not meaningful)", sl.smpl_world, params.fps)
-    body = load_body_model(manifest.body_model)
-    with torch.no_grad():
-        joints = body.from_params(params, dtype=torch.float64).joints.numpy()
     mesh = read_mesh_ply(mesh_path)[:2]
-    hm = ground_heightmap(mesh[0], mesh[1], joints, cell_m=config.heightmap_cell_m)
-    human = HumanRest.of(body, params.betas)
+    inp = solve.robot_inputs(params, load_body_model(manifest.body_model), mesh[0], mesh[1], config)
 
     qpos_path = out_dir / "qpos.npz"
     partial = out_dir / "qpos_partial.npz"
@@ -115,7 +125,7 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
                     log.info("retargeting %s to %s: frame %d/%d (%.0f frames/s)", entry.name, rcfg.name, n, len(params),
                              (n - (0 if q_done is None else len(q_done))) / max(time.perf_counter() - t0, 1e-9))
 
-            q, ht = retarget(rm, params, joints, human, hm, config, q_done=q_done, progress=progress)
+            q, ht = solve.retarget_motion(rm, inp, config, q_done=q_done, progress=progress)
             seconds = time.perf_counter() - t0
             files.write_qpos(qpos_path, rm, q, params.fps, frames=frames, scale=ht.scale, contacts=ht.contacts)
             partial.unlink(missing_ok=True)
@@ -123,21 +133,20 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
                                     "retarget_frames_per_s": round(len(q) / max(seconds, 1e-9), 1)})
     qd = files.read_qpos(qpos_path)
     q = rm.qpos(qd["root_pos"], qd["root_quat_wxyz"], qd["joint_pos"])
-    fp_q = fingerprint(fp_in, path_fingerprint(qpos_path))
-
-    with sm.step("export", fp_q, force=force) as st:
+    with sm.step("export", STEPS.fingerprint("export", config, after={"retarget": fp_in}, reads={"qpos.npz": qpos_path}),
+                 force=force) as st:
         if st.run:
             outs = [files.write_motion_csv(out_dir / "motion.csv", rm, q),
                     files.write_tracking_npz(out_dir / "motion.npz", rm, q, params.fps, config.tracking_fps),
                     files.write_gmr_pkl(out_dir / "motion_gmr.pkl", rm, q, params.fps)]
-            outs += files.write_scene(out_dir, rm, hm, mesh, q[0])
+            outs += files.write_scene(out_dir, rm, inp.heightmap, mesh, q[0])
             st.record(outs)
 
     report_path = out_dir / "robot_report.json"
-    with sm.step("report", fp_q, force=force) as st:
+    with sm.step("report", STEPS.fingerprint("report", config, after={"retarget": fp_in}, reads={"qpos.npz": qpos_path}),
+                 force=force) as st:
         if st.run:
-            ht = human_targets(rm, params, joints, human, hm, config)
-            rep = robot_report(rm, q, ht, params.fps, hm, config.self_collision_depth_m)
+            rep = solve.motion_report(rm, q, inp, config)
             rep["version"] = files.ROBOT_FILES_VERSION
             rep["sequence"] = entry.name
             write_json(report_path, rep)
@@ -145,7 +154,14 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
                                                           "foot_skating_max_m", "foot_penetration_max_m",
                                                           "self_collision_frames")})
     log.info("robot %s for %s: %s", rcfg.name, entry.name, out_dir)
-    return out_dir
+    return RobotOutputs(entry.name, rcfg.name, out_dir, sm.figures(), tuple(sm.skipped))
+
+
+def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str = "g1",
+                      robot_config_path: str | Path | None = None, config: RetargetConfig = RetargetConfig(),
+                      out: str | Path | None = None, force: bool = False) -> Path:
+    """:func:`run`, for scripts written before it: returns the robot folder."""
+    return run(config, session, seq, robot=robot, robot_config_path=robot_config_path, out=out, force=force).folder
 
 
 def _load_checkpoint(path: Path, fp: str, nq: int) -> np.ndarray | None:

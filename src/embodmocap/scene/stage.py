@@ -29,7 +29,7 @@ interrupted resumes at the first unfinished step.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -40,13 +40,14 @@ from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.scene import solve
 from embodmocap.scene.adjust import read_drift_correction
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import check_depth
 from embodmocap.scene.sfm import build_sparse_model
 from embodmocap.scene.solve import KEYFRAMES_VERSION  # noqa: F401 (re-exported)
+from embodmocap.scene.steps import FLOOR_VERSION, SIMPLIFY_VERSION, STEPS  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -61,25 +62,6 @@ class SceneOutputs:
     """Quality figures and timings, as in the stage manifest."""
     skipped: tuple[str, ...]
     """Steps that were up to date and not redone."""
-
-
-def _cfg_part(cfg: SceneConfig, prefixes: tuple[str, ...]) -> dict:
-    """The config fields a step depends on (so changing e.g. SfM options keeps the mesh)."""
-    return {f.name: getattr(cfg, f.name) for f in fields(cfg) if f.name.startswith(prefixes)}
-
-
-_KEYFRAME_FIELDS = ("keyframe_", "blur_", "jump_", "min_keyframes")
-_MESH_FIELDS = ("min_confidence", "depth_", "voxel_", "sdf_", "integrate_every", "min_component", "floater_",
-                "confidence_", "fuse_", "structure_", "jump_")
-_SIMPLIFY_FIELDS = ("simplify_",)
-_SFM_FIELDS = ("sfm",)
-_FLOOR_FIELDS = ("floor_",)
-#: Version of the floor check (:func:`embodmocap.geometry.planes.find_floor`), part of its fingerprint.
-FLOOR_VERSION = 1
-#: Version of the simplified mesh's recipe, part of its step's fingerprint: 2 = faces wound by the
-#: raw faces' vote, one face per triple of cells (1: Open3D's clustering kept either or both
-#: windings), so a session simplified before redoes that step (seconds) and nothing else.
-SIMPLIFY_VERSION = 2
 
 
 @tracked_stage
@@ -101,8 +83,8 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     label = f"scene {name}"
 
     # 1. Key frames.
-    fp_kf = fingerprint("keyframes", KEYFRAMES_VERSION, path_fingerprint(entry.capture), indoor,
-                        _cfg_part(cfg, _KEYFRAME_FIELDS))
+    fp_kf = STEPS.fingerprint("keyframes", cfg, reads={"scene capture": Path(entry.capture)},
+                              context={"indoor": indoor})
     with sm.step("keyframes", fp_kf, force=force, label=label) as step:
         if step.run:
             kf = solve.select_keyframes(capture, cfg, indoor)
@@ -114,7 +96,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     frame_ids, T_kf = kf["frame_ids"], kf["T_world_cam"]
 
     # 2. Sparse model (before the mesh: the mesh is fused with its drift correction of the key frames).
-    fp_sfm = fingerprint("sfm", fp_kf, cfg.sfm)
+    fp_sfm = STEPS.fingerprint("sfm", cfg, after={"keyframes": fp_kf})
     with sm.step("sfm", fp_sfm, force=force, label=label) as step:
         if step.run:
             images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg)
@@ -126,7 +108,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
             })
 
     # 3. TSDF fusion + clean-up.
-    fp_mesh = fingerprint("mesh", fp_kf, fp_sfm if cfg.sfm.refine_poses else None, _cfg_part(cfg, _MESH_FIELDS))
+    fp_mesh = STEPS.fingerprint("mesh", cfg, after={"keyframes": fp_kf, "sfm": fp_sfm if cfg.sfm.refine_poses else None})
     with sm.step("mesh", fp_mesh, force=force, label=label) as step:
         if step.run:
             drift = read_drift_correction(out.sfm_dir) if cfg.sfm.refine_poses else None
@@ -136,7 +118,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
 
     # 4. Gravity check: a Z-up world has a horizontal floor; a tilted one means wrong gravity.
     if cfg.floor_tilt_warn_deg > 0:
-        fp_floor = fingerprint("floor", FLOOR_VERSION, fp_mesh, _cfg_part(cfg, _FLOOR_FIELDS))
+        fp_floor = STEPS.fingerprint("floor", cfg, after={"mesh": fp_mesh})
         with sm.step("floor", fp_floor, force=force, label=label) as step:
             if step.run:
                 step.record([], floor_figures(*read_mesh_ply(out.mesh_raw)[:2], cfg))
@@ -144,7 +126,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
 
     # 5. Simplified mesh.
     if cfg.simplify_voxel_m > 0:
-        fp_simple = fingerprint("simplify", SIMPLIFY_VERSION, fp_mesh, _cfg_part(cfg, _SIMPLIFY_FIELDS))
+        fp_simple = STEPS.fingerprint("simplify", cfg, after={"mesh": fp_mesh})
         with sm.step("simplify", fp_simple, force=force, label=label) as step:
             if step.run:
                 simple = solve.simplified(*read_mesh_ply(out.mesh_raw), cfg)

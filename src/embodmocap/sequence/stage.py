@@ -39,18 +39,18 @@ from embodmocap.io.manifest import SequenceEntry, load_manifest
 from embodmocap.io.stage_files import (
     CameraFile, Keypoints2DFile, read_keypoints2d, write_cameras, write_keypoints2d,
 )
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.perception.registry import make
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.sequence.solve import solve_performer
 from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
 from embodmocap.sequence.sync import SyncEvent, write_contact_sheet
-from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION, events_from_record, first_record
+from embodmocap.sequence.steps import STEPS
+from embodmocap.sequence.sync_record import events_from_record, first_record
 from embodmocap.types import Capture
 
 log = logging.getLogger(__name__)
 
-STAGE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -80,8 +80,8 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     # 1. Sync.
     manual = {v: entry.views[v].sync_frame for v in views}
     geometric = cfg.sync_without_laser == "geometric"
-    fp_sync = fingerprint("sync", STAGE_VERSION, SYNC_RECORD_VERSION, {v: path_fingerprint(captures[v].path) for v in views},
-                          manual, cfg.sync, geometric, cfg.min_overlap_s)
+    fp_sync = STEPS.fingerprint("sync", cfg, reads={"view captures": {v: Path(captures[v].path) for v in views}},
+                                context={"sync_frame": manual})
     with sm.step("sync", fp_sync, force=force, label=label) as step:
         if step.run:
             events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name,
@@ -94,7 +94,7 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     events = events_from_record(json.loads(out.sync.read_text()), out.sync)
 
     # 2. Slice.
-    fp_slice = fingerprint("slice", fp_sync, cfg.fps, cfg.min_overlap_s)
+    fp_slice = STEPS.fingerprint("slice", cfg, after={"sync": fp_sync})
     with sm.step("slice", fp_slice, force=force, label=label) as step:
         if step.run:
             maps = slice_views(captures, events, cfg.fps, cfg.min_overlap_s)
@@ -110,9 +110,8 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     maps = {v: frame_map_from_json(json.loads(out.view(v).frame_map.read_text()), out.view(v).frame_map) for v in views}
 
     # 3. Keypoints and the performer's identity.
-    fp_kp = fingerprint("keypoints", fp_slice, cfg.keypoints, cfg.detector, cfg.keypoints_model, cfg.detector_model,
-                        cfg.tracking, {v: path_fingerprint(entry.views[v].keypoints) if entry.views[v].keypoints else None
-                                       for v in views})
+    fp_kp = STEPS.fingerprint("keypoints", cfg, after={"slice": fp_slice},
+                              reads={"keypoint folders": {v: entry.views[v].keypoints for v in views}})
     with sm.step("keypoints", fp_kp, force=force, label=label) as step:
         if step.run:
             figs = _keypoints_step(cfg, entry, captures, maps, out)
@@ -122,17 +121,16 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
     for v in views:
         vl, view, cap, fm = out.view(v), entry.views[v], captures[v], maps[v]
         if cfg.masks != "none":
-            fp = fingerprint("masks", fp_kp, cfg.masks, cfg.masks_model, path_fingerprint(view.masks) if view.masks else None)
+            fp = STEPS.fingerprint("masks", cfg, after={"keypoints": fp_kp}, reads={"mask folder": view.masks})
             with sm.step(f"masks_{v}", fp, force=force, label=label) as step:
                 if step.run:
                     step.record([vl.masks], {f"{v}_frames_missing_mask": _masks_step(cfg, view, cap, fm, vl)})
-        fp = fingerprint("depth", fp_slice, cfg.depth, cfg.depth_model, cfg.min_depth_confidence,
-                         path_fingerprint(view.depth) if view.depth else None)
+        fp = STEPS.fingerprint("depth", cfg, after={"slice": fp_slice}, reads={"depth folder": view.depth})
         with sm.step(f"depth_{v}", fp, force=force, label=label) as step:
             if step.run:
                 step.record([vl.depth], {f"{v}_frames_missing_depth": _depth_step(cfg, view, cap, fm, vl)})
         if cfg.body_prior != "none" and view.body_prior is not None:
-            fp = fingerprint("body_prior", fp_slice, path_fingerprint(view.body_prior))
+            fp = STEPS.fingerprint("body_prior", cfg, after={"slice": fp_slice}, reads={"body prior file": view.body_prior})
             with sm.step(f"body_prior_{v}", fp, force=force, label=label) as step:
                 if step.run:
                     step.record([vl.body_prior], {f"{v}_frames_missing_body_prior": _body_prior_step(view, fm, vl)})

@@ -26,8 +26,8 @@ class Skills:
     """Clip finder settings."""
 
     def run(self) -> int:
-        from embodmocap.skills.stage import find_skills
+        from embodmocap.skills.stage import run
 
-        path = find_skills(self.session, self.seq, config=self.config, force=self.force)
-        print(f"wrote {path}")
+        out = run(self.config, self.session, self.seq, force=self.force)
+        print(f"wrote {out.path}")
         return 0

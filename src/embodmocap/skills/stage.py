@@ -5,21 +5,24 @@ model and the sequence's scene mesh (the simplified one when Stage I wrote it). 
 ``sequences/<seq>/skills/skills.json`` (:mod:`embodmocap.skills.files`) and the stage manifest
 ``sequences/<seq>/skills/manifest.json``: the one step ``clips`` is skipped when the motion, the
 mesh, the body model and the settings are unchanged (``--force`` redoes it); the file is written
-atomically, so an interrupted run leaves the old file or none.
+atomically, so an interrupted run leaves the old file or none. ``run(config, session, seq, force=)``
+has the stages' shape; the decisions are pure functions in :mod:`embodmocap.skills.solve`.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
-from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.skills.config import SkillsConfig
+from embodmocap.skills.solve import clip_figures, clips_of_motion  # noqa: F401 (re-exported)
+from embodmocap.skills.steps import STEPS
 
 log = logging.getLogger(__name__)
 
@@ -39,34 +42,22 @@ def scene_mesh_path(layout: SessionLayout, scene: str) -> Path:
                      f"run `embodmocap scene {layout.root}` first")
 
 
-def clips_of_motion(params, body, mesh_vertices, mesh_faces, cfg: SkillsConfig = SkillsConfig()):
-    """The skill clips of a world motion in a scene mesh (no files): ``(clips, surfaces)``.
+@dataclass(frozen=True)
+class SkillsOutputs:
+    """What ``embodmocap skills`` produced for one sequence."""
 
-    Args:
-        params: :class:`~embodmocap.types.SmplParams` in the mesh's world (Z up, metres).
-        body: the body model.
-        mesh_vertices, mesh_faces: (N, 3), (F, 3) scene mesh.
-        cfg: settings.
-    """
-    import torch
-
-    from embodmocap.skills.clips import find_clips
-    from embodmocap.skills.contact import body_contacts, find_surfaces, part_vertex_ids
-
-    # The lowest body point over the motion is a floor height hint (the cap above it drops ceilings).
-    step = max(len(params) // 64, 1)
-    with torch.no_grad():
-        v = body.forward(params.betas, params.global_orient[::step], params.body_pose[::step], params.transl[::step])
-    hint = float(v.vertices[..., 2].min())
-    surfaces = find_surfaces(mesh_vertices, mesh_faces, hint, cfg)
-    contacts = body_contacts(params, body, surfaces, part_vertex_ids(body, params.betas), cfg)
-    return find_clips(contacts, surfaces, float(params.fps), cfg), surfaces
+    name: str
+    path: Path
+    """``skills.json``."""
+    figures: dict
+    """Clip counts, as in the stage manifest."""
+    skipped: tuple[str, ...]
+    """Steps that were up to date and not redone."""
 
 
 @tracked_stage
-def find_skills(session: str | Path, seq: str | None = None, *, config: SkillsConfig = SkillsConfig(),
-                force: bool = False) -> Path:
-    """Find the skill clips of sequence ``seq`` of ``session``; returns the path of ``skills.json``."""
+def run(config: SkillsConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> SkillsOutputs:
+    """Find the skill clips of sequence ``seq`` of ``session`` (the only one when None)."""
     from embodmocap.body.model import load_body_model
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
@@ -85,7 +76,8 @@ def find_skills(session: str | Path, seq: str | None = None, *, config: SkillsCo
     out_dir.mkdir(parents=True, exist_ok=True)
     inputs = [sl.smpl_world, mesh_path, manifest.body_model]
     sm = StageManifest(out_dir / "manifest.json", "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
-    fp = fingerprint(asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
+    fp = STEPS.fingerprint("clips", config, reads={"sequences/<seq>/smpl_world.npz": sl.smpl_world,
+                                                   "scene mesh": mesh_path, "body model": manifest.body_model})
     path = out_dir / "skills.json"
     with sm.step("clips", fp, force=force) as st:
         if st.run:
@@ -95,10 +87,12 @@ def find_skills(session: str | Path, seq: str | None = None, *, config: SkillsCo
             clips, surfaces = clips_of_motion(params, body, np.asarray(mv), np.asarray(mf), config)
             write_skills(path, SkillsFile(layout.root.name, entry.name, float(params.fps), len(params), clips,
                                           asdict(config)))
-            counts = {}
-            for c in clips:
-                counts[c.skill] = counts.get(c.skill, 0) + 1
-            st.record([path], {"clips": len(clips), **{f"clips_{k}": v for k, v in sorted(counts.items())},
-                               "surfaces": len(surfaces.boxes)})
+            st.record([path], clip_figures(clips, surfaces))
     log.info("skills for %s: %s", entry.name, path)
-    return path
+    return SkillsOutputs(entry.name, path, sm.figures(), tuple(sm.skipped))
+
+
+def find_skills(session: str | Path, seq: str | None = None, *, config: SkillsConfig = SkillsConfig(),
+                force: bool = False) -> Path:
+    """:func:`run`, for scripts written before it: returns the path of ``skills.json``."""
+    return run(config, session, seq, force=force).path
