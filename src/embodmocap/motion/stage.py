@@ -117,7 +117,7 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                                   entry.name) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
     fp_fit = fingerprint("fit", cfg.smplify, cfg.use_body_prior, cfg.min_prior_fraction, cfg.min_frame_joints,
-                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.bone_tol, cfg.torso_tol_m,
+                         cfg.max_poor_fraction, cfg.min_valid_joints, cfg.prior_disagree_m, cfg.prior_limb_disagree_m, cfg.bone_tol, cfg.torso_tol_m,
                          cfg.bone_anchor_torso, cfg.propagate_limbs, cfg.turn_unplaced, cfg.kp3d_conf,
                          cfg.init_median_frames, cfg.quality, layout,
                          path_fingerprint(out.keypoints3d), *[path_fingerprint(out.view(v).body_prior) for v in priors],
