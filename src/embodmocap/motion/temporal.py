@@ -72,7 +72,7 @@ class TemporalConfig:
     the neighbouring frames already write a guess off, and on the hard studio sessions this rule
     dropped several good detections for each wrong one: W-MPJPE worse on 3 of the first 4 of the
     ten sessions (seed 2: W 77 -> 97 mm, PA 29 -> 57 mm; issue 11, third pass)."""
-    confirm_frames: int = 3
+    confirm_frames: int = 1
     """At the start (end) of a run of detections, the jump that cuts the first (last) segment off
     must hold for this many of the longer segment's frames next to it: the segment is judged a
     guess only when none of them (the allowance for their distance in frames added) lies within
@@ -80,7 +80,10 @@ class TemporalConfig:
     otherwise cut them off and had them dropped (studio seed 3, outdoor: view 1's left wrist in
     the first 6 frames after the person came into view, confidence 0.74-0.93 and 2-9 px from the
     truth, dropped because frame 39 strayed 0.39 torso lengths and came back; the fit's wrist
-    16-27 cm off there). 1: the single step decides (as before)."""
+    16-27 cm off there). 1 (default): the single step decides. 3 was measured on the five studio
+    sessions of 2026-12-04 (session 8) and not kept: it kept seed 3's correct start, but also
+    outdoor seed 1's wrong leg labels at a run's start (legs crossing: the wrong label lies
+    within a jump of the next frames), W-MPJPE c100 26.8 -> 38.5 mm there."""
 
 
 def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> NDArray[np.bool_]:
