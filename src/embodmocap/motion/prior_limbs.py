@@ -12,7 +12,9 @@ Here each limb (shoulder or hip down to hand or foot) is judged on its own: in t
 prior body's elbow and wrist (knee and ankle) are more than ``margin_m`` further from their 3D
 keypoints than the keypoint-started body's (mean over the limb's seen keypoints), the prior's local
 rotations of that limb are replaced by the keypoint-started body's, so the pull there goes to what
-the views see. Frames or limbs with no triangulated keypoint keep the prior.
+the views see. Frames or limbs with no triangulated keypoint keep the prior (Stage IV passes only
+the points triangulated in the frame, not those filled over a gap: where both ends of a gap were
+wrong the filled points contradict a right prior, as on the studio's indoor seed 2's left ankle).
 """
 
 from __future__ import annotations

@@ -220,7 +220,10 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
 
                 from embodmocap.motion.prior_limbs import gate_prior_limbs, limb_columns
 
-                prior_pose, limbs_gated = gate_prior_limbs(model, prior_pose, init, kp_init, points, conf3, min_conf,
+                # Only triangulated points judge a limb: points filled over a gap are interpolated,
+                # and where both ends were wrong they contradict a right prior (studio indoor seed 2).
+                measured = points if "filled" not in k3.files else np.where(k3["filled"][..., None], np.nan, points)
+                prior_pose, limbs_gated = gate_prior_limbs(model, prior_pose, init, kp_init, measured, conf3, min_conf,
                                                            cfg.prior_limb_disagree_m, layout)
                 # The fit starts there too: from the prior's wrong limb it stays in that basin.
                 init = replace(init, body_pose=np.where(limb_columns(limbs_gated), prior_pose, init.body_pose))
