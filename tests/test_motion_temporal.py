@@ -64,3 +64,22 @@ def test_weak_detections_shape_the_trajectory_but_are_not_dropped():
     bad[:5, 0, 10, 2] = 0.2
     assert temporal_outliers(bad, ON)[:5, 0, 10].all()
     assert not temporal_outliers(bad, TemporalConfig(enabled=True, middle=False, flag_min_conf=0.3)).any()
+
+
+def test_one_stray_frame_after_a_correct_start_does_not_drop_the_start():
+    """Studio seed 3 (outdoor): the first 6 frames of a run were right and frame 6 strayed ~0.4
+    torso lengths before the wrist came back; the single step 5 -> 6 cut the start off and the
+    start rule dropped the correct frames. With ``confirm_frames`` 3 (an option, off by default)
+    the jump must hold for the frames after it."""
+    kp = _person(seed=2)
+    bad = kp.copy()
+    bad[6, 0, 10, :2] += [-33, 14]  # one wayward detection, ~0.36 torso lengths off
+    bad[6, 0, 10, 2] = 0.54
+    confirm = TemporalConfig(enabled=True, middle=False, flag_min_conf=0.0, confirm_frames=3)
+    assert not temporal_outliers(bad, confirm)[:6, 0, 10].any()
+    # A start guess that stays off for several frames is still dropped when the jump holds.
+    worse = bad.copy()
+    worse[:6, 0, 10, :2] += [60, -40]
+    assert temporal_outliers(worse, confirm)[:6, 0, 10].all()
+    # With the single step deciding (the default, confirm_frames 1) the correct start is dropped.
+    assert temporal_outliers(bad, ON)[:6, 0, 10].all()

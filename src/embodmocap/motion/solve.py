@@ -201,7 +201,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
             raise InputError(source, f"cannot place a starting body in sequence {label}: {err}",
                              "both views must see the hips and shoulders in some frames; or give a body prior "
                              "(body_prior in session.toml)") from err
-    prior_pose, v_best, prior_w, n_replaced = None, None, None, 0
+    prior_pose, v_best, prior_w, n_replaced, n_limbs_gated = None, None, None, 0, 0
     if priors:
         v_best = max(priors, key=lambda v: priors[v][1].mean())
         prior, has = priors[v_best]
@@ -215,6 +215,19 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
             init, worse = prefer_keypoints(model, init, kp_init, points, conf3, min_conf,
                                            cfg.prior_disagree_m, layout)
             prior_w, n_replaced = (~worse).astype(np.float64), int(worse.sum())
+            if cfg.prior_limb_disagree_m > 0:
+                from dataclasses import replace
+
+                from embodmocap.motion.prior_limbs import gate_prior_limbs, limb_columns
+
+                # Only triangulated points judge a limb: points filled over a gap are interpolated,
+                # and where both ends were wrong they contradict a right prior (studio indoor seed 2).
+                measured = points if "filled" not in k3.files else np.where(k3["filled"][..., None], np.nan, points)
+                prior_pose, limbs_gated = gate_prior_limbs(model, prior_pose, init, kp_init, measured, conf3, min_conf,
+                                                           cfg.prior_limb_disagree_m, layout)
+                # The fit starts there too: from the prior's wrong limb it stays in that basin.
+                init = replace(init, body_pose=np.where(limb_columns(limbs_gated), prior_pose, init.body_pose))
+                n_limbs_gated = int(limbs_gated.sum())
         log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)",
                  label, v_best, 100 * has.mean(), n_replaced)
     else:
@@ -258,6 +271,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
         "init_frames_from_keypoints": n_replaced if v_best else int(T),
+        "prior_limbs_from_keypoints": n_limbs_gated,
         "keypoint_layout": layout,
         "points_dropped_bone_length": int(gated.sum()),
         "limb_starts_propagated": n_propagated,

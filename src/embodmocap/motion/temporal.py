@@ -72,8 +72,18 @@ class TemporalConfig:
     the neighbouring frames already write a guess off, and on the hard studio sessions this rule
     dropped several good detections for each wrong one: W-MPJPE worse on 3 of the first 4 of the
     ten sessions (seed 2: W 77 -> 97 mm, PA 29 -> 57 mm; issue 11, third pass)."""
-    """Longest segment that can be judged a guess, frames (a detector's left/right confusions and
-    confident guesses of hidden joints last up to about a second)."""
+    confirm_frames: int = 1
+    """At the start (end) of a run of detections, the jump that cuts the first (last) segment off
+    must hold for this many of the longer segment's frames next to it: the segment is judged a
+    guess only when none of them (the allowance for their distance in frames added) lies within
+    ``jump`` of its nearest frame. One wayward detection right after a run's correct first frames
+    otherwise cut them off and had them dropped (studio seed 3, outdoor: view 1's left wrist in
+    the first 6 frames after the person came into view, confidence 0.74-0.93 and 2-9 px from the
+    truth, dropped because frame 39 strayed 0.39 torso lengths and came back; the fit's wrist
+    16-27 cm off there). 1 (default): the single step decides. 3 was measured on the five studio
+    sessions of 2026-12-04 (session 8) and not kept: it kept seed 3's correct start, but also
+    outdoor seed 1's wrong leg labels at a run's start (legs crossing: the wrong label lies
+    within a jump of the next frames), W-MPJPE c100 26.8 -> 38.5 mm there."""
 
 
 def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> NDArray[np.bool_]:
@@ -188,13 +198,23 @@ def _short_segments(r: NDArray, seen: NDArray, cfg: TemporalConfig) -> list[list
             if across < into and span[k] <= max(span[k - 1], span[k + 1]):
                 found.append(s)
         elif lc == "jump":  # at the end of the detections: judged against the segment before
-            if span[k - 1] > max(span[k], cfg.min_reference):
+            if span[k - 1] > max(span[k], cfg.min_reference) and _jump_holds(r, s[0], segs[k - 1][::-1], cfg):
                 found.append(s)
-        elif k + 1 < n and span[k + 1] > max(span[k], cfg.min_reference):
+        elif (k + 1 < n and span[k + 1] > max(span[k], cfg.min_reference)
+              and _jump_holds(r, s[-1], segs[k + 1], cfg)):
             # At the start of the detections (the sequence's, or after a gap): no past to compare
             # with, so the longer segment after it judges it (propagation backwards).
             found.append(s)
     return found
+
+
+def _jump_holds(r: NDArray, edge: int, other: list[int], cfg: TemporalConfig) -> bool:
+    """Whether frame ``edge`` of an edge segment is more than a jump from each of the first
+    ``cfg.confirm_frames`` frames of ``other`` (the neighbouring segment, nearest frame first),
+    allowing ``jump_per_frame`` for every frame between them."""
+    near = np.asarray(other[:max(cfg.confirm_frames, 1)])
+    d = np.linalg.norm(r[near] - r[edge], axis=-1) - cfg.jump_per_frame * (np.abs(near - edge) - 1)
+    return bool((d > cfg.jump).all())
 
 
 def drop_guessed_runs(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> tuple[NDArray, NDArray[np.bool_]]:
