@@ -66,7 +66,7 @@ class Inspect:
     """A capture folder (Stray Scanner, Spectacular AI, Record3D) or a session folder."""
 
     def run(self) -> int:
-        from embodmocap.io.inspect import inspect_path
+        from embodmocap.check.inspect import inspect_path
 
         text, problems = inspect_path(self.path)
         print(text)
@@ -118,7 +118,7 @@ class Demo:
     def run(self) -> int:
         import shutil
 
-        from embodmocap.io.inspect import inspect_path
+        from embodmocap.check.inspect import inspect_path
         from embodmocap.synth.studio import synthesize
 
         if (self.out / "session.toml").exists() and (self.out / "ground_truth").exists():

@@ -318,7 +318,7 @@ def _skill_clips(session: str, seq: str, path: Path) -> list[dict[str, Any]]:
 def rebuild(dataset: str | Path) -> Path:
     """Recreate the catalog from every session's files, keeping the batch's ``attempts`` record.
     Written to a temporary file and renamed, so a reader never sees a half-built catalog."""
-    from embodmocap.batch.plan import dataset_root, session_folders
+    from embodmocap.io.dataset import dataset_root, session_folders
 
     root = dataset_root(dataset)
     final = root / CATALOG_NAME

@@ -138,7 +138,8 @@ def _write_tables(out: Path, cfg: BenchmarkConfig, rows: list[dict]) -> dict:
 def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     """Every capture method and ablation variant of one processed session."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.evaluate.session import EvaluateConfig, motion_errors, quality_metrics, sequence_truth
+    from embodmocap.evaluate.session import EvaluateConfig, motion_errors, quality_metrics
+    from embodmocap.evaluate.truth import sequence_truth
     from embodmocap.io.manifest import load_manifest
 
     lay = SessionLayout(session)

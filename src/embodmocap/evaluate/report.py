@@ -219,7 +219,7 @@ def _error_plot(lay: SessionLayout, scene: str, seq: str, body_model, has_gt: bo
     fps = sequence_fps(sl)
     t = frames / float(fps)
     if has_gt:
-        from embodmocap.evaluate.session import sequence_truth
+        from embodmocap.evaluate.truth import sequence_truth
 
         truth = sequence_truth(lay, scene, seq)
         err = 1000 * np.linalg.norm(joints - truth.joints[frames], axis=-1)  # (T, 24) mm, no alignment

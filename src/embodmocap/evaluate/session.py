@@ -28,6 +28,8 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.evaluate import metrics as M
+from embodmocap.evaluate.mono import mono_metrics
+from embodmocap.evaluate.truth import SequenceTruth, sequence_truth  # noqa: F401 (public here)
 from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.atomic import write_json
 from embodmocap.io.layout import VIEWS, SessionLayout
@@ -35,7 +37,6 @@ from embodmocap.io.manifest import load_manifest
 from embodmocap.io.ground_truth import read_truth_scene_device, read_truth_sequence
 from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d
 from embodmocap.io.stage_manifest import require_sequence_stages
-from embodmocap.mono.evaluate import mono_metrics
 
 log = logging.getLogger(__name__)
 
@@ -53,45 +54,6 @@ class EvaluateConfig:
     """Surface samples for the scene mesh accuracy / completeness."""
     completeness_threshold_m: float = 0.05
     """A true surface sample closer than this to the reconstruction counts as complete."""
-
-
-@dataclass(frozen=True)
-class SequenceTruth:
-    """Ground truth of one sequence in Stage I's world, indexed by sequence frame.
-
-    Attributes:
-        joints: (T, 24, 3) SMPL joints, metres.
-        T_world_vio: view -> (4, 4) the view's VIO world in Stage I's world.
-        T_world_cam: view -> (T, 4, 4) true cameras.
-        sync_frame: view -> true raw frame of the sync event.
-        valid: (T,) bool sequence frames inside the scripted motion.
-    """
-
-    joints: NDArray[np.float64]
-    T_world_vio: dict[str, NDArray[np.float64]]
-    T_world_cam: dict[str, NDArray[np.float64]]
-    sync_frame: dict[str, int]
-    valid: NDArray[np.bool_]
-
-
-def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
-    """The synthetic truth of ``seq`` moved into Stage I's world and indexed by sequence frame."""
-    gt = lay.ground_truth
-    T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
-    g = read_truth_sequence(gt.sequence(seq))
-    views = lay.sequence(seq).views()
-    raw = read_cameras(lay.sequence(seq).view(views[0]).cameras).raw_frames.astype(np.int64)
-    motion = int(g[f"{views[0]}_motion_start"]) + raw
-    M_frames = len(g["joints_smpl24"])
-    valid = (motion >= 0) & (motion < M_frames)
-    j = g["joints_smpl24"][np.clip(motion, 0, M_frames - 1)]
-    joints = j @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
-    cams, vio = {}, {}
-    for v in views:
-        raw_v = read_cameras(lay.sequence(seq).view(v).cameras).raw_frames.astype(np.int64)
-        cams[v] = T_world_scene @ g[f"{v}_T_scene_cam"][raw_v]
-        vio[v] = T_world_scene @ g[f"{v}_T_scene_vio"]
-    return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in views}, valid)
 
 
 def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()) -> dict:

@@ -59,7 +59,7 @@ def retarget_sequence(session: str | Path, seq: str | None = None, *, robot: str
     import torch
 
     from embodmocap.body.model import load_body_model
-    from embodmocap.export.amass import read_amass
+    from embodmocap.io.amass import read_amass
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.robot import files

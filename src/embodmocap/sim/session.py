@@ -15,7 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
-from embodmocap.export.mimickit import HeightMap, write_heightmap
+from embodmocap.geometry.heightmap import HeightMap
+from embodmocap.io.heightmap_file import write_heightmap
 from embodmocap.io.layout import SessionLayout
 from embodmocap.sim.config import HumanoidConfig, SceneCollisionConfig
 from embodmocap.sim.model import hinge_names, performer_mjcf, reference_qpos
@@ -64,7 +65,7 @@ class SimSequence:
 def load_sequence(session: str | Path, seq: str | None = None) -> SimSequence:
     """Read sequence ``seq`` (or the session's only one) of ``session``; InputError names what is missing."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.export.amass import read_amass
+    from embodmocap.io.amass import read_amass
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
 
