@@ -110,7 +110,7 @@ def run_benchmark(out: str | Path, cfg: BenchmarkConfig = BenchmarkConfig()) -> 
             session = out / (f"{preset}_{seed}" if perception == "clean" else f"{preset}_{seed}_hard")
             t0 = time.perf_counter()
             try:
-                if not (session / "ground_truth" / "ground_truth.json").is_file():
+                if not SessionLayout(session).ground_truth.info.is_file():
                     synthesize(SynthConfig(seed=seed, preset=preset, seconds=cfg.seconds, scene_seconds=cfg.scene_seconds,
                                            perception=perception), session)
                 res = run_session(PipelineConfig(), session)

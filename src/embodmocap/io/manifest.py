@@ -52,7 +52,7 @@ import tomli_w
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_bytes
-from embodmocap.io.layout import VIEWS
+from embodmocap.io.layout import VIEWS, SessionLayout
 
 try:  # Python >= 3.11
     import tomllib
@@ -589,7 +589,7 @@ def write_manifest(manifest: SessionManifest, path: str | Path | None = None) ->
     stored relative to it (that folder is the root when the file is loaded again), others absolute.
     ``load_manifest(write_manifest(m)) == m`` for a manifest whose root is that folder.
     """
-    path = _absolute(Path(path) if path is not None else manifest.root / MANIFEST_NAME)
+    path = _absolute(Path(path) if path is not None else SessionLayout(manifest.root).manifest)
     if path.parent != manifest.root:
         logger.warning("writing manifest to %s, outside its root %s: paths become relative to %s", path, manifest.root, path.parent)
     write_bytes(path, tomli_w.dumps(manifest_to_dict(manifest, path.parent)).encode("utf-8"))

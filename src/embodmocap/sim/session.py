@@ -120,7 +120,7 @@ def scene_pieces(sq: SimSequence, cfg: SceneCollisionConfig = SceneCollisionConf
     lo, hi = flat[:, :2].min(axis=0) - cfg.margin_m, flat[:, :2].max(axis=0) + cfg.margin_m
     v, f = crop_scene(sq.scene_vertices, sq.scene_faces, lo, hi, float(flat[:, 2].max()) + cfg.cap_above_motion_m)
     cache = None
-    if (Path(sq.session) / "session.toml").is_file():
+    if SessionLayout(sq.session).manifest.is_file():
         cache = SessionLayout(sq.session).sequence(sq.name).sim_dir
     return cached_convex_pieces(v, f, cache, threshold=cfg.coacd_threshold, max_pieces=cfg.coacd_max_pieces,
                                 resolution=cfg.coacd_resolution, convex_tolerance=cfg.convex_tolerance)

@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 def skills_dir(layout: SessionLayout, seq: str) -> Path:
     """Where ``embodmocap skills`` writes one sequence's clips."""
-    return layout.sequence(seq).root / "skills"
+    return layout.sequence(seq).skills_dir
 
 
 def scene_mesh_path(layout: SessionLayout, scene: str) -> Path:
@@ -84,9 +84,9 @@ def find_skills(session: str | Path, seq: str | None = None, *, config: SkillsCo
     out_dir = skills_dir(layout, entry.name)
     out_dir.mkdir(parents=True, exist_ok=True)
     inputs = [sl.smpl_world, mesh_path, manifest.body_model]
-    sm = StageManifest(out_dir / "manifest.json", "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
+    sm = StageManifest(sl.skills_manifest, "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
     fp = fingerprint(asdict(config), *[path_fingerprint(p) for p in inputs if p is not None])
-    path = out_dir / "skills.json"
+    path = sl.skills_json
     with sm.step("clips", fp, force=force) as st:
         if st.run:
             params, _frames = read_smpl_npz(sl.smpl_world)
