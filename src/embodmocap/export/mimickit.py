@@ -38,7 +38,6 @@ from __future__ import annotations
 import io
 import logging
 import pickle
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
