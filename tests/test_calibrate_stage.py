@@ -271,4 +271,4 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
             assert np.array_equal(res.cameras_world[v][k], cw[k]), (v, k)
         assert np.array_equal(res.T_world_vio[v], done.T_world_vio[v])
     assert _plain_json(res.report) == _plain_json(json.loads(files.calibration.read_text()))
-    assert _plain_json(res.sync_record) == _plain_json(json.loads(files.sync.read_text()))
+    assert _plain_json(res.sync_record) == _plain_json(json.loads(files.final_sync.read_text()))
