@@ -142,6 +142,7 @@ def laser_ignored(session: Path, search_s: float) -> dict:
 
 def run_geosync(out: Path, seeds: list[int]) -> list[dict]:
     from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.stage_files import read_final_sync
 
     rows = []
     for s in seeds:
@@ -152,7 +153,7 @@ def run_geosync(out: Path, seeds: list[int]) -> list[dict]:
             rows.append({"session": session.name, "error": f"{type(err).__name__}: {err}"})
             print(json.dumps(rows[-1]), flush=True)
             continue
-        rec = json.loads(SessionLayout(session).sequence("seq0").sync.read_text())
+        rec = read_final_sync(SessionLayout(session).sequence("seq0")).record
         fps = 30.0
         truth = true_residual_frames(session)
         geo = rec["sources"]["geometric"]
@@ -184,6 +185,7 @@ def run_nolaser(out: Path, seeds: list[int]) -> list[dict]:
     from embodmocap.calibrate import stage as stage3
     from embodmocap.errors import InputError
     from embodmocap.io.layout import SessionLayout
+    from embodmocap.io.stage_files import read_final_sync
     from embodmocap.sequence import stage as stage2
     from embodmocap.sequence.config import SequenceConfig
     from embodmocap.sequence.sync import SyncConfig
@@ -205,7 +207,7 @@ def run_nolaser(out: Path, seeds: list[int]) -> list[dict]:
             stage3.run(cfg, dst)
         except InputError as err:
             row["error"] = str(err)
-        rec = json.loads(SessionLayout(dst).sequence("seq0").sync.read_text())
+        rec = read_final_sync(SessionLayout(dst).sequence("seq0")).record
         truth = true_residual_frames(dst)
         geo = rec["sources"].get("geometric", {})
         row.update({"slicing": rec["slicing"]["source"], "true_residual_frames": round(truth, 3),

@@ -54,7 +54,7 @@ def main() -> None:
     from embodmocap.io.layout import SessionLayout
     from embodmocap.mono import stage
     from embodmocap.mono.config import MonoConfig
-    from embodmocap.mono.evaluate import mono_metrics
+    from embodmocap.evaluate.mono import mono_metrics
     from embodmocap.mono.files import read_mono_cameras
     from embodmocap.sequence import stage as sequence_stage
     from embodmocap.sequence.config import SequenceConfig

@@ -70,7 +70,7 @@ def run_one(session: Path, scene_model: str, threads: int) -> dict:
     from embodmocap.io.manifest import load_manifest
     from embodmocap.mono import stage
     from embodmocap.mono.config import MonoConfig
-    from embodmocap.mono.evaluate import mono_metrics
+    from embodmocap.evaluate.mono import mono_metrics
 
     lay = SessionLayout(session)
     man = load_manifest(lay.manifest)

@@ -36,7 +36,7 @@ def main() -> None:
     from embodmocap.io.layout import SessionLayout
     from embodmocap.mono import stage
     from embodmocap.mono.config import MonoConfig
-    from embodmocap.mono.evaluate import mono_metrics
+    from embodmocap.evaluate.mono import mono_metrics
     from embodmocap.synth.mono_inputs import PRIOR_PRESETS, MonoInputConfig, write_mono_inputs
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -169,7 +169,7 @@ def evaluate(session: Path) -> dict:
     from embodmocap.scene.config import SceneConfig
     from embodmocap.scene.mesh import read_mesh_ply
     from embodmocap.scene.sfm import image_poses
-    from embodmocap.scene.stage import read_keyframes
+    from embodmocap.io.stage_files import read_keyframes
 
     lay = SessionLayout(session)
     out = lay.scene("scene0")
@@ -178,7 +178,7 @@ def evaluate(session: Path) -> dict:
     indoor = info["config"]["preset"] == "indoor"
     gt = trimesh.load(lay.ground_truth.scene_mesh("scene0"), force="mesh")
     dev = np.load(lay.ground_truth.scene_device("scene0"))
-    kf = read_keyframes(out)
+    kf = read_keyframes(out.keyframes)
     cap = open_capture(lay.scene_capture("scene0"))
     v, f, _ = read_mesh_ply(out.mesh_raw)
     # Compare in the scene frame; "seen" surface from the key frames' true poses.

@@ -166,7 +166,7 @@ def _final_offset(out: Path, subframe_sync: bool = True) -> dict:
                              label=out.name, subframe_sync=subframe_sync)
     except InputError as err:
         return {"stopped": str(err).splitlines()[0][:200]}
-    write_json(sl.sync, res.record)
+    write_json(sl.final_sync, res.record)  # as Stage III writes it
     ch = res.record["chosen"]
     manual = res.record["sources"].get("manual") or {}
     row = {"stopped": None, "slicing": rec["slicing"]["source"], "source": ch["source"],

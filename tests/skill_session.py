@@ -21,7 +21,7 @@ from embodmocap.body.model import load_body_model
 from embodmocap.io.atomic import write_json
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import SceneEntry, SequenceEntry, SessionManifest, ViewEntry
-from embodmocap.io.manifest_write import write_manifest
+from embodmocap.io.manifest import write_manifest
 from embodmocap.io.mesh_file import write_mesh_ply
 from embodmocap.io.smpl_file import write_smpl_npz
 from embodmocap.synth.motion import MotionScriptConfig, script_motion

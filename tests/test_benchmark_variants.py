@@ -48,7 +48,7 @@ def test_benchmark_dual_fit_is_stage_iv_s_fit(session, tmp_path, residual_frames
     sl = lay.sequence(SEQ)
     rec = json.loads(sl.sync.read_text())
     rec.update(version=2, chosen={"final": True, "residual_s": residual_frames / SYNTH.fps})
-    write_json(sl.sync, rec)
+    write_json(sl.final_sync, rec)  # as Stage III writes it
     stage4.run(stage4.MotionConfig(), work, force=True)
     want, _ = read_smpl_npz(sl.smpl_fit)
     manifest = load_manifest(lay.manifest)

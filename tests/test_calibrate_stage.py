@@ -14,6 +14,7 @@ from embodmocap.calibrate.register import RegisterConfig
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import invert_T, rotation_angle
 from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.stage_files import read_final_sync
 from embodmocap.scene import stage as scene_stage
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.sfm import SfmConfig
@@ -31,7 +32,7 @@ def session(tmp_path_factory) -> Path:
     synthesize(SynthConfig(seed=5, seconds=2.0, scene_seconds=10.0), out)
     scene_stage.run(SceneConfig(voxel_m_indoor=0.02, sfm=SfmConfig(max_images=60, num_threads=1)), out)
     seq_stage.run(SequenceConfig(), out)
-    # Stage II's sync record as Stage III finds it (Stage III completes sync.json in place).
+    # Stage II's sync record as Stage III finds it (Stage III writes its own final_sync.json).
     shutil.copy(SessionLayout(out).sequence("seq0").sync, out.parent / "sync_stage2.json")
     return out
 
@@ -181,12 +182,16 @@ def test_view_whose_registration_fails_is_placed_through_the_performer(session, 
 
 
 def test_geometric_sync_after_registration(session, done):
-    """sync.json is final and the geometric offset matches the truth (the studio's phones are
-    frame-aligned here, and the laser frames are exact, so the residual is 0)."""
+    """final_sync.json is final and the geometric offset matches the truth (the studio's phones are
+    frame-aligned here, and the laser frames are exact, so the residual is 0); Stage II's sync.json
+    is left as Stage II wrote it (one writer per file)."""
     import json
 
-    rec = json.loads(SessionLayout(session).sequence("seq0").sync.read_text())
+    sl = SessionLayout(session).sequence("seq0")
+    rec = json.loads(sl.final_sync.read_text())
     assert rec["version"] == 2 and rec["chosen"]["final"]
+    assert json.loads(sl.sync.read_text()) == json.loads((session.parent / "sync_stage2.json").read_text())
+    assert read_final_sync(sl).record == rec and read_final_sync(sl).residual_s == rec["chosen"]["residual_s"]
     geo = rec["sources"]["geometric"]
     # 2 s after the event the performer is still starting to move: the offset is right, but how
     # sure it is depends on the motion; the choice must follow that confidence.
@@ -266,4 +271,4 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
             assert np.array_equal(res.cameras_world[v][k], cw[k]), (v, k)
         assert np.array_equal(res.T_world_vio[v], done.T_world_vio[v])
     assert _plain_json(res.report) == _plain_json(json.loads(files.calibration.read_text()))
-    assert _plain_json(res.sync_record) == _plain_json(json.loads(files.sync.read_text()))
+    assert _plain_json(res.sync_record) == _plain_json(json.loads(files.final_sync.read_text()))

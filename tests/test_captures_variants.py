@@ -16,7 +16,7 @@ pytest.importorskip("lzfse")
 from capture_variants import VARIANTS, render_walk, write_variant  # noqa: E402
 from embodmocap.errors import InputError  # noqa: E402
 from embodmocap.io.captures import open_capture  # noqa: E402
-from embodmocap.io.inspect import inspect_path  # noqa: E402
+from embodmocap.check.inspect import inspect_path  # noqa: E402
 from embodmocap.io.inspect_capture import check_capture  # noqa: E402
 
 #: Words each variant's ``inspect`` line must hold.

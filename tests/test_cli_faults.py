@@ -97,7 +97,7 @@ def test_debug_keeps_the_traceback(tmp_path, capsys):
 
 
 def test_inspect_lists_every_session_problem_at_once(tmp_path):
-    from embodmocap.io.inspect import inspect_path
+    from embodmocap.check.inspect import inspect_path
     from embodmocap.io.layout import SessionLayout
     from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize

@@ -113,7 +113,7 @@ def test_subframe_sync_error_against_the_phones_true_phase(session, tmp_path):
     rec = json.loads(sl.sync.read_text())
     for frames in (0.0, 0.25, -0.4):
         rec.update(version=2, chosen={"final": True, "residual_s": frames / SYNTH.fps})
-        write_json(sl.sync, rec)
+        write_json(sl.final_sync, rec)  # Stage III's final record
         assert subframe_sync_err_frames(lay, SYNTH.sequence_name) == pytest.approx(frames, abs=1e-4)
 
 

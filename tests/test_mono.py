@@ -103,7 +103,7 @@ def test_noise_free_inputs_are_recovered_exactly(exact):
 
 
 def test_noise_free_body_lands_on_the_true_joints(exact):
-    from embodmocap.mono.evaluate import mono_metrics
+    from embodmocap.evaluate.mono import mono_metrics
 
     root, truth, out = exact
     lay = SessionLayout(root)
@@ -266,7 +266,7 @@ def test_keypoint_depth_refinement_on_the_studio(noisy, tmp_path):
     """``--human-depth keypoints`` (the default) on the noisy studio inputs: the refined body is
     closer to the truth (W-MPJPE: the prior's depth error dominates it) and the manifest says what
     the refinement did; the noise-free view's figures (human_depth model) are untouched by it."""
-    from embodmocap.mono.evaluate import mono_metrics
+    from embodmocap.evaluate.mono import mono_metrics
 
     root, truth, out = noisy
     lay = SessionLayout(root)

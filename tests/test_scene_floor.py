@@ -92,7 +92,7 @@ def _walk(name: str, tilt_deg: float = 0.0):
 @pytest.mark.parametrize("name", ["stray7", "stray9", "stray15", "r3d_new_zip", "r3d_new_dir", "r3d_old_zip",
                                   "r3d_old_dir", "r3d_exr", "spectacular", "spectacular_sdk"])
 def test_stage1_floor_is_horizontal_for_every_variant(tmp_path, name, caplog):
-    from embodmocap.io.inspect import inspect_path
+    from embodmocap.check.inspect import inspect_path
     from embodmocap.scene import stage
 
     walk = _walk(name)

@@ -15,6 +15,7 @@ from embodmocap.errors import InputError
 from embodmocap.evaluate.mesh_metrics import mesh_accuracy
 from embodmocap.geometry.transforms import apply_T
 from embodmocap.io.layout import SessionLayout
+from embodmocap.io.stage_files import read_keyframes
 from embodmocap.scene import stage
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.mesh import read_mesh_ply
@@ -102,7 +103,7 @@ def test_sparse_model_key_frames_are_the_capture_poses_or_their_drift_correction
     from embodmocap.geometry.transforms import invert_T
     from embodmocap.scene.adjust import corrected_poses
 
-    kf = stage.read_keyframes(done.layout)
+    kf = read_keyframes(done.layout.keyframes)
     poses = image_poses(done.layout.sfm_dir)
     summary = json.loads((done.layout.sfm_dir / "summary.json").read_text())
     drift = summary.get("drift_correction")

@@ -127,7 +127,7 @@ def test_a_limb_far_from_both_views_is_suspect_a_wrong_detection_is_not():
 
 
 def test_quality_round_trips_through_the_motion_file_and_the_exports(tmp_path):
-    from embodmocap.export.amass import write_amass
+    from embodmocap.io.amass import write_amass
     from embodmocap.export.csv_joints import write_joints_csv
     from embodmocap.io.smpl_file import read_smpl_quality, read_smpl_suspect, write_smpl_npz
     from embodmocap.types import SmplParams

@@ -96,7 +96,7 @@ def test_repair_removes_penetration_and_floating(sim_session, tmp_path):
     import shutil
 
     from embodmocap.cli import main
-    from embodmocap.export.amass import read_amass, write_amass
+    from embodmocap.io.amass import read_amass, write_amass
 
     work = tmp_path / "s"
     shutil.copytree(sim_session, work)

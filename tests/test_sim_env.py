@@ -9,7 +9,7 @@ gym = pytest.importorskip("gymnasium")
 pytest.importorskip("mujoco")
 
 import embodmocap.sim  # noqa: E402  (registers the environment)
-from embodmocap.export.mimickit import egocentric_heightmap  # noqa: E402
+from embodmocap.geometry.heightmap import egocentric_heightmap  # noqa: E402
 from embodmocap.sim.config import TrackingConfig  # noqa: E402
 from embodmocap.sim.env import TrackingEnv, _heading, load_clips, tracking_success, tracking_table  # noqa: E402
 from sim_session import sim_session  # noqa: E402,F401

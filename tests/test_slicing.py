@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from embodmocap.errors import InputError
-from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
+from embodmocap.io.stage_files import FrameMap, read_frame_map, write_frame_map
+from embodmocap.sequence.slicing import slice_views
 from embodmocap.sequence.sync import SyncEvent
 from embodmocap.types import CameraTrajectory, Capture, Intrinsics
 
@@ -129,22 +130,25 @@ def test_frame_map_json_round_trip(tmp_path):
                        {"v1": _ev(3), "v2": _ev(1)})
     fm = maps["v1"]
     path = tmp_path / "frame_map.json"
-    path.write_text(json.dumps(frame_map_to_json(fm)))
-    back = frame_map_from_json(json.loads(path.read_text()), path)
+    write_frame_map(path, fm)
+    back = read_frame_map(path)
     for k in ("seq_times_s", "raw_frames", "dt_s", "dropped"):
         np.testing.assert_array_equal(getattr(back, k), getattr(fm, k))
         assert getattr(back, k).dtype == getattr(fm, k).dtype
     assert (back.event_frame, back.event_time_s, back.fps) == (fm.event_frame, fm.event_time_s, fm.fps)
     assert back.num_dropped == 1
-    bad = frame_map_to_json(fm)
+    bad = json.loads(path.read_text())
     bad["num_frames"] = 3
+    path.write_text(json.dumps(bad))
     with pytest.raises(InputError, match="num_frames = 3"):
-        frame_map_from_json(bad, path)
-    with pytest.raises(InputError, match="version-1"):
-        frame_map_from_json({"version": 2}, path)
+        read_frame_map(path)
+    path.write_text(json.dumps({"version": 2}))
+    with pytest.raises(InputError, match="version 2"):
+        read_frame_map(path)
     del bad["raw_frames"]
+    path.write_text(json.dumps(bad))
     with pytest.raises(InputError, match="malformed"):
-        frame_map_from_json(bad, path)
+        read_frame_map(path)
 
 
 def test_frame_map_arrays_are_read_only():

@@ -11,7 +11,7 @@ import pytest
 
 from embodmocap.geometry.transforms import apply_T, invert_T
 from embodmocap.io.captures import open_capture
-from embodmocap.io.inspect import inspect_path
+from embodmocap.check.inspect import inspect_path
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.synth.config import SynthConfig

@@ -273,13 +273,13 @@ def test_a_gap_in_the_fit_is_not_filled(training_export, tmp_path):
 
 @pytest.mark.parametrize("frames_late", [1.0, 0.5])
 def test_view2_body_is_taken_at_its_own_frame_times(training_export, tmp_path, frames_late):
-    """With view 2 a whole frame behind view 1 (sync.json's residual), its frame k shows the body of
+    """With view 2 a whole frame behind view 1 (the final sync's residual), its frame k shows the body of
     row k - 1 exactly and its frame 0 lies outside the fit; half a frame behind, the body is
     between rows k - 1 and k."""
     session = _copy(training_export, tmp_path)
     sl = SessionLayout(session).sequence("seq0")
     fps = float(SYNTH.fps)
-    write_json(sl.sync, {"version": 2, "chosen": {"residual_s": frames_late / fps}})
+    write_json(sl.final_sync, {"version": 2, "views": {}, "chosen": {"residual_s": frames_late / fps}})
     out = export_training(session, out=tmp_path / "export")
     lab = _labels(out, "v2")
     world = np.asarray(read_world_joints(sl.joints_world).joints)

@@ -22,7 +22,7 @@ from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.stage_files import read_cameras
 from embodmocap.perception.precomputed import PrecomputedMasks
-from embodmocap.sequence.slicing import FRAME_MAP_VERSION
+from embodmocap.io.stage_files import FRAME_MAP_VERSION
 from embodmocap.synth.config import SynthConfig
 from stage4_session import SYNTH, make_stage4_session
 

@@ -66,7 +66,7 @@ class Inspect:
     """A capture folder (Stray Scanner, Spectacular AI, Record3D) or a session folder."""
 
     def run(self) -> int:
-        from embodmocap.io.inspect import inspect_path
+        from embodmocap.check.inspect import inspect_path
 
         text, problems = inspect_path(self.path)
         print(text)
@@ -118,7 +118,7 @@ class Demo:
     def run(self) -> int:
         import shutil
 
-        from embodmocap.io.inspect import inspect_path
+        from embodmocap.check.inspect import inspect_path
         from embodmocap.synth.studio import synthesize
 
         if (self.out / "session.toml").exists() and (self.out / "ground_truth").exists():
@@ -445,8 +445,10 @@ def _preflight(cmd) -> None:
         prepare_session(cmd.session)
     if isinstance(cmd, Skills):
         prepare_session(cmd.session)
+    from embodmocap.io.layout import SessionLayout
+
     # The training export checks each sequence it exports itself (all of them without --seq).
-    if isinstance(cmd, (Export, Render, RobotRetarget)) and (cmd.session / "session.toml").is_file() \
+    if isinstance(cmd, (Export, Render, RobotRetarget)) and SessionLayout(cmd.session).manifest.is_file() \
             and not (isinstance(cmd, Export) and cmd.to == "training"):
         _require_stages_done(cmd.session, cmd.seq)
     if isinstance(cmd, Export) and cmd.out is not None:

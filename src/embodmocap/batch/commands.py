@@ -32,7 +32,7 @@ class Batch:
     def run(self) -> int:
         from embodmocap.batch.plan import STAGES, make_plan
         from embodmocap.batch.run import LOG_DIR, run_batch
-        from embodmocap.batch.plan import dataset_root
+        from embodmocap.io.dataset import dataset_root
 
         if self.config.dry_run:
             plan = make_plan(self.dataset, self.config.only or STAGES, self.stages.include_failed, self.config.evaluate)
@@ -79,7 +79,7 @@ class Catalog:
     def run(self) -> int:
         import json as _json
 
-        from embodmocap.batch.plan import dataset_root
+        from embodmocap.io.dataset import dataset_root
         from embodmocap.catalog import views
         from embodmocap.catalog.db import rebuild
 

@@ -32,8 +32,9 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 from embodmocap.batch.config import BatchConfig
-from embodmocap.batch.plan import STAGES, Plan, Task, dataset_root, make_plan
+from embodmocap.batch.plan import STAGES, Plan, Task, make_plan
 from embodmocap.batch.task import TaskResult
+from embodmocap.io.dataset import dataset_root
 from embodmocap.pipeline import PipelineConfig
 
 log = logging.getLogger(__name__)

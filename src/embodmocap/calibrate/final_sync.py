@@ -8,17 +8,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Mapping
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.calibrate.config import CalibrateConfig
+from embodmocap.calibrate.inputs import ViewInputs
 from embodmocap.io.layout import VIEWS
 from embodmocap.io.stage_files import CameraFile
-
-if TYPE_CHECKING:  # ViewInputs lives in solve.py, which imports this module
-    from embodmocap.calibrate.solve import ViewInputs
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.calibrate.consistency import VioCheck, check_against_vio, off_chain_frames
 from embodmocap.calibrate.final_sync import GeosyncResult, geometric_sync  # noqa: F401 (step 4 of this stage)
+from embodmocap.calibrate.inputs import ViewInputs
 from embodmocap.calibrate.offset import YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import ViewData, refine_offsets
 from embodmocap.calibrate.register import Registration, register_frames, select_frames
@@ -45,26 +46,6 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_VERSION = 1
 REGISTER_VERSION = 3
-
-
-@dataclass(frozen=True)
-class ViewInputs:
-    """One view's Stage II data, as Stage III uses it.
-
-    Attributes:
-        cameras: the view's ``cameras.npz`` (VIO world): K, size, (T, 4, 4) ``T_world_cam``,
-            raw frames, depth intrinsics.
-        keypoints: (T, 17, 3) the performer's 2D keypoints (x, y, confidence).
-        depth_m: sequence frame t -> (h, w) float32 depth in metres (0 = invalid).
-        mask: sequence frame t -> (H, W) bool person mask; None when the view has no masks.
-        rgb: sequence frame t -> (H, W, 3) uint8 colour frame (needed by :func:`register_view` only).
-    """
-
-    cameras: CameraFile
-    keypoints: NDArray
-    depth_m: Callable[[int], NDArray]
-    mask: Callable[[int], NDArray] | None = None
-    rgb: Callable[[int], NDArray] | None = None
 
 
 @dataclass(frozen=True)

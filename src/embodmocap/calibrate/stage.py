@@ -30,7 +30,6 @@ limits, is reported with its numbers (and the registration-only offset is kept w
 from __future__ import annotations
 
 import functools
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,16 +44,17 @@ from embodmocap.calibrate.register import load_or_build_scene_index
 from embodmocap.calibrate.solve import CALIBRATION_VERSION, REGISTER_VERSION, ViewInputs  # noqa: F401 (re-exported)
 from embodmocap.calibrate.steps import STEPS
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.sequence.laser_check import observe_laser_dots
 from embodmocap.sequence.sync_record import UNPAIRED_SLICING
 from embodmocap.io.frame_stack import read_depth_m, read_mask
 from embodmocap.io.layout import SessionLayout, SequenceLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_registration, sequence_fps, write_cameras, \
-    write_registration
-from embodmocap.io.stage_manifest import StageManifest, Upstream, amend_output, tracked_stage
+from embodmocap.io.stage_files import (
+    SYNC_RECORD_VERSION, read_calibration, read_cameras, read_keypoints2d, read_registration, read_sync, sequence_fps,
+    write_calibration, write_cameras, write_registration, write_sync,
+)
+from embodmocap.io.stage_manifest import StageManifest, Upstream, tracked_stage
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +77,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     scene = lay.scene(entry.scene)
     out = lay.sequence(entry.name)
     names = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
-    if not (scene.sfm_dir / "sparse").is_dir() or not scene.mesh_raw.is_file():
+    if not scene.sfm_model.is_dir() or not scene.mesh_raw.is_file():
         raise InputError(scene.root, "Stage I outputs are missing", f"run `embodmocap scene {lay.root} --scene {entry.scene}` first")
     for v in names:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
@@ -88,7 +88,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in names
                                                   for k in ("cameras", "keypoints", "masks", "depth")]])
     label = f"sequence {entry.name}"
-    upstream = {"scenes/<scene>/sfm/sparse": scene.sfm_dir / "sparse", "scenes/<scene>/mesh_raw.ply": scene.mesh_raw,
+    upstream = {"scenes/<scene>/sfm/sparse": scene.sfm_model, "scenes/<scene>/mesh_raw.ply": scene.mesh_raw,
                 "<view>/cameras.npz": {v: out.view(v).cameras for v in names}}
     views = {v: view_inputs(out, v, entry.views[v].capture) for v in names}
 
@@ -111,7 +111,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
             if step.run:
                 # One index per scene, cached next to the scene's outputs and reused by every sequence.
-                index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.root / "register_index.npz")
+                index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.register_index)
                 rv = solve.register_view(cfg, views[v], index, view_name=v, label=f"{entry.name} {v}",
                                          source=entry.views[v].capture)  # raises before anything of the view is written
                 if rv.disagreement is not None:
@@ -143,14 +143,14 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         if step.run:
             report = solve.refine_report(cfg, views, init, regs, init_report, points, use_tracks,
                                          sequence=entry.name, scene=entry.scene)
-            write_json(calib_path, report)
+            write_calibration(calib_path, report)
             step.record([calib_path], {f"{v}_{k}": report["views"][v][k] for v in names
                                        for k in ("refine_shift_m", "refine_yaw_deg")} | {"one_view": entry.one_view})
-    report = json.loads(calib_path.read_text())
+    report = read_calibration(calib_path).record
     T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names}
 
     # 4. Geometric sync: with both views in one world (whatever their time offset), the offset is
-    # where both views' keypoint rays meet (sequence.geosync); sync.json gets the final choice
+    # where both views' keypoint rays meet (sequence.geosync); final_sync.json gets the final choice
     # among laser, manual and geometric (sequence.sync_record); the per-frame world cameras carry
     # the sub-frame offset Stage IV applies.
     rec = _sync_record(out, entry.name)
@@ -163,22 +163,21 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                                                            {v: report["views"][v].get("drift") for v in names}],
                                       "<view>/keypoints2d.npz": {v: out.view(v).keypoints for v in names},
                                       "<view>/cameras.npz": {v: out.view(v).cameras for v in names}})
-    with sm.step("geosync", fp_geo, force=force or not rec.get("chosen", {}).get("final"), label=label) as step:
+    with sm.step("geosync", fp_geo, force=force, label=label) as step:
         if step.run:
-            sheets = {v: str(out.root / d["contact_sheet"]) for v, d in rec["sources"]["laser"]["views"].items()
+            sheets = {v: str(out.sync_sheet(v)) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
             dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in names}) \
                 if len(names) > 1 else None  # one dot seen by two views is one place; one view has nothing to compare
             geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
                                        sheets, entry.name, dots, entry.subframe_sync, entry.sync_force)
-            write_json(out.sync, geo.record)
-            amend_output(out.manifest, out.sync)  # Stage II's file, completed here: not a change behind its back
+            write_sync(out.final_sync, geo.record)  # Stage II's sync.json stays Stage II's
             for w in geo.record["warnings"]:
                 log.warning("%s", w)
             for v in names:
                 write_cameras(out.view(v).cameras_world, geo.cameras_world[v])
-            step.record([out.sync, *[out.view(v).cameras_world for v in names]], geo.figures)
-    report = json.loads(calib_path.read_text())
+            step.record([out.final_sync, *[out.view(v).cameras_world for v in names]], geo.figures)
+    report = read_calibration(calib_path).record
     for w in report.get("warnings", []):
         log.warning("%s: %s", entry.name, w)
     return CalibrateOutputs(entry.name, {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names},
@@ -203,11 +202,9 @@ def view_inputs(out: SequenceLayout, v: str, capture: str | Path | None = None) 
 
 def _sync_record(out, seq: str) -> dict:
     """Stage II's sync.json (version 2), or one clear error."""
-    from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION
-
     if not out.sync.is_file():
         raise InputError(out.sync, "Stage II's sync.json is missing", f"run `embodmocap sequence --seq {seq}` first")
-    rec = json.loads(out.sync.read_text())
+    rec = read_sync(out.sync).record
     if rec.get("version") != SYNC_RECORD_VERSION:
         raise InputError(out.sync, f"sync.json is version {rec.get('version')}, this Stage III needs {SYNC_RECORD_VERSION}",
                          f"rerun `embodmocap sequence --seq {seq}` (it redoes the sync and the slicing)")

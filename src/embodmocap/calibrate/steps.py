@@ -27,6 +27,6 @@ STEPS = StageSteps("calibrate", CalibrateConfig, (
          writes=(_DIR + "calibration.json",), doc="yaw + translation of each view refined jointly"),
     Step("geosync", reads=("sync.json", "calibration.json", "<view>/keypoints2d.npz", "<view>/cameras.npz"),
          context=("subframe_sync", "sync_force"), settings=("geosync",), version=GEOSYNC_VERSION,
-         writes=(_DIR + "sync.json", _DIR + "<view>/cameras_world.npz"),
+         writes=(_DIR + "final_sync.json", _DIR + "<view>/cameras_world.npz"),
          doc="the time offset where the views' keypoint rays meet; the world cameras"),
 ))

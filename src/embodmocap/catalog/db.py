@@ -14,7 +14,6 @@ record, and a rebuild keeps it. Tables and columns: ``docs/formats.md``, "Datase
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from embodmocap.errors import EmbodMocapError, InputError
+from embodmocap.io.jsonfile import read_json
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 
@@ -73,8 +73,8 @@ def _now() -> str:
 
 def _read_json(path: Path) -> dict | None:
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        data = read_json(path, max_bytes=64 << 20, what=path.name)
+    except InputError:
         return None
     return data if isinstance(data, dict) else None
 
@@ -279,7 +279,7 @@ class Catalog:
             ev = evals.get(sq) if isinstance(evals.get(sq), dict) else {}
             for k, x in sorted(_flat_numbers(ev).items()):
                 out["metrics"].append({"session": name, "sequence": sq, "key": k, "value": x})
-            out["skill_clips"] += _skill_clips(name, sq, sl.root / SKILL_CLIPS_NAME)
+            out["skill_clips"] += _skill_clips(name, sq, sl.skill_clips)
         return out
 
     # -- reading ------------------------------------------------------------------------------
@@ -318,7 +318,7 @@ def _skill_clips(session: str, seq: str, path: Path) -> list[dict[str, Any]]:
 def rebuild(dataset: str | Path) -> Path:
     """Recreate the catalog from every session's files, keeping the batch's ``attempts`` record.
     Written to a temporary file and renamed, so a reader never sees a half-built catalog."""
-    from embodmocap.batch.plan import dataset_root, session_folders
+    from embodmocap.io.dataset import dataset_root, session_folders
 
     root = dataset_root(dataset)
     final = root / CATALOG_NAME

@@ -262,7 +262,7 @@ def _register(cfg: CheckConfig, lay: SessionLayout, entry, caps, maps, seq_idx, 
     from embodmocap.calibrate.register import RegisterConfig, build_scene_index, register_frames
 
     scene = lay.scene(entry.scene)
-    if not (scene.sfm_dir / "sparse").is_dir():
+    if not scene.sfm_model.is_dir():
         res.warn(f"scene {entry.scene} is not processed (run `embodmocap scene {lay.root} --scene {entry.scene}`): "
                  "registration, view angle and geometric sync not checked")
         return None

@@ -82,7 +82,7 @@ class SequenceDataset(Dataset):
                  require_valid: bool = True, heightmap_size: int = 32, heightmap_cell_m: float = 0.1,
                  camera_view: str | None = None, contact_height_m: float = 0.08,
                  contact_speed_m_s: float = 0.4) -> None:
-        from embodmocap.batch.plan import dataset_root
+        from embodmocap.io.dataset import dataset_root
         from embodmocap.catalog.db import CATALOG_NAME, rebuild
 
         if window < 1:

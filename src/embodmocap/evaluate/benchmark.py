@@ -110,7 +110,7 @@ def run_benchmark(out: str | Path, cfg: BenchmarkConfig = BenchmarkConfig()) -> 
             session = out / (f"{preset}_{seed}" if perception == "clean" else f"{preset}_{seed}_hard")
             t0 = time.perf_counter()
             try:
-                if not (session / "ground_truth" / "ground_truth.json").is_file():
+                if not SessionLayout(session).ground_truth.info.is_file():
                     synthesize(SynthConfig(seed=seed, preset=preset, seconds=cfg.seconds, scene_seconds=cfg.scene_seconds,
                                            perception=perception), session)
                 res = run_session(PipelineConfig(), session)
@@ -138,7 +138,8 @@ def _write_tables(out: Path, cfg: BenchmarkConfig, rows: list[dict]) -> dict:
 def _one_session(session: Path, cfg: BenchmarkConfig) -> dict:
     """Every capture method and ablation variant of one processed session."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.evaluate.session import EvaluateConfig, motion_errors, quality_metrics, sequence_truth
+    from embodmocap.evaluate.session import EvaluateConfig, motion_errors, quality_metrics
+    from embodmocap.evaluate.truth import sequence_truth
     from embodmocap.io.manifest import load_manifest
 
     lay = SessionLayout(session)

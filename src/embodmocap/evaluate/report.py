@@ -20,10 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_bytes, write_text
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.stage_files import read_cameras, read_keypoints3d, read_world_joints, sequence_fps
+from embodmocap.io.stage_files import (
+    read_calibration, read_cameras, read_evaluation, read_keypoints3d, read_report_json, read_stage_record, read_world_joints,
+    sequence_fps,
+)
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +94,7 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
 
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
-    evaluation = json.loads(lay.evaluation.read_text()) if lay.evaluation.is_file() else evaluate_session(lay.root)
+    evaluation = read_evaluation(lay.evaluation) if lay.evaluation.is_file() else evaluate_session(lay.root)
     page = _Page(lay.report_assets, [], [])
     page.heading(f"EmbodMocap report: {lay.root.name}", 1)
     page.para(f"Session {lay.root}; ground truth: {'yes' if evaluation.get('ground_truth') else 'no'}.")
@@ -112,18 +116,18 @@ def write_report(session: str | Path, cfg: ReportConfig = ReportConfig()) -> tup
         _stage_table(page, "Stage II", sl.manifest)
         _stage_table(page, "Stage III", sl.calibrate_manifest)
         if sl.calibration.is_file():
-            _calibration_table(page, json.loads(sl.calibration.read_text()))
+            _calibration_table(page, read_calibration(sl.calibration).record)
         _stage_table(page, "Stage IV", sl.motion_manifest)
         _sim_check_section(page, sl.sim_check)
         for v in sl.views():
-            sheet = sl.root / f"sync_{v}.png"
+            sheet = sl.sync_sheet(v)
             if sheet.is_file():
                 page.image(f"{name}_sync_{v}.png", sheet.read_bytes(), f"Sync contact sheet, {v}")
         for v in sl.views():
             page.image(f"{name}_overlay_{v}.png", _overlays(lay, entry, name, v, manifest.body_model, cfg),
                        f"{v}: fitted body over the RGB frames")
-        _robot_tables(page, sl.root / "robot")
-        _skills_section(page, sl.root / "skills" / "skills.json", name)
+        _robot_tables(page, sl.robots_dir)
+        _skills_section(page, sl.skills_json, name)
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>EmbodMocap report: {html.escape(lay.root.name)}"
            f"</title><style>{_STYLE}</style></head><body>{''.join(page.html_parts)}</body></html>")
     write_text(lay.report_html, doc)
@@ -135,11 +139,11 @@ def _stage_table(page: _Page, title: str, manifest_path: Path) -> None:
     """Steps with their seconds, then the stage's figures."""
     if not manifest_path.is_file():
         return
-    man = json.loads(manifest_path.read_text())
+    man = read_stage_record(manifest_path)
     page.heading(title, 3)
-    steps = man.get("steps", {})
+    steps = man.steps
     page.table(["step", "seconds", "finished"], [[k, s.get("seconds"), s.get("finished", "")] for k, s in steps.items()])
-    figs = {k: v for k, v in man.get("figures", {}).items() if k != "T_align"}
+    figs = {k: v for k, v in man.figures.items() if k != "T_align"}
     if figs:
         page.table(["figure", "value"], [[k, v] for k, v in figs.items()])
 
@@ -219,7 +223,7 @@ def _error_plot(lay: SessionLayout, scene: str, seq: str, body_model, has_gt: bo
     fps = sequence_fps(sl)
     t = frames / float(fps)
     if has_gt:
-        from embodmocap.evaluate.session import sequence_truth
+        from embodmocap.evaluate.truth import sequence_truth
 
         truth = sequence_truth(lay, scene, seq)
         err = 1000 * np.linalg.norm(joints - truth.joints[frames], axis=-1)  # (T, 24) mm, no alignment
@@ -290,8 +294,8 @@ def _robot_tables(page: _Page, robot_root: Path) -> None:
     """One table per retargeted robot of the sequence (``robot/<robot>/robot_report.json``)."""
     for path in sorted(robot_root.glob("*/robot_report.json")) if robot_root.is_dir() else []:
         try:
-            rep = json.loads(path.read_text())
-        except (OSError, ValueError):
+            rep = read_report_json(path, "robot report", "embodmocap robot retarget")
+        except InputError:
             page.para(f"Robot {path.parent.name}: unreadable {path.name}")
             continue
         page.heading(f"Robot {rep.get('robot', path.parent.name)}", 3)
@@ -302,7 +306,7 @@ def _sim_check_section(page: _Page, path: Path) -> None:
     """Physical plausibility (``embodmocap sim check``), when it was run."""
     if not path.is_file():
         return
-    s = json.loads(path.read_text())["summary"]
+    s = read_report_json(path, "sim check", "embodmocap sim check")["summary"]
     page.heading("Physical plausibility (sim check)", 3)
     keys = ("penetration_max_cm", "penetration_mean_cm", "floating_max_cm", "floating_mean_cm", "unsupported_frames",
             "foot_skating_mean_cm",
@@ -325,7 +329,6 @@ def _skills_section(page: _Page, path: Path, seq: str) -> None:
     """The skill clips (``embodmocap skills``), when found: a timeline and one row per clip."""
     if not path.is_file():
         return
-    from embodmocap.errors import InputError
     from embodmocap.skills.files import read_skills
 
     try:

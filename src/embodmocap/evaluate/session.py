@@ -18,7 +18,6 @@ Definitions of every metric: :mod:`embodmocap.evaluate.metrics` and docs/formats
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,14 +27,18 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.evaluate import metrics as M
+from embodmocap.evaluate.mono import mono_metrics
+from embodmocap.evaluate.truth import SequenceTruth, sequence_truth  # noqa: F401 (public here)
 from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.atomic import write_json
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.ground_truth import read_truth_scene_device, read_truth_sequence
-from embodmocap.io.stage_files import read_cameras, read_keypoints2d, read_keypoints3d
+from embodmocap.io.ground_truth import read_truth_info, read_truth_scene_device, read_truth_sequence
+from embodmocap.io.stage_files import (
+    SYNC_RECORD_VERSION, read_calibration, read_cameras, read_final_sync, read_keypoints2d, read_keypoints3d,
+    read_stage_record,
+)
 from embodmocap.io.stage_manifest import require_sequence_stages
-from embodmocap.mono.evaluate import mono_metrics
 
 log = logging.getLogger(__name__)
 
@@ -53,45 +56,6 @@ class EvaluateConfig:
     """Surface samples for the scene mesh accuracy / completeness."""
     completeness_threshold_m: float = 0.05
     """A true surface sample closer than this to the reconstruction counts as complete."""
-
-
-@dataclass(frozen=True)
-class SequenceTruth:
-    """Ground truth of one sequence in Stage I's world, indexed by sequence frame.
-
-    Attributes:
-        joints: (T, 24, 3) SMPL joints, metres.
-        T_world_vio: view -> (4, 4) the view's VIO world in Stage I's world.
-        T_world_cam: view -> (T, 4, 4) true cameras.
-        sync_frame: view -> true raw frame of the sync event.
-        valid: (T,) bool sequence frames inside the scripted motion.
-    """
-
-    joints: NDArray[np.float64]
-    T_world_vio: dict[str, NDArray[np.float64]]
-    T_world_cam: dict[str, NDArray[np.float64]]
-    sync_frame: dict[str, int]
-    valid: NDArray[np.bool_]
-
-
-def sequence_truth(lay: SessionLayout, scene: str, seq: str) -> SequenceTruth:
-    """The synthetic truth of ``seq`` moved into Stage I's world and indexed by sequence frame."""
-    gt = lay.ground_truth
-    T_world_scene = invert_T(read_truth_scene_device(gt.scene_device(scene))["T_scene_vio"])
-    g = read_truth_sequence(gt.sequence(seq))
-    views = lay.sequence(seq).views()
-    raw = read_cameras(lay.sequence(seq).view(views[0]).cameras).raw_frames.astype(np.int64)
-    motion = int(g[f"{views[0]}_motion_start"]) + raw
-    M_frames = len(g["joints_smpl24"])
-    valid = (motion >= 0) & (motion < M_frames)
-    j = g["joints_smpl24"][np.clip(motion, 0, M_frames - 1)]
-    joints = j @ T_world_scene[:3, :3].T + T_world_scene[:3, 3]
-    cams, vio = {}, {}
-    for v in views:
-        raw_v = read_cameras(lay.sequence(seq).view(v).cameras).raw_frames.astype(np.int64)
-        cams[v] = T_world_scene @ g[f"{v}_T_scene_cam"][raw_v]
-        vio[v] = T_world_scene @ g[f"{v}_T_scene_vio"]
-    return SequenceTruth(joints, vio, cams, {v: int(g[f"{v}_sync_frame"]) for v in views}, valid)
 
 
 def evaluate_session(session: str | Path, cfg: EvaluateConfig = EvaluateConfig()) -> dict:
@@ -257,10 +221,11 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
                         read_smpl_suspect(lay.sequence(seq).smpl_world))
     if lay.sequence(seq).keypoints3d.is_file():
         out.update(keypoint_errors(lay, scene, seq, body_model_path))
-    calib = json.loads(lay.sequence(seq).calibration.read_text()) if lay.sequence(seq).calibration.is_file() else None
-    sync = json.loads(lay.sequence(seq).sync.read_text())["views"] if lay.sequence(seq).sync.is_file() else {}
-    mm = lay.sequence(seq).motion_manifest
-    motion_fig = json.loads(mm.read_text()).get("figures", {}) if mm.is_file() else {}
+    sl = lay.sequence(seq)
+    calib = read_calibration(sl.calibration).record if sl.calibration.is_file() else None
+    sync = read_final_sync(sl).views if sl.final_sync.is_file() or sl.sync.is_file() else {}
+    mm = sl.motion_manifest
+    motion_fig = read_stage_record(mm).figures if mm.is_file() else {}
     T_align = np.asarray(motion_fig.get("T_align", np.eye(4).tolist()))
     out["one_view"] = len(lay.sequence(seq).views()) == 1
     for v in lay.sequence(seq).views():
@@ -280,25 +245,24 @@ def sequence_errors(lay: SessionLayout, scene: str, seq: str, body_model_path=No
 
 def subframe_sync_err_frames(lay: SessionLayout, seq: str) -> float | None:
     """Error of the offset Stage IV applies between the views (slicing + ``chosen.residual_s`` of
-    a final version-2 ``sync.json``), in frames, against the studio's truth, which knows each
+    the final version-2 sync record, ``final_sync.json``), in frames, against the studio's truth, which knows each
     phone's sub-frame phase: raw frame ``j`` of view ``v`` is the motion's instant
     ``view_motion_start[v] + j + view_time_offset_frames[v]``. None without such a record."""
-    from embodmocap.sequence.sync_record import SYNC_RECORD_VERSION, residual_s
-
     sl = lay.sequence(seq)
-    if not (sl.sync.is_file() and sl.manifest.is_file()):
+    if not ((sl.final_sync.is_file() or sl.sync.is_file()) and sl.manifest.is_file()):
         return None
-    rec = json.loads(sl.sync.read_text())
-    if rec.get("version") != SYNC_RECORD_VERSION or not rec.get("chosen", {}).get("final") or len(rec["views"]) < 2:
+    sync = read_final_sync(sl)
+    rec = sync.record
+    if sync.version != SYNC_RECORD_VERSION or not sync.final or len(rec["views"]) < 2:
         return None  # (one view: no offset between views)
-    gt = json.loads(lay.ground_truth.info.read_text())
+    gt = read_truth_info(lay.ground_truth.info)
     start = gt["view_motion_start"]
     phase = gt.get("view_time_offset_frames", {v: 0.0 for v in VIEWS})
     a, b = VIEWS
     # View 2's sequence frame minus view 1's at the same instant, as the slicing left them.
     true_residual = (start[a] + rec["views"][a]["frame"] + phase[a]) - (start[b] + rec["views"][b]["frame"] + phase[b])
-    fps = float(json.loads(sl.manifest.read_text())["figures"]["fps"])
-    return round(residual_s(rec) * fps - true_residual, 4)
+    fps = float(read_stage_record(sl.manifest).figures["fps"])
+    return round(sync.residual_s * fps - true_residual, 4)
 
 
 #: Edge frames: the first (last) this many evaluated frames of a sequence are its start (end).
@@ -422,14 +386,14 @@ def scene_errors(lay: SessionLayout, scene: str, cfg: EvaluateConfig = EvaluateC
     from embodmocap.io.captures import open_capture
     from embodmocap.scene.config import SceneConfig
     from embodmocap.io.mesh_file import read_mesh_ply
-    from embodmocap.scene.stage import read_keyframes
+    from embodmocap.io.stage_files import read_keyframes
 
     gt = lay.ground_truth
     true_mesh = trimesh.load(gt.scene_mesh(scene), force="mesh")
     dev = read_truth_scene_device(gt.scene_device(scene))
-    info = json.loads(gt.info.read_text())
+    info = read_truth_info(gt.info)
     indoor = info.get("config", {}).get("preset", "indoor") == "indoor"
-    kf = read_keyframes(lay.scene(scene))
+    kf = read_keyframes(lay.scene(scene).keyframes)
     cap = open_capture(lay.scene_capture(scene))
     v, f, _ = read_mesh_ply(lay.scene(scene).mesh_raw)
     if len(f) == 0:

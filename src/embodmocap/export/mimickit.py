@@ -29,7 +29,7 @@ Body offsets for the performer's own bone lengths go in a sidecar ``<name>_skele
 parent's frame, humanoid axes), so a humanoid MJCF can be scaled to the performer.
 
 **Scene**: a Wavefront OBJ of the scene mesh (Z up, metres, as MuJoCo / Isaac use) and a height map
-npz (:class:`HeightMap`) from which :func:`egocentric_heightmap` samples the paper's 11 x 11
+npz (:class:`HeightMap`) from which :func:`~embodmocap.geometry.heightmap.egocentric_heightmap` samples the paper's 11 x 11
 egocentric grid (2 m x 2 m around the character, 0.2 m apart, nearest cell).
 """
 
@@ -38,76 +38,28 @@ from __future__ import annotations
 import io
 import logging
 import pickle
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from embodmocap.errors import InputError
+from embodmocap.body.humanoid import (  # noqa: F401 (the humanoid's skeleton, shared with robot and sim)
+    HUMANOID_TO_SMPL, R_HUMANOID_SMPL, SMPL_HUMANOID_BODIES, humanoid_skeleton, mimickit_frames,
+)
 # HeightMap and scene_heightmap live in the shared geometry package; re-exported here for callers of the export API.
 from embodmocap.geometry.heightmap import HeightMap, scene_heightmap, support_heightmap  # noqa: F401
-from embodmocap.io.atomic import atomic_dir, write_bytes, write_json, write_npz, write_text
-from embodmocap.io.npz_file import load_npz
+from embodmocap.io.atomic import atomic_dir, write_bytes, write_json, write_text
+from embodmocap.io.heightmap_file import write_heightmap
+from embodmocap.io.mesh_file import obj_text
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
 
-#: Version of the height-map and skeleton files this module writes.
-MIMICKIT_EXPORT_VERSION = 1
 #: MimicKit's loop modes.
 LOOP_MODES: dict[str, int] = {"clamp": 0, "wrap": 1}
 
-#: Bodies of the SMPL humanoid (MJCF names, depth-first order, root first) and their SMPL joints.
-SMPL_HUMANOID_BODIES: tuple[tuple[str, int], ...] = (
-    ("Pelvis", 0),
-    ("L_Hip", 1), ("L_Knee", 4), ("L_Ankle", 7), ("L_Toe", 10),
-    ("R_Hip", 2), ("R_Knee", 5), ("R_Ankle", 8), ("R_Toe", 11),
-    ("Torso", 3), ("Spine", 6), ("Chest", 9), ("Neck", 12), ("Head", 15),
-    ("L_Thorax", 13), ("L_Shoulder", 16), ("L_Elbow", 18), ("L_Wrist", 20), ("L_Hand", 22),
-    ("R_Thorax", 14), ("R_Shoulder", 17), ("R_Elbow", 19), ("R_Wrist", 21), ("R_Hand", 23),
-)
-#: SMPL joint index of each humanoid body, in the humanoid's order.
-HUMANOID_TO_SMPL: NDArray[np.int64] = np.array([j for _, j in SMPL_HUMANOID_BODIES])
-
-#: Change of axes from SMPL's canonical frame (x left, y up, z forward) to the humanoid's body
-#: frame (x forward, y left, z up): x_h = z_smpl, y_h = x_smpl, z_h = y_smpl.
-R_HUMANOID_SMPL: NDArray[np.float64] = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-FRAME_DIM = 3 + 3 + 3 * (len(SMPL_HUMANOID_BODIES) - 1)
-
-
 # ------------------------------------------------------------------------------------ motion
-
-
-def mimickit_frames(params: SmplParams, rest_joints: NDArray) -> NDArray[np.float64]:
-    """(T, 75) MimicKit frames for ``params`` (world, Z up); ``rest_joints`` (24, 3) at its betas."""
-    T = len(params)
-    C = R_HUMANOID_SMPL
-    R = Rotation.from_rotvec(params.poses.reshape(-1, 3)).as_matrix().reshape(T, 24, 3, 3)
-    root_pos = np.asarray(rest_joints)[0] + params.transl
-    root_rot = R[:, 0] @ C.T
-    local = C @ R[:, HUMANOID_TO_SMPL[1:]] @ C.T  # (T, 23, 3, 3)
-    exp = Rotation.from_matrix(np.concatenate([root_rot[:, None], local], axis=1).reshape(-1, 3, 3)).as_rotvec()
-    return np.concatenate([root_pos, exp.reshape(T, -1)], axis=1)
-
-
-def humanoid_skeleton(rest_joints: NDArray, parents: NDArray) -> dict:
-    """Body names, SMPL joints, parents (humanoid indices) and local rest offsets (m, humanoid axes)."""
-    rest = np.asarray(rest_joints, dtype=np.float64)
-    smpl_to_h = {int(j): i for i, j in enumerate(HUMANOID_TO_SMPL)}
-    h_parents = [-1] + [smpl_to_h[int(parents[j])] for j in HUMANOID_TO_SMPL[1:]]
-    offsets = np.zeros((len(HUMANOID_TO_SMPL), 3))
-    offsets[1:] = (rest[HUMANOID_TO_SMPL[1:]] - rest[np.asarray(parents)[HUMANOID_TO_SMPL[1:]]]) @ R_HUMANOID_SMPL.T
-    return {
-        "version": MIMICKIT_EXPORT_VERSION,
-        "body_names": [n for n, _ in SMPL_HUMANOID_BODIES],
-        "smpl_joints": HUMANOID_TO_SMPL.tolist(),
-        "parents": h_parents,
-        "local_pos_m": offsets.tolist(),
-        "axes": "x forward, y left, z up (body frames); world Z up, metres",
-    }
 
 
 def write_mimickit_motion(path: str | Path, params: SmplParams, rest_joints: NDArray, *, loop_mode: str = "clamp") -> Path:
@@ -133,62 +85,6 @@ def read_mimickit_motion(path: str | Path) -> tuple[float, int, NDArray[np.float
 
 
 # ------------------------------------------------------------------------------------ scene
-
-
-def obj_text(vertices: NDArray, faces: NDArray) -> str:
-    """A Wavefront OBJ (``v x y z`` lines, then 1-based ``f a b c`` lines), coordinates as given."""
-    buf = io.StringIO()
-    buf.write("# embodmocap scene mesh: Z up, metres\n")
-    np.savetxt(buf, np.asarray(vertices, dtype=np.float64), fmt="v %.6f %.6f %.6f")
-    np.savetxt(buf, np.asarray(faces, dtype=np.int64) + 1, fmt="f %d %d %d")
-    return buf.getvalue()
-
-
-def write_heightmap(path: str | Path, hm: HeightMap) -> Path:
-    """Write ``heights`` (H, W) float32, ``origin`` (2,), ``cell_m`` (), ``version`` () as npz."""
-    write_npz(path, heights=hm.heights, origin=hm.origin, cell_m=np.array(hm.cell_m), version=np.array(MIMICKIT_EXPORT_VERSION))
-    return Path(path)
-
-
-def read_heightmap(path: str | Path) -> HeightMap:
-    """Read a height map npz written by :func:`write_heightmap`."""
-    path = Path(path)
-    z = load_npz(path, what="height map", fix="write it again with the mimickit export",
-                 required=("heights", "origin", "cell_m"), versions=(MIMICKIT_EXPORT_VERSION,))
-    return HeightMap(heights=z["heights"], origin=z["origin"], cell_m=float(z["cell_m"]))
-
-
-def egocentric_heightmap(heightmap: HeightMap, xy: NDArray, yaw: NDArray, size: int = 11, spacing: float = 0.2,
-                         fill: float = np.nan) -> NDArray[np.float32]:
-    """Sample a ``size x size`` grid of heights around root positions, turning with the heading.
-
-    Args:
-        heightmap: the scene's :class:`HeightMap`.
-        xy: (..., 2) root positions, world metres.
-        yaw: (...) heading about +Z, radians (0 = facing +X).
-        size: grid points per side (the paper: 11).
-        spacing: distance between grid points, metres (the paper: 0.2, i.e. 2 m x 2 m).
-        fill: value where the grid leaves the map or the cell is empty.
-
-    Returns:
-        (..., size, size) heights, world z in metres; ``out[..., i, k]`` is at ``(i - c) *
-        spacing`` ahead of the root and ``(k - c) * spacing`` to its left, ``c = (size - 1) / 2``,
-        read from the nearest cell.
-    """
-    xy = np.asarray(xy, dtype=np.float64)
-    yaw = np.asarray(yaw, dtype=np.float64)
-    offs = (np.arange(size) - (size - 1) / 2.0) * spacing
-    fwd, left = np.meshgrid(offs, offs, indexing="ij")  # (size, size)
-    c, s = np.cos(yaw)[..., None, None], np.sin(yaw)[..., None, None]
-    x = xy[..., 0, None, None] + c * fwd - s * left
-    y = xy[..., 1, None, None] + s * fwd + c * left
-    col = np.floor((x - heightmap.origin[0]) / heightmap.cell_m).astype(np.int64)
-    row = np.floor((y - heightmap.origin[1]) / heightmap.cell_m).astype(np.int64)
-    H, W = heightmap.heights.shape
-    inside = (row >= 0) & (row < H) & (col >= 0) & (col < W)
-    out = heightmap.heights[np.clip(row, 0, H - 1), np.clip(col, 0, W - 1)]
-    out = np.where(inside, out, np.float32(fill))
-    return np.where(np.isnan(out), np.float32(fill), out).astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------ bundle

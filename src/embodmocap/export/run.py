@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.errors import InputError
-from embodmocap.export.amass import read_amass, write_amass
+from embodmocap.io.amass import read_amass, write_amass
 from embodmocap.export.bvh import write_bvh
 from embodmocap.export.csv_joints import write_joints_csv
 from embodmocap.export.gltf import write_glb

@@ -51,7 +51,8 @@ from embodmocap import __version__
 from embodmocap.errors import InputError
 from embodmocap.export.config import ExportConfig
 from embodmocap.io.atomic import atomic_dir, write_json, write_npz
-from embodmocap.io.layout import VIEWS, SessionLayout
+from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout
+from embodmocap.io.stage_files import read_final_sync, read_frame_map
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
 
 log = logging.getLogger(__name__)
@@ -185,7 +186,7 @@ def _view_times(seq_root: Path, view: str, n: int, fps: float) -> NDArray[np.flo
     from embodmocap.io.stage_files import read_cameras
     from embodmocap.sequence.subframe import frame_times
 
-    path = seq_root / view / "cameras.npz"
+    path = SequenceLayout(seq_root).view(view).cameras
     if not path.is_file():
         return np.arange(n) / fps
     t = frame_times(read_cameras(path, "cameras"), fps)
@@ -198,34 +199,23 @@ def _body_times(layout: SessionLayout, seq: str, view: str, n: int, fps: float) 
     """(n,) the instant of each of the view's frames on view 1's clock (the world fit's clock).
 
     View 2's frame ``k`` is taken at its own time ``t2[k]``, which Stage IV puts at view 1's
-    ``t2[k] - residual_s`` (``sync.json``; see :mod:`embodmocap.sequence.subframe`).
+    ``t2[k] - residual_s`` (the final sync record; see :mod:`embodmocap.sequence.subframe`).
     """
-    from embodmocap.sequence.sync_record import residual_s
-
     sl = layout.sequence(seq)
     t = _view_times(sl.root, view, n, fps)
     if view == VIEWS[0]:
         return t
     off = 0.0
-    if sl.sync.is_file():
-        try:
-            off = residual_s(json.loads(sl.sync.read_text()))
-        except ValueError as err:
-            raise InputError(sl.sync, f"unreadable sync record ({err})",
-                             f"run `embodmocap sequence {layout.root} --seq {seq}` again") from err
+    if sl.final_sync.is_file() or sl.sync.is_file():
+        off = read_final_sync(sl).residual_s
     return t - off
 
 
 def _dropped(path: Path, n: int) -> NDArray[np.bool_]:
     """(n,) frames Stage II sliced onto a dropped raw frame (``frame_map.json``; none without it)."""
-    from embodmocap.sequence.slicing import frame_map_from_json
-
     if not path.is_file():
         return np.zeros(n, bool)
-    try:
-        fm = frame_map_from_json(json.loads(path.read_text()), path)
-    except ValueError as err:
-        raise InputError(path, f"unreadable frame map ({err})", "run `embodmocap sequence` again") from err
+    fm = read_frame_map(path)
     out = np.zeros(n, bool)
     m = min(n, len(fm.dropped))
     out[:m] = fm.dropped[:m]

@@ -127,3 +127,36 @@ def sample_heightmap(hm: HeightMap, xy: NDArray) -> NDArray[np.float64]:
     c1, r1 = np.minimum(c0 + 1, W - 1), np.minimum(r0 + 1, H - 1)
     a, b = u - c0, w - r0
     return (h[r0, c0] * (1 - a) * (1 - b) + h[r0, c1] * a * (1 - b) + h[r1, c0] * (1 - a) * b + h[r1, c1] * a * b)
+
+
+def egocentric_heightmap(heightmap: HeightMap, xy: NDArray, yaw: NDArray, size: int = 11, spacing: float = 0.2,
+                         fill: float = np.nan) -> NDArray[np.float32]:
+    """Sample a ``size x size`` grid of heights around root positions, turning with the heading.
+
+    Args:
+        heightmap: the scene's :class:`HeightMap`.
+        xy: (..., 2) root positions, world metres.
+        yaw: (...) heading about +Z, radians (0 = facing +X).
+        size: grid points per side (the paper: 11).
+        spacing: distance between grid points, metres (the paper: 0.2, i.e. 2 m x 2 m).
+        fill: value where the grid leaves the map or the cell is empty.
+
+    Returns:
+        (..., size, size) heights, world z in metres; ``out[..., i, k]`` is at ``(i - c) *
+        spacing`` ahead of the root and ``(k - c) * spacing`` to its left, ``c = (size - 1) / 2``,
+        read from the nearest cell.
+    """
+    xy = np.asarray(xy, dtype=np.float64)
+    yaw = np.asarray(yaw, dtype=np.float64)
+    offs = (np.arange(size) - (size - 1) / 2.0) * spacing
+    fwd, left = np.meshgrid(offs, offs, indexing="ij")  # (size, size)
+    c, s = np.cos(yaw)[..., None, None], np.sin(yaw)[..., None, None]
+    x = xy[..., 0, None, None] + c * fwd - s * left
+    y = xy[..., 1, None, None] + s * fwd + c * left
+    col = np.floor((x - heightmap.origin[0]) / heightmap.cell_m).astype(np.int64)
+    row = np.floor((y - heightmap.origin[1]) / heightmap.cell_m).astype(np.int64)
+    H, W = heightmap.heights.shape
+    inside = (row >= 0) & (row < H) & (col >= 0) & (col < W)
+    out = heightmap.heights[np.clip(row, 0, H - 1), np.clip(col, 0, W - 1)]
+    out = np.where(inside, out, np.float32(fill))
+    return np.where(np.isnan(out), np.float32(fill), out).astype(np.float32)

@@ -22,3 +22,10 @@ def read_truth_sequence(path: str | Path) -> NpzData:
 def read_truth_scene_device(path: str | Path) -> NpzData:
     """``ground_truth/scene_<scene>_device.npz``: the scene capture's ``T_scene_vio`` and device poses."""
     return load_npz(path, what="ground-truth scene device", fix=_FIX, required=("T_scene_vio",), versions=None)
+
+
+def read_truth_info(path: str | Path) -> dict:
+    """``ground_truth/ground_truth.json``: seed, preset, sizes, per-scene and per-sequence facts."""
+    from embodmocap.io.jsonfile import read_json
+
+    return read_json(path, max_bytes=64 << 20, what="ground-truth info", fix=_FIX)

@@ -54,6 +54,16 @@ class SceneLayout:
     def sfm_dir(self) -> Path:
         return self.root / "sfm"
 
+    @property
+    def sfm_model(self) -> Path:
+        """The sparse model (COLMAP binary files) inside ``sfm_dir``."""
+        return self.sfm_dir / "sparse"
+
+    @property
+    def register_index(self) -> Path:
+        """Stage III's scene index (cached once per scene, reused by every sequence)."""
+        return self.root / "register_index.npz"
+
 
 @dataclass(frozen=True)
 class ViewLayout:
@@ -125,7 +135,19 @@ class SequenceLayout:
 
     @property
     def sync(self) -> Path:
+        """Stage II's sync record (laser and manual sources, the slicing)."""
         return self.root / "sync.json"
+
+    @property
+    def final_sync(self) -> Path:
+        """Stage III's final sync record (``sync.json`` plus the geometric source and the choice);
+        sessions written before it existed hold it in ``sync.json``
+        (:func:`embodmocap.io.stage_files.read_final_sync`)."""
+        return self.root / "final_sync.json"
+
+    def sync_sheet(self, view: str) -> Path:
+        """Stage II: the contact sheet of a view's laser sync event."""
+        return self.root / f"sync_{view}.png"
 
     @property
     def calibrate_manifest(self) -> Path:
@@ -168,9 +190,34 @@ class SequenceLayout:
         """``embodmocap export`` writes here (one file or folder per format)."""
         return self.root / "export"
 
+    @property
+    def robots_dir(self) -> Path:
+        """``embodmocap robot retarget``: one folder per robot (:meth:`robot_dir`)."""
+        return self.root / "robot"
+
     def robot_dir(self, robot: str) -> Path:
         """``embodmocap robot retarget`` writes one robot's motion, exports and report here."""
-        return self.root / "robot" / robot
+        return self.robots_dir / robot
+
+    @property
+    def skills_dir(self) -> Path:
+        """``embodmocap skills`` writes here (``skills.json`` and its manifest)."""
+        return self.root / "skills"
+
+    @property
+    def skills_json(self) -> Path:
+        """``embodmocap skills``: the skill clips of the sequence."""
+        return self.skills_dir / "skills.json"
+
+    @property
+    def skills_manifest(self) -> Path:
+        """``embodmocap skills``' stage manifest."""
+        return self.skills_dir / "manifest.json"
+
+    @property
+    def skill_clips(self) -> Path:
+        """Optional hand-made clip list (``{"clips": [...]}``) that ``embodmocap catalog`` reads."""
+        return self.root / "skill_clips.json"
 
     @property
     def renders_dir(self) -> Path:
@@ -314,11 +361,19 @@ class SessionLayout:
     def ground_truth(self) -> GroundTruthLayout:
         return GroundTruthLayout(self.root / "ground_truth")
 
+    @property
+    def scenes_dir(self) -> Path:
+        return self.root / "scenes"
+
+    @property
+    def sequences_dir(self) -> Path:
+        return self.root / "sequences"
+
     def scene(self, name: str) -> SceneLayout:
-        return SceneLayout(self.root / "scenes" / name)
+        return SceneLayout(self.scenes_dir / name)
 
     def sequence(self, name: str) -> SequenceLayout:
-        return SequenceLayout(self.root / "sequences" / name)
+        return SequenceLayout(self.sequences_dir / name)
 
     @property
     def evaluation(self) -> Path:

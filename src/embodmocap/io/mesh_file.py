@@ -7,6 +7,7 @@ the PLY work; it is imported only when a file is read or written (the ``scene`` 
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -133,3 +134,12 @@ def _read_own_ply(path: Path) -> tuple[NDArray, NDArray, NDArray] | None:
     if nv == 0:
         raise InputError(path, "not a readable triangle mesh (no vertices)", "write it again")
     return v, f, c
+
+
+def obj_text(vertices: NDArray, faces: NDArray) -> str:
+    """A Wavefront OBJ (``v x y z`` lines, then 1-based ``f a b c`` lines), coordinates as given."""
+    buf = io.StringIO()
+    buf.write("# embodmocap scene mesh: Z up, metres\n")
+    np.savetxt(buf, np.asarray(vertices, dtype=np.float64), fmt="v %.6f %.6f %.6f")
+    np.savetxt(buf, np.asarray(faces, dtype=np.int64) + 1, fmt="f %d %d %d")
+    return buf.getvalue()

@@ -33,7 +33,7 @@ def output_folders(session: str | Path) -> list[Path]:
     """The session folder and the output folders in it that already exist (stages write in them)."""
     lay = SessionLayout(Path(session))
     found = [lay.root]
-    for parent in (lay.root / "scenes", lay.root / "sequences"):
+    for parent in (lay.scenes_dir, lay.sequences_dir):
         if parent.is_dir():
             found.append(parent)
             for sub in sorted(p for p in parent.iterdir() if p.is_dir() and not p.name.startswith(".")):

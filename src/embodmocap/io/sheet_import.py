@@ -40,9 +40,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from embodmocap.errors import InputError
-from embodmocap.io.layout import VIEWS
+from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.manifest import (
-    MANIFEST_NAME,
     ContactMarker,
     SceneEntry,
     SequenceEntry,
@@ -171,7 +170,7 @@ def import_sheet_cli(
 
     Returns the path of the written manifest.
     """
-    target = Path(session) / MANIFEST_NAME
+    target = SessionLayout(Path(session)).manifest
     if target.exists() and not force:
         raise InputError(target, "already exists", "pass --force to overwrite it")
     manifest = import_sheet(sheet, session, capture_pattern, contact_sheet, body_model)

@@ -17,7 +17,7 @@ all vectorised over frames:
    swing's twist (the plane is undefined when it is straight).
 
 Frames where a step has nothing to go on (too few torso points, a limb not seen) take the
-rotation interpolated from their neighbours (:func:`embodmocap.motion.init.fill_rotations`).
+rotation interpolated from their neighbours (:func:`embodmocap.motion.fill.fill_rotations`).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
+from embodmocap.motion.fill import fill_linear, fill_rotations
 
 # COCO-17 indices.
 _LSHO, _RSHO, _LELB, _RELB, _LWRI, _RWRI = 5, 6, 7, 8, 9, 10
@@ -358,8 +359,6 @@ def _fk(sk: RestSkeleton, b: NDArray, R_local: NDArray) -> tuple[NDArray, NDArra
 
 
 def _fill(rotvec: NDArray, ok: NDArray[np.bool_]) -> NDArray:
-    from embodmocap.motion.init import fill_rotations
-
     if ok.all():
         return rotvec
     if not ok.any():
@@ -390,8 +389,6 @@ def place_torso(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.
     root = _fill(Rotation.from_matrix(R).as_rotvec(), placed)
     R = Rotation.from_rotvec(root).as_matrix()
     pelvis = np.where(placed[:, None], t, np.nan)
-    from embodmocap.motion.init import fill_linear
-
     pelvis = fill_linear(np.nan_to_num(pelvis), placed)
     # The trunk's own rotation: shoulders about the pelvis, what the rigid fit left over.
     sh = seen[:, _LSHO] & seen[:, _RSHO] & placed

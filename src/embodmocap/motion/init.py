@@ -21,6 +21,8 @@ from scipy.spatial.transform import Rotation
 
 from embodmocap.body.model import BodyModel
 from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
+from embodmocap.motion.fill import fill_linear, fill_rotations
+from embodmocap.motion.ik import init_ik
 from embodmocap.types import COCO17_NAMES, SmplParams
 
 log = logging.getLogger(__name__)
@@ -33,44 +35,6 @@ class CameraPrior(Protocol):
     body_pose: NDArray  # (T, 69)
     betas: NDArray  # (T, B)
     transl_cam: NDArray  # (T, 3) SMPL transl in the camera frame, metres
-
-
-def _interp_index(valid: NDArray[np.bool_]) -> tuple[NDArray, NDArray, NDArray]:
-    """For every frame: the previous and next valid frame and the weight of the next one.
-
-    Valid frames map to themselves (weight 0); frames before the first / after the last valid
-    frame hold it.
-    """
-    T = len(valid)
-    idx = np.flatnonzero(valid)
-    t = np.arange(T)
-    k = np.clip(np.searchsorted(idx, t, side="right") - 1, 0, len(idx) - 1)
-    prev = idx[k]
-    nxt = idx[np.clip(k + 1, 0, len(idx) - 1)]
-    prev = np.where(t < idx[0], idx[0], prev)
-    span = np.maximum(nxt - prev, 1)
-    w = np.clip((t - prev) / span, 0.0, 1.0)
-    w = np.where(valid, 0.0, w)
-    return prev, nxt, w
-
-
-def fill_rotations(rotvec: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Axis-angle (T, J, 3) with the invalid frames interpolated (nlerp) between valid ones."""
-    prev, nxt, w = _interp_index(valid)
-    T, J = rotvec.shape[:2]
-    q = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_quat().reshape(T, J, 4)
-    qa, qb = q[prev], q[nxt]
-    qb = np.where((qa * qb).sum(-1, keepdims=True) < 0, -qb, qb)  # shortest way round
-    qi = (1.0 - w)[:, None, None] * qa + w[:, None, None] * qb
-    qi /= np.linalg.norm(qi, axis=-1, keepdims=True)
-    return Rotation.from_quat(qi.reshape(-1, 4)).as_rotvec().reshape(T, J, 3)
-
-
-def fill_linear(x: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """(T, ...) values with the invalid frames linearly interpolated between valid ones."""
-    prev, nxt, w = _interp_index(valid)
-    w = w.reshape((-1,) + (1,) * (x.ndim - 1))
-    return (1.0 - w) * x[prev] + w * x[nxt]
 
 
 def init_from_prior(model: BodyModel, prior: CameraPrior, T_world_cam: NDArray, fps: float = 30.0,
@@ -141,8 +105,6 @@ def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: f
     Raises:
         ValueError: bad shapes, or no frame with three of the hips and shoulders.
     """
-    from embodmocap.motion.ik import init_ik
-
     betas, go, pose, transl, _ = init_ik(model, points, conf, layout, min_conf)
     return SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=fps, gender=gender)
 

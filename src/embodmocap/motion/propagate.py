@@ -86,7 +86,7 @@ def propagate_limbs(body, params, points: NDArray, conf3: NDArray, K: NDArray, T
 
     Returns the new params and (T, 4) bool: which (frame, limb) starts were replaced.
     """
-    from embodmocap.motion.init import fill_rotations
+    from embodmocap.motion.fill import fill_rotations
 
     cost, count = limb_costs(body, params, points, conf3, K, T_world_cam, kp2d, scale3_m, scale2_px, min_conf)
     reliable = (count >= cfg.min_observations) & (cost <= cfg.reliable_cost * np.maximum(count, 1))

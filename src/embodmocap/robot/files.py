@@ -32,8 +32,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from embodmocap.export.mimickit import HeightMap, obj_text
+from embodmocap.geometry.heightmap import HeightMap
 from embodmocap.io.atomic import write_bytes, write_npz, write_text
+from embodmocap.io.mesh_file import obj_text
 from embodmocap.io.npz_file import load_npz
 from embodmocap.robot.model import RobotModel, mujoco_module
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from embodmocap.export.mimickit import HeightMap
+from embodmocap.geometry.heightmap import HeightMap
 from embodmocap.robot.model import RobotModel, mujoco_module
 from embodmocap.robot.retarget import HumanTargets, true_runs, heights_at, lowest_points
 

@@ -41,8 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from embodmocap.body.humanoid import R_HUMANOID_SMPL
 from embodmocap.body.joints import SMPL_JOINT_NAMES, SMPL_PARENTS
-from embodmocap.export.mimickit import R_HUMANOID_SMPL, HeightMap
+from embodmocap.geometry.heightmap import HeightMap
 from embodmocap.robot.config import RetargetConfig
 from embodmocap.robot.ik import Targets, track
 from embodmocap.robot.model import RobotModel, mujoco_module

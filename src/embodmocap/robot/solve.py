@@ -20,7 +20,7 @@ from embodmocap.robot.config import RetargetConfig
 from embodmocap.types import SmplParams
 
 if TYPE_CHECKING:
-    from embodmocap.export.mimickit import HeightMap
+    from embodmocap.geometry.heightmap import HeightMap
     from embodmocap.robot.retarget import HumanRest
 
 

@@ -73,7 +73,7 @@ def run(config: RetargetConfig, session: str | Path, seq: str | None = None, *, 
     ``robot`` names a built-in robot, ``robot_config_path`` a TOML robot config (it wins);
     ``out`` replaces the default folder ``sequences/<seq>/robot/<robot>/``."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.export.amass import read_amass
+    from embodmocap.io.amass import read_amass
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.robot import files

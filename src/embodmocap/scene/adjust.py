@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from embodmocap.geometry.transforms import invert_T
 
 if TYPE_CHECKING:
-    from embodmocap.scene.sfm import SfmConfig
+    from embodmocap.scene.config import SfmConfig
 
 log = logging.getLogger("embodmocap.scene.sfm")
 

@@ -19,7 +19,7 @@ from embodmocap.logs import quiet_colmap
 from embodmocap.types import Intrinsics
 
 if TYPE_CHECKING:
-    from embodmocap.scene.sfm import SfmConfig
+    from embodmocap.scene.config import SfmConfig
 
 log = logging.getLogger("embodmocap.scene.sfm")
 

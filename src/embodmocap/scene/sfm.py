@@ -34,7 +34,7 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal, Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,6 +51,7 @@ from embodmocap.scene.adjust import (  # noqa: F401 (_fit_similarity, _rms_repro
 from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
     _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
 )
+from embodmocap.scene.config import SfmConfig
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -59,97 +60,6 @@ log = logging.getLogger(__name__)
 SFM_FORMAT_VERSION = 1
 
 _IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-
-
-@dataclass(frozen=True)
-class SfmConfig:
-    """Sparse model (Stage I) settings. Defaults keep a 60 s, 30 fps, 640x480 scene capture
-    (~150 key frames) well under 90 s on 2 CPU cores."""
-
-    max_images: int = 150
-    """At most this many key frames go into SfM; more are thinned evenly (in the given order)."""
-    max_features: int = 2048
-    """SIFT features kept per image (the strongest). Matching cost grows with its square."""
-    first_octave: int = 0
-    """SIFT's first octave: 0 = the image as is; -1 upsamples it 2x first (about 1.6x the points at
-    640x480 but about 4x slower extraction)."""
-    image_format: Literal["jpg", "png"] = "jpg"
-    """Format of the key frames written to ``out_dir/images``: JPEG (small, fast) or PNG (lossless)."""
-    jpeg_quality: int = 95
-    """JPEG quality 1..100 when ``image_format`` is ``"jpg"``."""
-    pairing: Literal["poses", "exhaustive"] = "poses"
-    """How image pairs are chosen: ``"poses"`` = from the known poses (see the fields below);
-    ``"exhaustive"`` = every pair (only sensible for a few dozen images)."""
-    num_neighbours: int = 10
-    """``pairing="poses"``: each key frame is paired with at most this many others, those whose view
-    overlaps it most."""
-    max_view_angle_deg: float = 60.0
-    """``pairing="poses"``: two key frames whose optical axes differ by more than this never pair."""
-    overlap_depths_m: tuple[float, ...] = (1.0, 2.0, 3.0)
-    """``pairing="poses"``: depths (metres) of the probe points cast from each key frame through a
-    3x3 grid of pixels; the share of them another key frame sees is the pair's overlap. No depth maps
-    are needed."""
-    min_overlap: float = 0.15
-    """``pairing="poses"``: pairs whose overlap (0..1) is below this are not matched."""
-    match_max_ratio: float = 0.8
-    """Lowe's ratio test threshold of the SIFT matcher (lower = stricter)."""
-    ransac_max_error_px: float = 4.0
-    """Geometric verification: largest epipolar error (pixels) of an inlier match."""
-    min_num_inliers: int = 15
-    """Geometric verification: a pair with fewer inlier matches is dropped."""
-    max_reproj_error_px: float = 4.0
-    """Triangulation: observations reprojecting farther than this (pixels) are dropped from their
-    track, and points left with fewer than two observations are removed."""
-    min_tri_angle_deg: float = 1.5
-    """Triangulation: points whose rays meet at a smaller angle (degrees) are removed (poorly
-    conditioned depth)."""
-    two_view_tracks: bool = True
-    """Also triangulate features matched in only two key frames (COLMAP skips them by default). With
-    the poses known they are reliable enough, and they keep sparsely overlapping key frames (fast
-    turns) in the model."""
-    min_track_length: int = 2
-    """Points seen in fewer key frames than this are removed after triangulation (>= 2)."""
-    num_threads: int = 1
-    """Threads for extraction, matching and triangulation (-1 = all cores). With more than one
-    thread COLMAP's results depend on thread timing (image ids, match order, point ids: the model
-    differs byte for byte from run to run, its point count by a few); 1 makes runs bitwise
-    repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
-    seed: int = 0
-    """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
-    refine_poses: bool = True
-    """Correct the capture's VIO drift in the key frames before the final triangulation: a bundle
-    adjustment with the VIO's relative motion between consecutive key frames as a prior and the
-    first key frame fixed (:mod:`embodmocap.scene.adjust`), used only when the evidence below
-    holds; the points are then triangulated again with the corrected poses held fixed, and Stage I
-    fuses its mesh with the same correction (interpolated between key frames). Needs the key
-    frames' times (``times_s``) and at least 4 key frames."""
-    drift_m_per_10s: float = 0.01
-    """``refine_poses``: spread of the VIO's translation drift after 10 s, metres (a random walk:
-    it grows as the square root of time). Phones' VIO drifts about 1 cm over 10 s indoors."""
-    drift_deg_per_10s: float = 0.1
-    """``refine_poses``: spread of the VIO's yaw drift after 10 s, degrees."""
-    tilt_ratio: float = 0.25
-    """``refine_poses``: drift of roll and pitch relative to yaw (gravity keeps the tilt)."""
-    anchor_m: float = 0.0005
-    """``refine_poses``: how far the first key frame may move, metres: it sets the world (the VIO
-    world is defined at the capture's start, where it has not drifted yet)."""
-    anchor_deg: float = 0.005
-    """``refine_poses``: how far the first key frame may turn, degrees."""
-    reproj_sigma_px: float = 1.0
-    """``refine_poses``: spread of a SIFT keypoint's position, pixels (weight of the images against
-    the VIO prior); residuals beyond twice it count linearly (Huber)."""
-    adjust_max_iterations: int = 50
-    """``refine_poses``: at most this many evaluations of the least-squares solver."""
-    min_adjust_gain: float = 0.01
-    """``refine_poses``: the correction is used only when it lowers the RMS reprojection error of
-    the model by at least this fraction (else the images do not ask for one)."""
-    max_prior_step: float = 4.0
-    """``refine_poses``: ... and when no step of the correction between consecutive key frames is
-    larger than this many times the drift the VIO reaches in their time apart (a Gaussian random
-    walk almost never steps 4 sigma): a larger one is a tracking glitch or wrong matches, not
-    drift, and the adjustment smears it over its neighbours."""
-    max_pose_change_m: float = 0.05
-    """``refine_poses``: ... and when no key frame moves further than this, metres."""
 
 
 @dataclass(frozen=True)

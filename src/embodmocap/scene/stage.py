@@ -34,12 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_json
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
+from embodmocap.io.stage_files import read_keyframes, write_keyframes
 from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.scene import solve
 from embodmocap.scene.adjust import read_drift_correction
@@ -89,10 +88,10 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         if step.run:
             kf = solve.select_keyframes(capture, cfg, indoor)
             rec = kf.record
-            write_json(out.keyframes, {"version": rec["version"], "capture": str(entry.capture),
+            write_keyframes(out.keyframes, {"version": rec["version"], "capture": str(entry.capture),
                                        **{k: x for k, x in rec.items() if k != "version"}})
             step.record([out.keyframes], kf.figures)
-    kf = read_keyframes(out)
+    kf = read_keyframes(out.keyframes)
     frame_ids, T_kf = kf["frame_ids"], kf["T_world_cam"]
 
     # 2. Sparse model (before the mesh: the mesh is fused with its drift correction of the key frames).
@@ -160,17 +159,3 @@ def _warn_floor(figures: dict, cfg: SceneConfig, name: str, fmt: str) -> None:
         log.warning("scene %s: the floor of the mesh is %.1f deg off horizontal (more than %.1f): the %s capture's "
                     "gravity is wrong; check the export is complete (e.g. Record3D's initPose) and read it again",
                     name, tilt, cfg.floor_tilt_warn_deg, fmt)
-
-
-def read_keyframes(out: SceneLayout) -> dict:
-    """``keyframes.json`` as arrays: frame_ids (K,), T_world_cam (K,4,4), sharpness (K,)."""
-    import json
-
-    data = json.loads(out.keyframes.read_text())
-    if data.get("version") != KEYFRAMES_VERSION:
-        raise InputError(out.keyframes, f"unknown version {data.get('version')}", "re-run `embodmocap scene`")
-    return {
-        "frame_ids": np.asarray(data["frame_ids"], dtype=np.int64),
-        "T_world_cam": np.asarray(data["T_world_cam"], dtype=np.float64).reshape(-1, 4, 4),
-        "sharpness": np.asarray(data["sharpness"], dtype=np.float64),
-    }

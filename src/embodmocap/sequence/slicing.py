@@ -11,61 +11,17 @@ falls in a gap (a dropped frame) and is flagged, not hidden.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
+from embodmocap.io.stage_files import FrameMap
 from embodmocap.sequence.sync import SyncEvent
 from embodmocap.types import Capture
 
 log = logging.getLogger(__name__)
-
-FRAME_MAP_VERSION = 1
-
-
-@dataclass(frozen=True)
-class FrameMap:
-    """Map from sequence frames to the raw frames of one view.
-
-    Attributes:
-        seq_times_s: (T,) float64 time of each sequence frame, seconds after the sync event.
-        raw_frames: (T,) int64 raw frame index of this view nearest to each sequence time.
-        dt_s: (T,) float64 ``|raw frame time - sequence time|``, seconds.
-        dropped: (T,) bool, the nearest raw frame is more than half a frame period away (the
-            frame that belonged there was dropped); the raw frame is still the nearest one.
-        event_frame: raw frame index of the view's sync event (sequence time 0).
-        event_time_s: the view's own timestamp of the event frame, seconds (its raw clock).
-        fps: frame rate of the sequence timeline.
-    """
-
-    seq_times_s: NDArray[np.float64]
-    raw_frames: NDArray[np.int64]
-    dt_s: NDArray[np.float64]
-    dropped: NDArray[np.bool_]
-    event_frame: int = 0
-    event_time_s: float = 0.0
-    fps: float = 30.0
-
-    def __post_init__(self) -> None:
-        for name, dtype in (("seq_times_s", np.float64), ("raw_frames", np.int64), ("dt_s", np.float64), ("dropped", np.bool_)):
-            a = np.array(getattr(self, name), dtype=dtype, copy=True)
-            a.setflags(write=False)
-            object.__setattr__(self, name, a)
-        n = len(self.seq_times_s)
-        if any(getattr(self, k).shape != (n,) for k in ("raw_frames", "dt_s", "dropped")):
-            raise ValueError("frame map arrays must all be (T,)")
-
-    def __len__(self) -> int:
-        return len(self.seq_times_s)
-
-    @property
-    def num_dropped(self) -> int:
-        return int(self.dropped.sum())
-
 
 def _view_clock(cap: Capture) -> NDArray[np.float64]:
     """(num_frames,) frame times in seconds; nominal ``i / fps`` when the capture has none."""
@@ -152,28 +108,3 @@ def slice_views(
                         view, int(dropped.sum()), T, 1e3 * dt.max())
         out[view] = FrameMap(seq_t, idx, dt, dropped, events[view].frame, event_t[view], rate)
     return out
-
-
-def frame_map_to_json(fm: FrameMap) -> dict:
-    """JSON-ready dict of a frame map (the stage's per-view ``frame_map.json``)."""
-    return {
-        "version": FRAME_MAP_VERSION, "fps": fm.fps, "event_frame": fm.event_frame, "event_time_s": fm.event_time_s,
-        "num_frames": len(fm), "seq_times_s": fm.seq_times_s.tolist(), "raw_frames": fm.raw_frames.tolist(),
-        "dt_s": fm.dt_s.tolist(), "dropped": fm.dropped.tolist(),
-    }
-
-
-def frame_map_from_json(obj: dict, path: str | Path | None = None) -> FrameMap:
-    """Inverse of :func:`frame_map_to_json`; ``path`` names the file in errors."""
-    fix = "delete the file to redo the slicing"
-    if not isinstance(obj, dict) or obj.get("version") != FRAME_MAP_VERSION:
-        raise InputError(path, f"not a version-{FRAME_MAP_VERSION} frame map", fix)
-    try:
-        fm = FrameMap(np.asarray(obj["seq_times_s"], float), np.asarray(obj["raw_frames"], np.int64),
-                      np.asarray(obj["dt_s"], float), np.asarray(obj["dropped"], bool),
-                      int(obj["event_frame"]), float(obj["event_time_s"]), float(obj["fps"]))
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(path, f"malformed frame map: {err}", fix) from err
-    if len(fm) != obj.get("num_frames", len(fm)):
-        raise InputError(path, f"frame map holds {len(fm)} frames but says num_frames = {obj['num_frames']}", fix)
-    return fm

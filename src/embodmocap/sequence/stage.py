@@ -22,7 +22,6 @@ files are written through :mod:`embodmocap.io.stage_files`.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,20 +29,20 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_json
 from embodmocap.io.frame_stack import depth_mm, pack_mask, write_stack
 from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SequenceLayout, SessionLayout, ViewLayout
 from embodmocap.io.manifest import SequenceEntry, load_manifest
 from embodmocap.io.stage_files import (
-    CameraFile, Keypoints2DFile, read_keypoints2d, write_cameras, write_keypoints2d,
+    CameraFile, FrameMap, Keypoints2DFile, read_frame_map, read_keypoints2d, read_sync, write_cameras, write_frame_map,
+    write_keypoints2d, write_sync,
 )
 from embodmocap.io.stage_manifest import StageManifest, tracked_stage
 from embodmocap.perception.registry import make
 from embodmocap.sequence.config import SequenceConfig
 from embodmocap.sequence.solve import solve_performer
-from embodmocap.sequence.slicing import FrameMap, frame_map_from_json, frame_map_to_json, slice_views
+from embodmocap.sequence.slicing import slice_views
 from embodmocap.sequence.sync import SyncEvent, write_contact_sheet
 from embodmocap.sequence.steps import STEPS
 from embodmocap.sequence.sync_record import events_from_record, first_record
@@ -87,11 +86,11 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
             events, record = first_record(captures, manual, cfg.sync, geometric, seq=entry.name,
                                           min_overlap_s=cfg.min_overlap_s)
             sheets = _contact_sheets(entry.name, captures, events, record, out)
-            write_json(out.sync, record)
+            write_sync(out.sync, record)
             step.record([out.sync, *sheets], {f"{v}_sync_frame": events[v].frame for v in views} | {
                 f"{v}_sync_confidence": round(events[v].confidence, 3) for v in views} | {
                 "sync_slicing": record["slicing"]["source"], "one_view": entry.one_view})
-    events = events_from_record(json.loads(out.sync.read_text()), out.sync)
+    events = events_from_record(read_sync(out.sync).record, out.sync)
 
     # 2. Slice.
     fp_slice = STEPS.fingerprint("slice", cfg, after={"sync": fp_sync})
@@ -102,12 +101,12 @@ def run(cfg: SequenceConfig, session: str | Path, seq: str | None = None, *, for
             for v in views:
                 vl = out.view(v)
                 vl.root.mkdir(parents=True, exist_ok=True)
-                write_json(vl.frame_map, frame_map_to_json(maps[v]))
+                write_frame_map(vl.frame_map, maps[v])
                 _write_cameras(vl, captures[v], maps[v])
                 outs += [vl.frame_map, vl.cameras]
             step.record(outs, {"frames": len(maps[views[0]].raw_frames), "fps": maps[views[0]].fps,
                                **{f"{v}_dropped_frames": int(maps[v].dropped.sum()) for v in views}})
-    maps = {v: frame_map_from_json(json.loads(out.view(v).frame_map.read_text()), out.view(v).frame_map) for v in views}
+    maps = {v: read_frame_map(out.view(v).frame_map) for v in views}
 
     # 3. Keypoints and the performer's identity.
     fp_kp = STEPS.fingerprint("keypoints", cfg, after={"slice": fp_slice},
@@ -188,7 +187,7 @@ def _contact_sheets(name: str, captures, events, record: dict, out: SequenceLayo
             if len(captures) > 1:
                 log.warning("%s %s: no laser event; the geometric sync in Stage III decides the offset", name, v)
             continue
-        sheets.append(write_contact_sheet(captures[v], ev, out.root / f"sync_{v}.png"))
+        sheets.append(write_contact_sheet(captures[v], ev, out.sync_sheet(v)))
         lz["contact_sheet"] = sheets[-1].name
         log.info("%s %s: sync frame %d (%s, confidence %.2f); check %s", name, v, ev.frame,
                  ev.method, ev.confidence, sheets[-1])

@@ -20,8 +20,7 @@ from numpy.typing import NDArray
 
 from embodmocap.geometry.interpolate import interp_keypoints, interp_poses
 from embodmocap.io.layout import VIEWS, SequenceLayout
-from embodmocap.io.stage_files import read_cameras
-from embodmocap.sequence.sync_record import residual_s
+from embodmocap.io.stage_files import read_cameras, read_final_sync
 
 log = logging.getLogger(__name__)
 
@@ -62,14 +61,14 @@ def synced_views(out: SequenceLayout, cams: Mapping[str, Mapping], kps: Mapping[
     Returns:
         ``(cams, kps)``: view 1 unchanged; view 2 resampled to view 1's length. Identity (view 2's
         own arrays) when the residual offset is 0 and the frame times agree, or when there is no
-        ``sync.json`` (sequences synced by older versions), or with one view (nothing to sync).
+        sync record (sequences synced by older versions), or with one view (nothing to sync).
     """
     cams = {v: dict(cams[v].items()) for v in VIEWS if v in cams}
     kps = dict(kps)
-    if len(cams) == 1 or not out.sync.is_file():
+    if len(cams) == 1 or not (out.final_sync.is_file() or out.sync.is_file()):
         return cams, kps
     v1, v2 = VIEWS
-    off = residual_s(json.loads(out.sync.read_text()))
+    off = read_final_sync(out).residual_s
     t1, t2 = (frame_times(read_cameras(out.view(v).cameras, "cameras")) if out.view(v).cameras.is_file() else
               frame_times(cams[v]) for v in VIEWS)
     t1, t2 = t1[: len(kps[v1])], t2[: len(kps[v2])]

@@ -39,14 +39,13 @@ from typing import Mapping
 import numpy as np
 
 from embodmocap.errors import InputError
+from embodmocap.io.stage_files import SYNC_RECORD_VERSION
 from embodmocap.sequence.geosync import GeoSyncConfig, GeoSyncResult
 from embodmocap.sequence.laser_check import DotCheck
 from embodmocap.sequence.sync import SyncConfig, SyncEvent, detect_laser_candidates, detect_laser_event
 from embodmocap.types import Capture
 
 log = logging.getLogger(__name__)
-
-SYNC_RECORD_VERSION = 2
 
 
 def _clock(cap: Capture) -> np.ndarray:
@@ -224,14 +223,6 @@ def events_from_record(record: dict, path: str | Path | None = None) -> dict[str
     except (KeyError, TypeError, ValueError, IndexError) as err:
         raise InputError(path, f"malformed sync entry: {err}", fix) from err
     return out
-
-
-def residual_s(record: dict) -> float:
-    """The offset Stage IV applies on top of the slicing, seconds (0 for version-1 files)."""
-    if record.get("version") != SYNC_RECORD_VERSION:
-        return 0.0
-    r = record.get("chosen", {}).get("residual_s", 0.0)
-    return float(r) if r is not None and math.isfinite(float(r)) else 0.0
 
 
 def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: float,

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from embodmocap.export.mimickit import HUMANOID_TO_SMPL
+from embodmocap.body.humanoid import HUMANOID_TO_SMPL
 from embodmocap.io.stage_manifest import tracked_stage
 from embodmocap.sim.config import HumanoidConfig, SimCheckConfig
 from embodmocap.sim.session import SIM_FORMAT_VERSION, SimSequence, body_vertices, load_sequence
@@ -524,7 +524,7 @@ def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig =
                "config": asdict(cfg), **res}
         outputs = [path]
         if repair:
-            from embodmocap.export.amass import write_amass
+            from embodmocap.io.amass import write_amass
 
             shift = vertical_repair(sq, res["per_frame"], cfg)
             transl = np.array(sq.params.transl)

@@ -35,11 +35,10 @@ class SimCheck:
 
         path = sim_check(self.session, self.seq, self.config, repair=self.repair, force=self.force)
         print(f"wrote {path}")
-        import json
-
+        from embodmocap.io.stage_files import read_report_json
         from embodmocap.sim.check import unsupported_note
 
-        note = unsupported_note(json.loads(path.read_text())["summary"])
+        note = unsupported_note(read_report_json(path, "sim check", "embodmocap sim check")["summary"])
         if note:
             print(f"note: {note}")
         return 0

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from embodmocap.export.mimickit import egocentric_heightmap
+from embodmocap.geometry.heightmap import egocentric_heightmap
 from embodmocap.sim.config import HumanoidConfig, SceneCollisionConfig, TrackingConfig
 from embodmocap.sim.deps import gymnasium, mujoco
 from embodmocap.sim.model import hinge_ranges

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from embodmocap.export.mimickit import (
+from embodmocap.body.humanoid import (
     HUMANOID_TO_SMPL, R_HUMANOID_SMPL, SMPL_HUMANOID_BODIES, humanoid_skeleton, mimickit_frames,
 )
 from embodmocap.motion.terms import ANATOMICAL_RANGES

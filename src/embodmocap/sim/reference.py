@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from embodmocap.export.mimickit import HeightMap
+from embodmocap.geometry.heightmap import HeightMap
 
 
 @dataclass(frozen=True)

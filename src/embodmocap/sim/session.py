@@ -15,7 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
-from embodmocap.export.mimickit import HeightMap, write_heightmap
+from embodmocap.geometry.heightmap import HeightMap
+from embodmocap.io.heightmap_file import write_heightmap
 from embodmocap.io.layout import SessionLayout
 from embodmocap.sim.config import HumanoidConfig, SceneCollisionConfig
 from embodmocap.sim.model import hinge_names, performer_mjcf, reference_qpos
@@ -64,7 +65,7 @@ class SimSequence:
 def load_sequence(session: str | Path, seq: str | None = None) -> SimSequence:
     """Read sequence ``seq`` (or the session's only one) of ``session``; InputError names what is missing."""
     from embodmocap.body.model import load_body_model
-    from embodmocap.export.amass import read_amass
+    from embodmocap.io.amass import read_amass
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
 
@@ -119,7 +120,7 @@ def scene_pieces(sq: SimSequence, cfg: SceneCollisionConfig = SceneCollisionConf
     lo, hi = flat[:, :2].min(axis=0) - cfg.margin_m, flat[:, :2].max(axis=0) + cfg.margin_m
     v, f = crop_scene(sq.scene_vertices, sq.scene_faces, lo, hi, float(flat[:, 2].max()) + cfg.cap_above_motion_m)
     cache = None
-    if (Path(sq.session) / "session.toml").is_file():
+    if SessionLayout(sq.session).manifest.is_file():
         cache = SessionLayout(sq.session).sequence(sq.name).sim_dir
     return cached_convex_pieces(v, f, cache, threshold=cfg.coacd_threshold, max_pieces=cfg.coacd_max_pieces,
                                 resolution=cfg.coacd_resolution, convex_tolerance=cfg.convex_tolerance)

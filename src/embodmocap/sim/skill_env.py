@@ -59,7 +59,7 @@ def skills_json_path(session: Path, seq: str) -> Path:
     """``SESSION/sequences/<seq>/skills/skills.json``."""
     from embodmocap.io.layout import SessionLayout
 
-    return SessionLayout(Path(session)).sequence(seq).root / "skills" / "skills.json"
+    return SessionLayout(Path(session)).sequence(seq).skills_json
 
 
 @dataclass(frozen=True)

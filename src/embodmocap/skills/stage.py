@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 def skills_dir(layout: SessionLayout, seq: str) -> Path:
     """Where ``embodmocap skills`` writes one sequence's clips."""
-    return layout.sequence(seq).root / "skills"
+    return layout.sequence(seq).skills_dir
 
 
 def scene_mesh_path(layout: SessionLayout, scene: str) -> Path:
@@ -75,10 +75,10 @@ def run(config: SkillsConfig, session: str | Path, seq: str | None = None, *, fo
     out_dir = skills_dir(layout, entry.name)
     out_dir.mkdir(parents=True, exist_ok=True)
     inputs = [sl.smpl_world, mesh_path, manifest.body_model]
-    sm = StageManifest(out_dir / "manifest.json", "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
+    sm = StageManifest(sl.skills_manifest, "skills", {"skills": asdict(config)}, inputs=inputs, root=layout.root)
     fp = STEPS.fingerprint("clips", config, reads={"sequences/<seq>/smpl_world.npz": sl.smpl_world,
                                                    "scene mesh": mesh_path, "body model": manifest.body_model})
-    path = out_dir / "skills.json"
+    path = sl.skills_json
     with sm.step("clips", fp, force=force) as st:
         if st.run:
             params, _frames = read_smpl_npz(sl.smpl_world)

@@ -5,17 +5,15 @@ global orientation. Private to the studio: :mod:`embodmocap.synth.motion` import
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
+from embodmocap.synth.motion_base import MotionScriptConfig
 from embodmocap.synth.spec import SceneSpec
 
-if TYPE_CHECKING:  # annotations only (the config lives with the script)
-    from embodmocap.synth.motion import MotionScriptConfig
 
 # SMPL joint ids used below (body_pose holds joints 1..23).
 _L_HIP, _R_HIP, _SPINE1, _L_KNEE, _R_KNEE, _SPINE2, _L_ANKLE, _R_ANKLE, _SPINE3 = 1, 2, 3, 4, 5, 6, 7, 8, 9

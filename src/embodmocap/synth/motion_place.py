@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.synth.motion_base import _L_ANKLE, _R_ANKLE, SLAB_DEPTH, _in_footprint, _supports
 from embodmocap.synth.spec import SceneSpec
 
 
@@ -16,8 +17,6 @@ def _place(body, betas, go, body_pose, xy, lock, on_furniture, J0, spec: SceneSp
     lifted onto the supports (see :mod:`embodmocap.synth.motion`). Furniture holds the body up only in
     interaction frames (``on_furniture``): elsewhere a heel brushing a sofa's front while walking
     away must not lift the performer onto it."""
-    from embodmocap.synth.motion import _L_ANKLE, _R_ANKLE, SLAB_DEPTH, _in_footprint, _supports
-
     T = len(go)
     transl = np.zeros((T, 3))
     anchors: dict[int, NDArray] = {}

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.synth.motion_base import _ease, _heading
 from embodmocap.synth.spec import Furniture
 
 #: Pieces that are part of walking along a path (:attr:`MotionScript.clips` ``follow``): the
@@ -55,7 +56,6 @@ def lie_on_bed(pl, bed: Furniture, hold: float, prone: bool) -> None:
     turning by 90 degrees to lie along the bed and the pelvis moving onto its middle. The
     furniture support then rests the lowest vertices on the top, so nothing sinks into it;
     getting up replays the piece backwards."""
-    from embodmocap.synth.motion import _ease, _heading
 
     c, cfg = pl.calib, pl.cfg
     fwd = _heading(bed)
@@ -104,7 +104,6 @@ def follow_path(pl) -> None:
     B-spline whose control points are the current position and ``follow_waypoints`` random
     points of the walk area (the curve stays inside their convex hull, so inside the area), each
     turning the control polygon by at most 90 degrees."""
-    from embodmocap.synth.motion import _ease
     from scipy.interpolate import BSpline
 
     cfg, rng = pl.cfg, pl.rng
@@ -216,7 +215,6 @@ def step_curves(c, x0: float, x1: float, z0: float, z1: float, lead: str) -> dic
     the leading foot moves in the first half, the pelvis shifts over in the middle, the other
     foot follows. Each foot rises 8 cm above the higher support before moving forward and
     comes down only after it has arrived. ``c``: the body calibration (``ankle_h``, ``hip_h``)."""
-    from embodmocap.synth.motion import _ease
 
     clear = max(z0, z1) + 0.08
 

@@ -7,7 +7,6 @@ robot folder's stage manifest (so a robot given by ``--robot-config`` shows with
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,12 +15,13 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.layout import SessionLayout
+from embodmocap.io.stage_files import read_stage_record
 
 
 def find_robot(session: Path, seq: str, robot: str) -> Path | None:
     """The robot folder to show: ``robot`` by name, the first one with a ``qpos.npz`` for
     ``"auto"``, None for ``"none"`` or when there is none."""
-    root = SessionLayout(session).sequence(seq).root / "robot"
+    root = SessionLayout(session).sequence(seq).robots_dir
     if robot == "none" or not root.is_dir():
         return None
     if robot != "auto":
@@ -59,7 +59,7 @@ class RobotFrames:
 
         mj = mujoco_module()
         manifest = folder / "manifest.json"
-        rec = json.loads(manifest.read_text()).get("config", {}).get("robot") if manifest.is_file() else None
+        rec = read_stage_record(manifest).config.get("robot") if manifest.is_file() else None
         cfg = robot_config_from_record(rec) if rec else BUILTIN_ROBOTS.get(folder.name)
         if cfg is None:
             raise InputError(manifest, "cannot tell which robot this is", "run `embodmocap robot retarget` again")

@@ -20,7 +20,7 @@ SKILL_RGB: dict[str, tuple[int, int, int]] = {"follow": (40, 120, 220), "sit": (
 
 
 def skills_path(session: Path, seq: str) -> Path:
-    return SessionLayout(session).sequence(seq).root / "skills" / "skills.json"
+    return SessionLayout(session).sequence(seq).skills_json
 
 
 def box_segments(clips) -> tuple[NDArray[np.float32], NDArray[np.uint8]]:

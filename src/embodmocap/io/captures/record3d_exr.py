@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.captures.common import CaptureScan, LazyFrames, Problem, intrinsics_problems, pose_problems
-from embodmocap.io.captures.record3d import FORMAT, parse_metadata, world_poses
+from embodmocap.io.captures.record3d_meta import FORMAT, parse_metadata, world_poses
 from embodmocap.types import CameraTrajectory, Intrinsics
 
 log = logging.getLogger(__name__)

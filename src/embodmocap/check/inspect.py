@@ -31,7 +31,7 @@ def inspect_path(path: str | Path) -> tuple[str, list[str]]:
 
 
 def _inspect_session(root: Path) -> tuple[str, list[str]]:
-    from embodmocap.io import inspect_session as chk
+    from embodmocap.check import inspect_session as chk
     from embodmocap.io.manifest import read_manifest
 
     lay = SessionLayout(root)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from embodmocap.evaluate import metrics as M
+from embodmocap.evaluate.truth import sequence_truth
 from embodmocap.io.layout import VIEWS, SessionLayout
 
 
@@ -38,8 +39,6 @@ def mono_metrics(lay: SessionLayout, scene: str, seq: str, body_model_path=None)
     has_gt = lay.ground_truth.info.is_file()
     truth = None
     if has_gt:
-        from embodmocap.evaluate.session import sequence_truth
-
         truth = sequence_truth(lay, scene, seq)
     elif not sl.smpl_world.is_file():
         return {f"{v}_mono_reference": "none (no ground truth and no dual-view result)" for v in views}
