@@ -256,11 +256,14 @@ class MotionConfig:
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
     gets no pull towards the prior's pose: the triangulation wins."""
-    prior_limb_disagree_m: float = 0.1
+    prior_limb_disagree_m: float = 0.0
     """Per limb, as ``prior_disagree_m`` per frame: where the prior body's elbow and wrist (knee and
     ankle) are this much further from their 3D keypoints than the keypoint-started body's (mean
     over the limb's triangulated keypoints), the pull towards the prior takes that limb's pose
-    from the keypoints instead (:mod:`embodmocap.motion.prior_limbs`); <= 0: off."""
+    from the keypoints instead (:mod:`embodmocap.motion.prior_limbs`); <= 0: off (the default:
+    0.1 m fixed outdoor seed 3's arm on sessions of an older Stage III but, on six seeds processed
+    by today's Stages I-III, raised W-MPJPE c100 median 33.1 -> 34.6 mm and the frames wrong and
+    unflagged on indoor seed 2 from 3.4 to 8.6 %; BENCHMARKS.md, Stage IV)."""
     quality: QualityConfig = field(default_factory=QualityConfig)
     """The per-frame quality figures and the ``suspect`` flag written with the motion
     (:mod:`embodmocap.motion.quality`)."""
