@@ -112,8 +112,10 @@ class RefineConfig:
     """Maximum Levenberg-Marquardt iterations."""
     lm_damping: float = 1e-3
     """Initial LM damping (multiplies diag(J^T J)); divided by 10 on success, times 10 on failure."""
-    lm_step_tol: float = 1e-9
-    """LM stops when the step's largest component is below this (radians / metres)."""
+    lm_step_tol: float = 1e-6
+    """LM stops when the step's largest component is below this (radians / metres). 1e-9 until
+    issue 30: the steps below a micrometre (its last 10-20 iterations, each a Jacobian and fresh
+    Chamfer neighbours) moved the offsets by less than 1e-6 m."""
     max_translation_m: float = 0.5
     """A translation change larger than this is flagged as diverged, metres."""
     max_yaw_deg: float = 10.0
