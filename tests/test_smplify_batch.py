@@ -48,3 +48,28 @@ def test_batched_windows_equal_windows_one_by_one():
             assert torch.allclose(a, b, atol=1e-9, rtol=0), float((a - b).abs().max())
         # and the fit moved: the comparison is not between two copies of the start
         assert float((st.pose - start.pose[ranges[k][0]:ranges[k][1]]).abs().max()) > 1e-3
+
+
+def test_float32_fit_lands_where_the_float64_fit_does():
+    """The fit's default dtype is float32 (issue 30: faster on the CPU): on a perturbed start with
+    noisy keypoints it lands within a millimetre of the float64 fit, both near the truth, and
+    its parameters leave as float64."""
+    body = load_body_model(None)
+    spec = build_scene("indoor", np.random.default_rng(0)).spec
+    params = script_motion(spec, body, BETAS, 2.0, FPS, np.random.default_rng(1)).params
+    coco = body.from_params(params, dtype=torch.float64).coco17.numpy()
+    T = len(coco)
+    init, views = _perturbed(params), _views(coco, noise_px=2.0)
+    kp3d = coco + np.random.default_rng(3).normal(size=coco.shape) * 0.02
+    fits = {}
+    for dtype in ("float32", "float64"):
+        cfg = S.SmplifyConfig(device="cpu", dtype=dtype)
+        res = S.fit_world_smpl(body, kp3d, np.ones((T, 17)), views, init, None, cfg)
+        assert all(getattr(res.params, k).dtype == np.float64 for k in ("betas", "global_orient", "body_pose", "transl"))
+        fits[dtype] = body.from_params(res.params, dtype=torch.float64).coco17.numpy()
+    assert S.SmplifyConfig().dtype == "float32"
+    gap = np.linalg.norm(fits["float32"] - fits["float64"], axis=-1)
+    assert gap.max() < 1e-3, gap.max()
+    err = np.linalg.norm(fits["float32"] - coco, axis=-1).mean()
+    start = np.linalg.norm(body.from_params(init, dtype=torch.float64).coco17.numpy() - coco, axis=-1).mean()
+    assert err < 0.03 and err < 0.5 * start, (err, start)
