@@ -18,14 +18,20 @@ from embodmocap.synth.motion import script_motion  # noqa: E402
 from embodmocap.synth.scene import build_scene  # noqa: E402
 
 
-def test_batched_windows_equal_windows_one_by_one():
+def _noisy_problem(seconds: float, motion_seed: int):
+    """(body model, true params, true COCO-17 (T, 17, 3), perturbed start, two views with 2 px noise,
+    3D keypoints with 2 cm noise) of the studio's scripted motion."""
     body = load_body_model(None)
     spec = build_scene("indoor", np.random.default_rng(0)).spec
-    params = script_motion(spec, body, BETAS, 3.0, FPS, np.random.default_rng(0)).params
+    params = script_motion(spec, body, BETAS, seconds, FPS, np.random.default_rng(motion_seed)).params
     coco = body.from_params(params, dtype=torch.float64).coco17.numpy()
-    T = len(coco)
-    init, views = _perturbed(params), _views(coco, noise_px=2.0)
     kp3d = coco + np.random.default_rng(3).normal(size=coco.shape) * 0.02
+    return body, params, coco, _perturbed(params), _views(coco, noise_px=2.0), kp3d
+
+
+def test_batched_windows_equal_windows_one_by_one():
+    body, params, coco, init, views, kp3d = _noisy_problem(3.0, 0)
+    T = len(coco)
     # Few iterations (the equality does not depend on them), every term on: prior, edges, both views.
     cfg = S.SmplifyConfig(device="cpu", window_frames=40, overlap_frames=10, phase1_iterations=8, phase2_iterations=12,
                           gnc_factor=2.0)
@@ -48,3 +54,23 @@ def test_batched_windows_equal_windows_one_by_one():
             assert torch.allclose(a, b, atol=1e-9, rtol=0), float((a - b).abs().max())
         # and the fit moved: the comparison is not between two copies of the start
         assert float((st.pose - start.pose[ranges[k][0]:ranges[k][1]]).abs().max()) > 1e-3
+
+
+def test_float32_fit_lands_where_the_float64_fit_does():
+    """The fit's default dtype is float32 (issue 30: faster on the CPU): on a perturbed start with
+    noisy keypoints it lands within a millimetre of the float64 fit, both near the truth, and
+    its parameters leave as float64."""
+    body, _, coco, init, views, kp3d = _noisy_problem(2.0, 1)
+    T = len(coco)
+    fits = {}
+    for dtype in ("float32", "float64"):
+        cfg = S.SmplifyConfig(device="cpu", dtype=dtype)
+        res = S.fit_world_smpl(body, kp3d, np.ones((T, 17)), views, init, None, cfg)
+        assert all(getattr(res.params, k).dtype == np.float64 for k in ("betas", "global_orient", "body_pose", "transl"))
+        fits[dtype] = body.from_params(res.params, dtype=torch.float64).coco17.numpy()
+    assert S.SmplifyConfig().dtype == "float32"
+    gap = np.linalg.norm(fits["float32"] - fits["float64"], axis=-1)
+    assert gap.max() < 1e-3, gap.max()
+    err = np.linalg.norm(fits["float32"] - coco, axis=-1).mean()
+    start = np.linalg.norm(body.from_params(init, dtype=torch.float64).coco17.numpy() - coco, axis=-1).mean()
+    assert err < 0.03 and err < 0.5 * start, (err, start)

@@ -21,17 +21,18 @@ class RegisterConfig:
     """Settings of view-frame registration. Defaults register 2 x 200 frames at 640x480 in about a
     minute on 2 CPU cores."""
 
-    num_frames: int = 80
+    num_frames: int = 40
     """Frames sampled per view by :func:`select_frames`: spread over time and over viewpoints
     (the VIO path and turn), the steadiest frame of each stretch (least blur). A 6 s view has
     about 175 frames, a 60 s one 1,800. The offset has 4 parameters and the per-view error is
-    dominated by a bias common to the view's frames, not by their number: beyond ~80 well spread
-    frames more only cost time (SIFT is most of Stage III's time)."""
+    dominated by a bias common to the view's frames, not by their number (the VIO chain ties the
+    frames between): beyond ~40 well spread frames more only cost time (SIFT and matching are most
+    of Stage III's time; 80 until issue 30, same accuracy within the benchmark's spread)."""
     workers: int = 0
     """Threads registering frames in parallel (0 = one per CPU core). OpenCV and pycolmap release
     the GIL; each frame's result does not depend on the thread count or order."""
-    coarse_frames: int = 24
-    """Frames registered first by retrieval; their VIO-consistent poses give a coarse offset from
+    coarse_frames: int = 16
+    """Frames registered first by retrieval (24 until issue 30); their VIO-consistent poses give a coarse offset from
     which the other frames get their candidate key frames by pose (:func:`pose_candidates`)."""
     max_features: int = 2048
     """SIFT features kept per query frame (the strongest)."""
@@ -111,8 +112,10 @@ class RefineConfig:
     """Maximum Levenberg-Marquardt iterations."""
     lm_damping: float = 1e-3
     """Initial LM damping (multiplies diag(J^T J)); divided by 10 on success, times 10 on failure."""
-    lm_step_tol: float = 1e-9
-    """LM stops when the step's largest component is below this (radians / metres)."""
+    lm_step_tol: float = 1e-6
+    """LM stops when the step's largest component is below this (radians / metres). 1e-9 until
+    issue 30: the steps below a micrometre (its last 10-20 iterations, each a Jacobian and fresh
+    Chamfer neighbours) moved the offsets by less than 1e-6 m."""
     max_translation_m: float = 0.5
     """A translation change larger than this is flagged as diverged, metres."""
     max_yaw_deg: float = 10.0

@@ -237,7 +237,10 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
     # does not depend on the thread count or on which thread finishes first.
     frames = list(view_frames)
     workers = max(1, min(cfg.workers or (os.cpu_count() or 1), len(frames)))
-    with _opencv_threads(1):
+    # BLAS on one thread too (the matching's products): each pool thread running a multi-threaded
+    # OpenBLAS product oversubscribes the cores, and OpenBLAS's waiting threads spin (measured:
+    # matching products in a 2-thread pool cost 2.3x the CPU; same results).
+    with _opencv_threads(1), _blas_threads(1):
         if workers > 1:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -258,6 +261,18 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
             T, inl = res
             results.append((len(attempted) - 1, t, T, q_idx[inl], p_ids[inl], xy))
     return _collect(attempted, counts, cands, results, index, K, cfg, seconds)
+
+
+def _blas_threads(n: int):
+    """Context manager: the BLAS libraries numpy uses limited to ``n`` threads inside (through
+    ``threadpoolctl`` where it is installed; nothing changes without it)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: only the CPU time differs
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(n, user_api="blas")
 
 
 def _choose(index: SceneIndex, desc: NDArray, K: Intrinsics, cfg: RegisterConfig,

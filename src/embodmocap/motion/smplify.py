@@ -542,6 +542,8 @@ def fit_world_smpl(
     else:
         go, pose, transl, betas = _fit_windows(model, body, data, start, ranges, cfg, names, timing)
 
+    # float64 out whatever the fit's dtype: the files and the stages after the fit are float64.
+    go, pose, transl, betas = (np.asarray(x, dtype=np.float64) for x in (go, pose, transl, betas))
     params = SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=init.fps, gender=init.gender)
     before = _evaluate(body, start, data, cfg, names)
     after_state = _State(tt(betas), tt(go), tt(pose), tt(transl))
