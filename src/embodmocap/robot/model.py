@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError, MissingExtraError, require
-from embodmocap.robot.config import MJLAB_PREFIX, RobotConfig
+from embodmocap.robot.config import ASSETS_PREFIX, MJLAB_PREFIX, RobotConfig
 
 
 def mujoco_module():
@@ -25,8 +25,11 @@ def mujoco_module():
 
 
 def resolve_mjcf(cfg: RobotConfig) -> Path:
-    """The MJCF file of ``cfg`` on this machine (``mjlab:`` paths looked up in the mjlab wheel)."""
-    if cfg.mjcf.startswith(MJLAB_PREFIX):
+    """The MJCF file of ``cfg`` on this machine (``embodmocap:`` paths in this package's robot
+    assets, ``mjlab:`` paths in an installed mjlab)."""
+    if cfg.mjcf.startswith(ASSETS_PREFIX):
+        path = Path(__file__).parent / "assets" / cfg.mjcf[len(ASSETS_PREFIX):]
+    elif cfg.mjcf.startswith(MJLAB_PREFIX):
         spec = importlib.util.find_spec("mjlab")
         if spec is None or spec.origin is None:
             raise MissingExtraError("mjlab (its wheel, installed with --no-deps, ships the G1 model)", "robot")
