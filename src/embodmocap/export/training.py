@@ -53,6 +53,7 @@ from embodmocap.export.config import ExportConfig
 from embodmocap.io.atomic import atomic_dir, write_json, write_npz
 from embodmocap.io.layout import VIEWS, SessionLayout
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +337,7 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
     capture = open_capture(inp.capture)
     quality = [int(cv2.IMWRITE_JPEG_QUALITY), int(config.training_jpeg_quality)]
     try:
-        for t in range(N):
+        for t in progress(range(N), f"training export {out_dir.name}: RGB", unit="frame"):
             rgb = np.asarray(capture.frames.rgb(int(cams.raw_frames[t])))
             if rgb.shape != (H, W, 3):
                 raise InputError(inp.capture, f"raw frame {int(cams.raw_frames[t])} is {rgb.shape[1]}x{rgb.shape[0]}, "

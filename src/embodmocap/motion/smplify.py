@@ -56,6 +56,7 @@ from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_t
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
+from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -348,7 +349,7 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
         opt.step(closure)
         return
     opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
-    for it in range(iterations):
+    for it in progress(range(iterations), "SMPL fit pass", unit="step"):
         if on_step is not None:
             on_step(it)
         frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
