@@ -28,14 +28,17 @@ F = NDArray[np.floating]
 QUAT_ORDER = "xyzw"
 
 
-def _rot(x: F, kind: str) -> tuple[Rotation, tuple[int, ...]]:
-    """A flat SciPy ``Rotation`` of (..., k) or (..., 3, 3) input and the input's batch shape."""
+def _convert(x: F, kind: str, out_tail: tuple[int, ...], as_out) -> F:
+    """SciPy's ``Rotation`` from (..., 3) rotation vectors, (..., 4) quaternions or (..., 3, 3)
+    matrices (``kind``), converted by ``as_out`` (e.g. ``Rotation.as_matrix``), in the input's batch
+    shape; empty input gives an empty output."""
     x = np.asarray(x, dtype=np.float64)
-    if kind == "matrix":
-        return Rotation.from_matrix(x.reshape(-1, 3, 3)), x.shape[:-2]
-    if kind == "quat":
-        return Rotation.from_quat(x.reshape(-1, 4)), x.shape[:-1]
-    return Rotation.from_rotvec(x.reshape(-1, 3)), x.shape[:-1]
+    batch = x.shape[:-2] if kind == "matrix" else x.shape[:-1]
+    if x.size == 0:
+        return np.zeros(batch + out_tail)
+    flat = x.reshape((-1,) + x.shape[len(batch):])
+    r = {"matrix": Rotation.from_matrix, "quat": Rotation.from_quat, "rotvec": Rotation.from_rotvec}[kind](flat)
+    return np.asarray(as_out(r)).reshape(batch + out_tail)
 
 
 # ------------------------------------------------------------------------------- component order
@@ -80,47 +83,27 @@ def quat_to_matrix(q: F, invalid: Literal["raise", "nan"] = "raise") -> F:
 
 def matrix_to_quat(R: F) -> F:
     """Rotation matrices (..., 3, 3) -> unit quaternions (..., 4) (x, y, z, w) with w >= 0."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.size == 0:
-        return np.zeros(R.shape[:-2] + (4,))
-    r, shape = _rot(R, "matrix")
-    return canonical_quat(r.as_quat()).reshape(shape + (4,))
+    return canonical_quat(_convert(R, "matrix", (4,), Rotation.as_quat))
 
 
 def rotvec_to_matrix(v: F) -> F:
     """Rotation vectors (..., 3) (axis times angle, radians) -> matrices (..., 3, 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    if v.size == 0:
-        return np.zeros(v.shape[:-1] + (3, 3))
-    r, shape = _rot(v, "rotvec")
-    return r.as_matrix().reshape(shape + (3, 3))
+    return _convert(v, "rotvec", (3, 3), Rotation.as_matrix)
 
 
 def matrix_to_rotvec(R: F) -> F:
     """Rotation matrices (..., 3, 3) -> rotation vectors (..., 3), angle in [0, pi]."""
-    R = np.asarray(R, dtype=np.float64)
-    if R.size == 0:
-        return np.zeros(R.shape[:-2] + (3,))
-    r, shape = _rot(R, "matrix")
-    return r.as_rotvec().reshape(shape + (3,))
+    return _convert(R, "matrix", (3,), Rotation.as_rotvec)
 
 
 def rotvec_to_quat(v: F) -> F:
     """Rotation vectors (..., 3) -> quaternions (..., 4) (x, y, z, w), w >= 0."""
-    v = np.asarray(v, dtype=np.float64)
-    if v.size == 0:
-        return np.zeros(v.shape[:-1] + (4,))
-    r, shape = _rot(v, "rotvec")
-    return canonical_quat(r.as_quat()).reshape(shape + (4,))
+    return canonical_quat(_convert(v, "rotvec", (4,), Rotation.as_quat))
 
 
 def quat_to_rotvec(q: F) -> F:
     """Quaternions (..., 4) (x, y, z, w) -> rotation vectors (..., 3) of the shorter turn (angle in [0, pi])."""
-    q = np.asarray(q, dtype=np.float64)
-    if q.size == 0:
-        return np.zeros(q.shape[:-1] + (3,))
-    r, shape = _rot(q, "quat")
-    return r.as_rotvec().reshape(shape + (3,))
+    return _convert(q, "quat", (3,), Rotation.as_rotvec)
 
 
 # ------------------------------------------------------------------------------- algebra
