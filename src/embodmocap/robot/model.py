@@ -1,6 +1,7 @@
 """A robot's MuJoCo model as the retargeting sees it: names, limits, forward kinematics, soles.
 
-Needs the ``robot`` extra (mujoco); ``mjlab:`` MJCF paths need the mjlab wheel's files. The body
+Needs the ``robot`` extra (mujoco); the built-in G1 ships in ``robot/assets``; ``mjlab:`` MJCF
+paths need an installed mjlab. The body
 order everywhere is MuJoCo's body order without the world body, which is the MJCF's depth-first
 order (what mjlab's ``body_pos_w`` uses). Quaternions are w x y z unless a name says ``xyzw``.
 """
@@ -32,7 +33,7 @@ def resolve_mjcf(cfg: RobotConfig) -> Path:
     elif cfg.mjcf.startswith(MJLAB_PREFIX):
         spec = importlib.util.find_spec("mjlab")
         if spec is None or spec.origin is None:
-            raise MissingExtraError("mjlab (its wheel, installed with --no-deps, ships the G1 model)", "robot")
+            raise MissingExtraError("mjlab (for an `mjlab:` MJCF path; the built-in G1 needs none)", "robot")
         path = Path(spec.origin).parent / cfg.mjcf[len(MJLAB_PREFIX):]
     else:
         path = Path(cfg.mjcf)
