@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from embodmocap.errors import InputError
-from embodmocap.geometry.interpolate import bracket, interp_keypoints, interp_poses, slerp_quat
+from embodmocap.geometry.interpolate import bracket, interp_keypoints, interp_poses
+from embodmocap.geometry.rotations import slerp as slerp_quat
 from embodmocap.geometry.transforms import look_at_T, matrix_to_quat, quat_to_matrix, rotation_angle
 from embodmocap.sequence.geosync import (
     GeoSyncConfig, epipolar_distance, geometric_sync, midpoint_reprojection_error, shift_costs,

@@ -153,16 +153,23 @@ class Run:
 
     def run(self) -> int:
         from embodmocap.pipeline import run_session
+        from embodmocap.progress import is_quiet
 
-        res = run_session(self.config, self.session, force=self.force, on_progress=lambda m: print(m, flush=True))
-        print()
+        quiet = is_quiet()  # -q: nothing on stdout; a failure's lines still on stderr
+        res = run_session(self.config, self.session, force=self.force,
+                          on_progress=None if quiet else lambda m: print(m, flush=True))
+        if not quiet:
+            print()
         for r in res.runs:
             line = f"  {r.target:<24} {r.stage:<10} {r.status:<7} {r.seconds:7.1f} s"
-            print(line + (f"  {r.error}" if r.error else ""))
+            if not quiet or r.error:
+                print(line + (f"  {r.error}" if r.error else ""), file=sys.stderr if quiet else sys.stdout)
         if not res.ok:
-            print(f"{len(res.failed())} stage(s) failed; fix the cause and run the same command again to resume")
+            print(f"{len(res.failed())} stage(s) failed; fix the cause and run the same command again to resume",
+                  file=sys.stderr if quiet else sys.stdout)
             return 1
-        print(f"all stages done: {res.session}")
+        if not quiet:
+            print(f"all stages done: {res.session}")
         return 0
 
 
@@ -495,10 +502,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --log-file: {os_error_line(err)}", file=sys.stderr)
         return 2
     previous = watch_interrupts()
+    from embodmocap.progress import set_quiet
+
+    was_quiet = set_quiet(opts.level > logging.INFO)  # -q: no progress bars or lines, no routine output
     try:
         with logs.command_logging(log, opts.level, opts.log_file):
             return _run(argv, opts)
     finally:
+        set_quiet(was_quiet)
         stop_watching_interrupts(previous)
 
 

@@ -41,6 +41,7 @@ from embodmocap.calibrate.scene_index import (  # noqa: F401 (the scene index's 
 from embodmocap.errors import InputError, require
 from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.colmap import COLMAP_PIXEL_OFFSET, colmap_camera_params
+from embodmocap.progress import progress
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -245,9 +246,9 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(workers) as pool:
-                outs = list(pool.map(one, frames))
+                outs = list(progress(pool.map(one, frames), "registration", total=len(frames), unit="frame"))
         else:
-            outs = [one(f) for f in frames]
+            outs = [one(f) for f in progress(frames, "registration", unit="frame")]
     seconds = {"features": 0.0, "matching": 0.0, "pose": 0.0}
     attempted, counts, cands, results = [], [], [], []
     for t, xy, chosen, q_idx, p_ids, res, dt in outs:

@@ -42,6 +42,7 @@ from embodmocap.export.config import ExportConfig
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.smpl_file import read_smpl_suspect, read_smpl_valid
 from embodmocap.io.stage_files import read_world_joints
+from embodmocap.progress import step
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,11 @@ def export_sequence(session: str | Path, seq: str, to: str, out: str | Path | No
     """
     if to not in FORMATS:
         raise InputError(None, f"unknown export format {to!r}", f"choose one of {', '.join(FORMATS)}")
+    with step(f"export {seq} as {to}"):
+        return _export_sequence(session, seq, to, out, config)
+
+
+def _export_sequence(session: str | Path, seq: str, to: str, out: str | Path | None, config: ExportConfig) -> Path:
     if to == "robot":
         return _export_robot(session, seq, out, config)
     if to == "training":

@@ -54,6 +54,7 @@ from embodmocap.io.atomic import atomic_dir, write_json, write_npz
 from embodmocap.io.layout import VIEWS, SequenceLayout, SessionLayout
 from embodmocap.io.stage_files import read_final_sync, read_frame_map
 from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint, tracked_stage
+from embodmocap.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +119,8 @@ def resample_motion(poses: NDArray, transl: NDArray, times_s: NDArray, query_s: 
         ``transl`` linearly; a query on a row (within 1e-9 s) takes that row exactly (``i0 == i1``);
         outside the span the nearest end row, ``inside`` False.
     """
-    from scipy.spatial.transform import Rotation
-
-    from embodmocap.geometry.interpolate import TIME_EPS_S, bracket, slerp_quat
+    from embodmocap.geometry.interpolate import TIME_EPS_S, bracket
+    from embodmocap.geometry.rotations import quat_to_rotvec, rotvec_to_quat, slerp
 
     poses = np.array(poses, np.float64)  # a writable copy: scipy refuses read-only arrays
     transl = np.asarray(transl, np.float64)
@@ -137,9 +137,8 @@ def resample_motion(poses: NDArray, transl: NDArray, times_s: NDArray, query_s: 
     i1 = np.where(w <= 0.0, i0, i1)
     w = np.where(i0 == i1, 0.0, w)
     M, J = len(query_s), poses.shape[1] // 3
-    q = Rotation.from_rotvec(poses.reshape(-1, 3)).as_quat().reshape(len(poses), J, 4)
-    out_q = slerp_quat(q[i0], q[i1], np.repeat(w[:, None], J, axis=1))
-    out = Rotation.from_quat(out_q.reshape(-1, 4)).as_rotvec().reshape(M, J * 3)
+    q = rotvec_to_quat(poses.reshape(len(poses), J, 3))
+    out = quat_to_rotvec(slerp(q[i0], q[i1], np.repeat(w[:, None], J, axis=1))).reshape(M, J * 3)
     exact = i0 == i1
     out[exact] = poses[i0[exact]]
     tr = (1.0 - w)[:, None] * transl[i0] + w[:, None] * transl[i1]
@@ -328,7 +327,7 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
     capture = open_capture(inp.capture)
     quality = [int(cv2.IMWRITE_JPEG_QUALITY), int(config.training_jpeg_quality)]
     try:
-        for t in range(N):
+        for t in progress(range(N), f"training export {out_dir.name}: RGB", unit="frame"):
             rgb = np.asarray(capture.frames.rgb(int(cams.raw_frames[t])))
             if rgb.shape != (H, W, 3):
                 raise InputError(inp.capture, f"raw frame {int(cams.raw_frames[t])} is {rgb.shape[1]}x{rgb.shape[0]}, "

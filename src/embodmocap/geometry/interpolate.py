@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from embodmocap.geometry.transforms import matrix_to_quat, quat_to_matrix
+from embodmocap.geometry.rotations import matrix_to_quat, quat_to_matrix, slerp
 
 F = NDArray[np.floating]
 
@@ -56,28 +56,6 @@ def bracket(t_src: F, t_query: F) -> tuple[NDArray[np.int64], F, NDArray[np.bool
     return i0.astype(np.int64), w, valid & np.isfinite(t_query)
 
 
-def slerp_quat(q0: F, q1: F, w: F) -> F:
-    """Spherical linear interpolation of unit quaternions (..., 4) (x, y, z, w) by weights (...).
-
-    The shorter arc is taken (q1 is negated when ``q0 . q1 < 0``); nearly equal rotations fall
-    back to normalised linear interpolation, which is exact to rounding there.
-    """
-    q0 = np.asarray(q0, dtype=np.float64)
-    q1 = np.asarray(q1, dtype=np.float64)
-    w = np.asarray(w, dtype=np.float64)[..., None]
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin = np.sin(theta)
-    small = sin < 1e-6
-    safe = np.where(small, 1.0, sin)
-    a = np.where(small, 1.0 - w, np.sin((1.0 - w) * theta) / safe)
-    b = np.where(small, w, np.sin(w * theta) / safe)
-    q = a * q0 + b * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def interp_poses(T_src: F, t_src: F, t_query: F) -> tuple[F, NDArray[np.bool_]]:
     """Rigid poses at query times: slerp of the rotation, linear translation.
 
@@ -96,7 +74,7 @@ def interp_poses(T_src: F, t_src: F, t_query: F) -> tuple[F, NDArray[np.bool_]]:
     i0, w, valid = bracket(t_src, t_query)
     i1 = np.minimum(i0 + 1, len(T_src) - 1)
     q = matrix_to_quat(T_src[:, :3, :3])
-    R = quat_to_matrix(slerp_quat(q[i0], q[i1], w))
+    R = quat_to_matrix(slerp(q[i0], q[i1], w))
     t = (1.0 - w)[:, None] * T_src[i0, :3, 3] + w[:, None] * T_src[i1, :3, 3]
     out = np.zeros((len(w), 4, 4))
     out[:, :3, :3] = R

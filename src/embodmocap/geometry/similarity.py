@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.rotations import rotvec_between, rotvec_to_matrix
+
 F = NDArray[np.float64]
 
 
@@ -144,16 +146,7 @@ def transform_poses(S: F, T_world_cam: F) -> F:
 def rotation_between(a: F, b: F) -> F:
     """(3, 3) smallest rotation taking unit direction ``a`` (3,) onto ``b`` (3,) (Rodrigues);
     a half turn about an axis orthogonal to ``a`` when they are opposite."""
-    a = np.asarray(a, dtype=np.float64) / np.linalg.norm(a)
-    b = np.asarray(b, dtype=np.float64) / np.linalg.norm(b)
-    v = np.cross(a, b)
-    c = float(a @ b)
-    if c < -1 + 1e-12:
-        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1 + c)
+    return rotvec_to_matrix(rotvec_between(a, b))
 
 
 def mean_rotation(Rs: F, weights: F | None = None) -> F:

@@ -7,7 +7,9 @@ Conventions (the package's one convention):
 - ``T_a_b`` is a (..., 4, 4) homogeneous matrix mapping points in frame ``b`` into frame ``a``:
   ``p_a = T_a_b @ p_b``. So ``T_world_cam`` is camera-to-world and its translation is the camera
   centre in the world.
-- Quaternions are stored **(x, y, z, w)** (scalar last), as in scipy and in the capture apps' CSVs.
+- Quaternions are stored **(x, y, z, w)** (scalar last), as in scipy and in the capture apps' CSVs;
+  every rotation conversion lives in :mod:`embodmocap.geometry.rotations` (``quat_to_matrix`` and
+  ``matrix_to_quat`` are re-exported here for the modules that import them from this one).
 
 All functions accept any leading batch shape and are vectorised (no Python loops over frames).
 """
@@ -16,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+
+from embodmocap.geometry.rotations import matrix_to_quat, quat_to_matrix  # noqa: F401 (re-exported)
 
 F = NDArray[np.floating]
 
@@ -70,37 +74,6 @@ def apply_T(T: F, points: F) -> F:
     T = np.asarray(T, dtype=np.float64)
     p = np.asarray(points, dtype=np.float64)
     return np.einsum("...ij,...nj->...ni", T[..., :3, :3], p) + T[..., None, :3, 3]
-
-
-def quat_to_matrix(q: F) -> F:
-    """Unit quaternions (..., 4) as (x, y, z, w) to rotation matrices (..., 3, 3).
-
-    The quaternion is normalised first, so slightly non-unit input (as CSVs store) is fine.
-    """
-    q = np.asarray(q, dtype=np.float64)
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(n < 1e-12):
-        raise ValueError("zero-length quaternion")
-    x, y, z, w = np.moveaxis(q / n, -1, 0)
-    R = np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return R.reshape(q.shape[:-1] + (3, 3))
-
-
-def matrix_to_quat(R: F) -> F:
-    """Rotation matrices (..., 3, 3) to unit quaternions (..., 4) as (x, y, z, w), w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    R = np.asarray(R, dtype=np.float64)
-    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
-    q = np.where(q[:, 3:4] < 0, -q, q)
-    return q.reshape(R.shape[:-2] + (4,))
 
 
 def rot_z(yaw: F) -> F:

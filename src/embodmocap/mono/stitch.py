@@ -36,6 +36,7 @@ from embodmocap.geometry.similarity import (apply_similarity, robust_umeyama, si
 from embodmocap.mono.config import StitchConfig
 from embodmocap.mono.files import ChunkPrediction
 from embodmocap.mono.roles import SceneModel
+from embodmocap.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +195,7 @@ def stitch(model: SceneModel, plan: list[tuple[int, int]], cfg: StitchConfig, vi
     owned_until = 0
     segment = -1
     prev = None  # (frames (n,), Y (n,h,w,3), conf (n,h,w), centres (n,3), rows, cols)
-    for start, end in plan:
+    for start, end in progress(plan, "mono: scene model", unit="chunk"):
         frames = np.arange(start, end, dtype=np.int64)
         pred = model.predict(frames)
         res.metric = res.metric or pred.metric

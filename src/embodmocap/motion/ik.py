@@ -30,6 +30,7 @@ from scipy.spatial.transform import Rotation
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.motion.fill import fill_linear, fill_rotations
+from embodmocap.geometry.rotations import rotvec_between as _swing
 
 # COCO-17 indices.
 _LSHO, _RSHO, _LELB, _RELB, _LWRI, _RWRI = 5, 6, 7, 8, 9, 10
@@ -327,20 +328,6 @@ def _kabsch(q: NDArray, p: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:
     D[:, 2, 2] = d
     R = np.einsum("tji,tjk,tlk->til", Vt, D, U)
     return R, pc - np.einsum("tij,tj->ti", R, qc)
-
-
-def _swing(a: NDArray, b: NDArray) -> NDArray:
-    """Rotation vectors (T, 3) of the smallest rotations taking directions a (T, 3) to b (T, 3)."""
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True).clip(min=1e-12)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True).clip(min=1e-12)
-    ax = np.cross(a, b)
-    s = np.linalg.norm(ax, axis=-1)
-    c = (a * b).sum(-1)
-    ang = np.arctan2(s, c)
-    # Opposite directions: any axis perpendicular to a.
-    perp = np.cross(a, np.where(np.abs(a[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    ax = np.where((s < 1e-9)[:, None], perp, ax)
-    return ax / np.linalg.norm(ax, axis=-1, keepdims=True).clip(min=1e-12) * ang[:, None]
 
 
 def _fk(sk: RestSkeleton, b: NDArray, R_local: NDArray) -> tuple[NDArray, NDArray]:

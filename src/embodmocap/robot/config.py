@@ -19,6 +19,8 @@ from embodmocap.errors import InputError
 
 #: ``mjcf`` values starting with this are paths inside the installed ``mjlab`` package.
 MJLAB_PREFIX = "mjlab:"
+#: ``mjcf`` values starting with this are paths inside ``embodmocap/robot/assets`` (models we ship).
+ASSETS_PREFIX = "embodmocap:"
 
 
 @dataclass(frozen=True)
@@ -45,7 +47,8 @@ class RobotConfig:
     """Short name; outputs go to ``sequences/<seq>/robot/<name>/``."""
     mjcf: str
     """MJCF file: an absolute path, a path relative to the TOML file that names it, or
-    ``mjlab:<path inside the mjlab package>`` for models shipped in the mjlab wheel."""
+    ``embodmocap:<path inside embodmocap/robot/assets>`` for the models shipped with this package,
+    or ``mjlab:<path inside the mjlab package>`` for models in an installed mjlab."""
     root_body: str
     """The floating base body (it must carry the MJCF's free joint)."""
     links: tuple[BodyLink, ...]
@@ -157,7 +160,7 @@ def robot_config_from_dict(doc: dict[str, Any], source: Path | None = None) -> R
         links.append(BodyLink(str(lk["body"]), str(lk["smpl_joint"]), float(lk.get("position_weight", 1.0)),
                               float(lk.get("orientation_weight", 0.0))))
     mjcf = str(doc["mjcf"])
-    if not mjcf.startswith(MJLAB_PREFIX) and source is not None and not Path(mjcf).is_absolute():
+    if not mjcf.startswith((MJLAB_PREFIX, ASSETS_PREFIX)) and source is not None and not Path(mjcf).is_absolute():
         mjcf = str((Path(source).parent / mjcf).resolve())
     vel = doc.get("velocity_limits", {})
     if not isinstance(vel, dict):

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from embodmocap.geometry.heightmap import HeightMap
+from embodmocap.geometry.rotations import quat_conj, quat_mul, quat_to_matrix, quat_to_rotvec, wxyz_to_xyzw, xyzw_to_wxyz
 from embodmocap.io.atomic import write_bytes, write_npz, write_text
 from embodmocap.io.mesh_file import obj_text
 from embodmocap.io.npz_file import load_npz
@@ -40,14 +41,6 @@ from embodmocap.robot.model import RobotModel, mujoco_module
 
 #: Version of ``qpos.npz`` and ``robot_report.json``.
 ROBOT_FILES_VERSION = 1
-
-
-def wxyz_to_xyzw(q: NDArray) -> NDArray:
-    return np.asarray(q)[..., [1, 2, 3, 0]]
-
-
-def xyzw_to_wxyz(q: NDArray) -> NDArray:
-    return np.asarray(q)[..., [3, 0, 1, 2]]
 
 
 # ------------------------------------------------------------------------------------ qpos
@@ -102,14 +95,6 @@ def csv_columns(robot: RobotModel) -> list[str]:
 # ------------------------------------------------------------------------------------ tracking npz
 
 
-def _quat_mul(a: NDArray, b: NDArray) -> NDArray:
-    """Hamilton product of wxyz quaternions (..., 4)."""
-    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
-
-
 def resample(pos: NDArray, quat_wxyz: NDArray, joints: NDArray, fps_in: float, fps_out: float):
     """Resample a motion the way mjlab's ``csv_to_npz`` does.
 
@@ -137,13 +122,11 @@ def resample(pos: NDArray, quat_wxyz: NDArray, joints: NDArray, fps_in: float, f
 def so3_derivative(quat_wxyz: NDArray, dt: float) -> NDArray[np.float64]:
     """(N, 3) world angular velocity of a quaternion sequence: central differences
     ``axis_angle(q[t+1] q[t-1]^-1) / (2 dt)``, the ends repeating their neighbours (as ``csv_to_npz``)."""
-    q = np.asarray(quat_wxyz, np.float64)
+    q = wxyz_to_xyzw(np.asarray(quat_wxyz, np.float64))
     if len(q) < 3:
         return np.zeros((len(q), 3))
-    conj = q[:-2] * np.array([1.0, -1, -1, -1])
-    rel = _quat_mul(q[2:], conj)
-    rel *= np.where(rel[:, :1] < 0, -1.0, 1.0)  # shortest rotation
-    omega = Rotation.from_quat(wxyz_to_xyzw(rel)).as_rotvec() / (2.0 * dt)
+    # quat_to_rotvec takes the shorter turn, whatever the product's sign
+    omega = quat_to_rotvec(quat_mul(q[2:], quat_conj(q[:-2]))) / (2.0 * dt)
     return np.concatenate([omega[:1], omega, omega[-1:]])
 
 
@@ -156,7 +139,7 @@ def tracking_arrays(robot: RobotModel, qpos: NDArray, fps: float, fps_out: float
     lin, jvel = grad(pos), grad(joints)
     omega_w = so3_derivative(quat, dt)
     # MuJoCo's free joint: linear velocity in the world frame, angular velocity in the body frame.
-    R = Rotation.from_quat(wxyz_to_xyzw(quat)).as_matrix()
+    R = quat_to_matrix(wxyz_to_xyzw(quat))
     qv = np.zeros((len(pos), robot.model.nv))
     a = robot.root_dof
     qv[:, a:a + 3] = lin
@@ -183,7 +166,7 @@ def write_gmr_pkl(path: str | Path, robot: RobotModel, qpos: NDArray, fps: float
     """Write the GMR-style pickle (module table); plain numpy arrays and Python scalars."""
     pos, quat, joints = robot.split(qpos)
     body_pos, _ = robot.forward(qpos)
-    R = Rotation.from_quat(wxyz_to_xyzw(quat)).as_matrix()
+    R = quat_to_matrix(wxyz_to_xyzw(quat))
     local = np.einsum("tba,tnb->tna", R, body_pos - pos[:, None])
     doc = {"fps": float(fps), "root_pos": pos, "root_rot": wxyz_to_xyzw(quat), "dof_pos": joints,
            "local_body_pos": local, "link_body_list": list(robot.body_names)}

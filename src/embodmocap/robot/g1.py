@@ -1,4 +1,5 @@
-"""The built-in Unitree G1 (29 DoF) config; its MJCF ships inside the ``mjlab`` wheel.
+"""The built-in Unitree G1 (29 DoF) config; its MJCF and meshes ship in ``robot/assets/unitree_g1``
+(copied from the mjlab 1.6.0 wheel, Apache-2.0: see the NOTICE there).
 
 Which body follows which joint: the pelvis, hips, knees and ankles (feet), the shoulders, elbows and
 wrists by position; the pelvis, torso and feet also by orientation (their rest frames match SMPL's
@@ -15,7 +16,7 @@ from embodmocap.robot.config import BodyLink, RobotConfig
 
 G1 = RobotConfig(
     name="g1",
-    mjcf="mjlab:asset_zoo/robots/unitree_g1/xmls/g1.xml",
+    mjcf="embodmocap:unitree_g1/g1.xml",
     root_body="pelvis",
     links=(
         BodyLink("pelvis", "pelvis", 1.0, 1.0),

@@ -1,6 +1,7 @@
 """A robot's MuJoCo model as the retargeting sees it: names, limits, forward kinematics, soles.
 
-Needs the ``robot`` extra (mujoco); ``mjlab:`` MJCF paths need the mjlab wheel's files. The body
+Needs the ``robot`` extra (mujoco); the built-in G1 ships in ``robot/assets``; ``mjlab:`` MJCF
+paths need an installed mjlab. The body
 order everywhere is MuJoCo's body order without the world body, which is the MJCF's depth-first
 order (what mjlab's ``body_pos_w`` uses). Quaternions are w x y z unless a name says ``xyzw``.
 """
@@ -16,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError, MissingExtraError, require
-from embodmocap.robot.config import MJLAB_PREFIX, RobotConfig
+from embodmocap.robot.config import ASSETS_PREFIX, MJLAB_PREFIX, RobotConfig
 
 
 def mujoco_module():
@@ -25,11 +26,14 @@ def mujoco_module():
 
 
 def resolve_mjcf(cfg: RobotConfig) -> Path:
-    """The MJCF file of ``cfg`` on this machine (``mjlab:`` paths looked up in the mjlab wheel)."""
-    if cfg.mjcf.startswith(MJLAB_PREFIX):
+    """The MJCF file of ``cfg`` on this machine (``embodmocap:`` paths in this package's robot
+    assets, ``mjlab:`` paths in an installed mjlab)."""
+    if cfg.mjcf.startswith(ASSETS_PREFIX):
+        path = Path(__file__).parent / "assets" / cfg.mjcf[len(ASSETS_PREFIX):]
+    elif cfg.mjcf.startswith(MJLAB_PREFIX):
         spec = importlib.util.find_spec("mjlab")
         if spec is None or spec.origin is None:
-            raise MissingExtraError("mjlab (its wheel, installed with --no-deps, ships the G1 model)", "robot")
+            raise MissingExtraError("mjlab (for an `mjlab:` MJCF path; the built-in G1 needs none)", "robot")
         path = Path(spec.origin).parent / cfg.mjcf[len(MJLAB_PREFIX):]
     else:
         path = Path(cfg.mjcf)

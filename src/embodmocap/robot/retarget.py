@@ -39,11 +39,11 @@ from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from embodmocap.body.humanoid import R_HUMANOID_SMPL
 from embodmocap.body.joints import SMPL_JOINT_NAMES, SMPL_PARENTS
 from embodmocap.geometry.heightmap import HeightMap
+from embodmocap.geometry.rotations import quat_to_matrix, rotvec_to_matrix, wxyz_to_xyzw
 from embodmocap.robot.config import RetargetConfig
 from embodmocap.robot.ik import Targets, track
 from embodmocap.robot.model import RobotModel, mujoco_module
@@ -79,7 +79,7 @@ def floor_height(hm: HeightMap | None, fallback: float) -> float:
 def smpl_global_rotations(params: SmplParams) -> NDArray[np.float64]:
     """(T, 24, 3, 3) world rotation of every SMPL joint's frame (chain of the local rotations)."""
     T = len(params)
-    local = Rotation.from_rotvec(params.poses.reshape(-1, 3)).as_matrix().reshape(T, 24, 3, 3)
+    local = rotvec_to_matrix(params.poses.reshape(T, 24, 3))
     glob = np.empty_like(local)
     for j, p in enumerate(SMPL_PARENTS):  # parents come before children
         glob[:, j] = local[:, j] if p < 0 else glob[:, p] @ local[:, j]
@@ -126,7 +126,7 @@ class RobotRest:
         q = np.array(robot.model.qpos0, np.float64)
         q[robot.root_qpos:robot.root_qpos + 7] = [0, 0, 0, 1, 0, 0, 0]
         P, Q = robot.forward(q[None])
-        R = Rotation.from_quat(Q[0][:, [1, 2, 3, 0]]).as_matrix()
+        R = quat_to_matrix(wxyz_to_xyzw(Q[0]))
         pos = {n: P[0, i] for i, n in enumerate(robot.body_names)}
         rot = {n: R[i] for i, n in enumerate(robot.body_names)}
         heights = []

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.rotations import rotvec_to_matrix as _rotvecs_to_matrices
 from embodmocap.geometry.transforms import invert_T
 
 if TYPE_CHECKING:
@@ -63,19 +64,6 @@ class DriftCorrection:
     accepted: bool
     reason: str = ""
     figures: dict = field(default_factory=dict)
-
-
-def _rotvecs_to_matrices(w: NDArray) -> NDArray[np.float64]:
-    """(..., 3) rotation vectors -> (..., 3, 3) matrices (Rodrigues)."""
-    th = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = np.zeros(w.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    K = K - np.swapaxes(K, -1, -2)
-    small = th < 1e-8
-    th_safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0, np.sin(th_safe) / th_safe)
-    b = np.where(small, 0.5, (1.0 - np.cos(th_safe)) / th_safe**2)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 def apply_correction(params: NDArray, T: NDArray, p0: NDArray) -> NDArray[np.float64]:

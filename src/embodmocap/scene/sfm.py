@@ -52,6 +52,7 @@ from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: pu
     _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
 )
 from embodmocap.scene.config import SfmConfig
+from embodmocap.progress import step
 from embodmocap.types import Intrinsics
 
 log = logging.getLogger(__name__)
@@ -428,7 +429,8 @@ def _summary_json(model: SparseModel, intrinsics: Intrinsics, cfg: SfmConfig) ->
 def _timer(seconds: dict[str, float], key: str) -> Iterator[None]:
     t0 = time.perf_counter()
     try:
-        yield
+        with step(f"sparse model: {key}"):  # embodmocap.progress: elapsed time on a terminal
+            yield
     finally:
         seconds[key] = round(time.perf_counter() - t0, 3)
 

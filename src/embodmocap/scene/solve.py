@@ -12,7 +12,6 @@ and :func:`sfm_images` is its pure part (which key frames, with which poses).
 from __future__ import annotations
 
 import logging
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,11 +163,7 @@ def depth_refiner(cfg: SceneConfig):
 
 
 def _progress(it, total: int, desc: str):
-    """A progress bar on a terminal; a start and an end log line otherwise."""
-    if sys.stderr.isatty():
-        from tqdm import tqdm
+    """A progress bar on a terminal, one log line otherwise (:mod:`embodmocap.progress`)."""
+    from embodmocap.progress import progress
 
-        yield from tqdm(it, total=total, desc=desc, unit="frame")
-        return
-    log.info("%s %d frames", desc, total)
-    yield from it
+    yield from progress(it, desc, total=total, unit="frame")

@@ -46,6 +46,7 @@ from embodmocap.sequence.slicing import slice_views
 from embodmocap.sequence.sync import SyncEvent, write_contact_sheet
 from embodmocap.sequence.steps import STEPS
 from embodmocap.sequence.sync_record import events_from_record, first_record
+from embodmocap.progress import progress
 from embodmocap.types import Capture
 
 log = logging.getLogger(__name__)
@@ -232,7 +233,8 @@ def _all_people(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap) -> tuple[
     detector = make("detector", cfg.detector, view, cfg, shared)
     estimator = make("keypoints", cfg.keypoints, view, cfg, shared)
     people = []
-    for idx in _chunks(len(fm.raw_frames), cfg.batch_size):
+    for idx in progress(list(_chunks(len(fm.raw_frames), cfg.batch_size)), f"{cap.path.name}: people",
+                        unit="batch"):
         ids = [int(i) for i in fm.raw_frames[idx]]
         frames = [cap.frames.rgb(i) for i in ids]
         boxes = detector.detect(frames, ids)
@@ -255,9 +257,9 @@ def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         if cfg.masks == "precomputed":
             # No pixels needed: read and pack each frame on a worker thread (OpenCV releases the
             # GIL while decoding, so both cores work).
-            _parallel(lambda t: write(t, backend.mask(int(fm.raw_frames[t]), size)), range(T))
+            _parallel(lambda t: write(t, backend.mask(int(fm.raw_frames[t]), size)), range(T), f"{cap.path.name}: masks")
         else:
-            for idx in _chunks(T, cfg.batch_size):
+            for idx in progress(list(_chunks(T, cfg.batch_size)), f"{cap.path.name}: masks", unit="batch"):
                 ids = [int(i) for i in fm.raw_frames[idx]]
                 masks = backend.segment([cap.frames.rgb(i) for i in ids], ids, boxes[idx])
                 for t, m in zip(idx, masks):
@@ -265,13 +267,13 @@ def _masks_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
     return len(getattr(backend, "missing_frames", []))
 
 
-def _parallel(fn, items) -> None:
+def _parallel(fn, items, desc: str) -> None:
     """Run ``fn`` on every item with two threads (this machine's cores); errors propagate. Each
     item's result is written to disk by ``fn`` itself, so memory does not grow with the items."""
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(2) as pool:
-        for _ in pool.map(fn, items):
+        for _ in progress(pool.map(fn, items), desc, total=len(items), unit="frame"):
             pass
 
 
@@ -306,9 +308,9 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
 
         if refiner is None:
             read = (lambda i: src.depth_maps(None, [i], None)[0]) if cfg.depth == "precomputed" else lidar
-            _parallel(lambda t: write(t, read(int(fm.raw_frames[t]))), range(T))
+            _parallel(lambda t: write(t, read(int(fm.raw_frames[t]))), range(T), f"{cap.path.name}: depth")
         else:
-            for idx in _chunks(T, cfg.batch_size):
+            for idx in progress(list(_chunks(T, cfg.batch_size)), f"{cap.path.name}: depth", unit="batch"):
                 ids = [int(i) for i in fm.raw_frames[idx]]
                 depths = refiner.depth_maps([cap.frames.rgb(i) for i in ids], ids, [lidar(i) for i in ids])
                 for t, d in zip(idx, depths):

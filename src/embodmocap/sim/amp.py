@@ -30,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.geometry.rotations import quat_to_matrix, wxyz_to_xyzw
 from embodmocap.sim.model import BODY_NAMES
 from embodmocap.skills.tasks.common import heading_frame, rot6d
 
@@ -37,17 +38,6 @@ KEY_BODIES: tuple[str, ...] = ("L_Ankle", "R_Ankle", "L_Hand", "R_Hand", "Head")
 KEY_INDEX = np.array([BODY_NAMES.index(n) for n in KEY_BODIES])
 AMP_FRAME_SIZE = 1 + 6 + 3 + 3 + 69 + 69 + 3 * len(KEY_BODIES)
 AMP_TRANSITION_SIZE = 2 * AMP_FRAME_SIZE
-
-
-def quat_to_matrix(q: NDArray) -> NDArray[np.float64]:
-    """(N, 3, 3) rotations from (N, 4) wxyz quaternions."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def amp_frame_features(qpos: NDArray, qvel: NDArray, xpos: NDArray, floor_z: float) -> NDArray[np.float32]:
@@ -60,7 +50,7 @@ def amp_frame_features(qpos: NDArray, qvel: NDArray, xpos: NDArray, floor_z: flo
         floor_z: the scene floor's height.
     """
     qpos, qvel, xpos = (np.asarray(a, dtype=np.float64) for a in (qpos, qvel, xpos))
-    R = quat_to_matrix(qpos[:, 3:7])
+    R = quat_to_matrix(wxyz_to_xyzw(qpos[:, 3:7]))  # MuJoCo qpos: w x y z
     H = heading_frame(R)
     Ht = np.swapaxes(H, -1, -2)
     lin = (Ht @ qvel[:, :3, None])[..., 0]

@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.geometry.heightmap import egocentric_heightmap
+from embodmocap.geometry.rotations import canonical_quat, quat_conj, quat_mul, quat_to_matrix, wxyz_to_xyzw, xyzw_to_wxyz
 from embodmocap.sim.config import HumanoidConfig, SceneCollisionConfig, TrackingConfig
 from embodmocap.sim.deps import gymnasium, mujoco
 from embodmocap.sim.model import hinge_ranges
@@ -106,18 +107,10 @@ def load_clips(session, seq: str | None = None, cfg: TrackingConfig = TrackingCo
     return clips
 
 
-def _quat_conj_mul(a: NDArray, b: NDArray) -> NDArray:
-    """conj(a) * b for (..., 4) wxyz quaternions."""
-    w1, v1 = a[..., :1], -a[..., 1:]
-    w2, v2 = b[..., :1], b[..., 1:]
-    return np.concatenate([w1 * w2 - (v1 * v2).sum(-1, keepdims=True), w1 * v2 + w2 * v1 + np.cross(v1, v2)], axis=-1)
-
-
 def _heading(quat_wxyz: NDArray) -> float:
-    """Yaw of the root's forward (body x) axis projected on the ground."""
-    w, x, y, z = quat_wxyz
-    fx, fy = 1 - 2 * (y * y + z * z), 2 * (x * y + w * z)
-    return float(np.arctan2(fy, fx))
+    """Yaw of the root's forward (body x) axis projected on the ground (MuJoCo's w x y z input)."""
+    R = quat_to_matrix(wxyz_to_xyzw(quat_wxyz), invalid="nan")
+    return float(np.arctan2(R[1, 0], R[0, 0])) if np.isfinite(R[0, 0]) else 0.0  # zero before mj_forward
 
 
 class TrackingEnv(gym.Env):
@@ -229,10 +222,9 @@ class TrackingEnv(gym.Env):
         s = self._mass / 70.0
         kp, kd = self.cfg.root_assist_kp * s, 2.0 * np.sqrt(self.cfg.root_assist_kp) * s
         f = kp * (q[:3] - d.qpos[:3]) - kd * d.qvel[:3]
-        dq = _quat_conj_mul(d.qpos[3:7], q[3:7])
-        dq *= np.sign(dq[0]) if dq[0] != 0 else 1.0
+        dq = canonical_quat(quat_mul(quat_conj(wxyz_to_xyzw(d.qpos[3:7])), wxyz_to_xyzw(q[3:7])))
         R = d.xmat[1].reshape(3, 3)
-        rotvec_world = R @ (2.0 * dq[1:])  # small-angle body-frame error to world
+        rotvec_world = R @ (2.0 * dq[:3])  # small-angle body-frame error to world
         tau = 0.1 * kp * rotvec_world - 0.1 * kd * (R @ d.qvel[3:6])
         d.xfrc_applied[1, :3], d.xfrc_applied[1, 3:] = f, tau
 
@@ -267,24 +259,21 @@ class TrackingEnv(gym.Env):
         yaw = _heading(xquat[0])
         c, s = np.cos(yaw), np.sin(yaw)
         Rh = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> heading frame
-        qh = np.array([np.cos(yaw / 2), 0.0, 0.0, -np.sin(yaw / 2)])  # heading^-1 as a quaternion
+        qh = np.array([0.0, 0.0, -np.sin(yaw / 2), np.cos(yaw / 2)])  # heading^-1 as a quaternion
 
-        def local_quat(q):
-            w1, v1 = qh[0], qh[1:]
-            out = np.concatenate([w1 * q[..., :1] - (q[..., 1:] @ v1)[..., None],
-                                  w1 * q[..., 1:] + q[..., :1] * v1 + np.cross(v1, q[..., 1:])], axis=-1)
-            return out * np.where(out[..., :1] < 0, -1.0, 1.0)
+        def in_heading(q):  # quaternions, MuJoCo's w x y z in and out (the observation keeps that layout)
+            return xyzw_to_wxyz(canonical_quat(quat_mul(qh, wxyz_to_xyzw(q))))
 
         hm = self.clip.heightmap
         ground = egocentric_heightmap(hm, root[:2], np.float64(yaw), size=1, spacing=0.0)
         floor = float(np.nanmin(hm.heights))
         ground = float(ground.ravel()[0]) if np.isfinite(ground).all() else floor
-        parts = [((xpos[1:] - root) @ Rh.T).ravel(), local_quat(xquat).ravel(), (lin @ Rh.T).ravel(),
+        parts = [((xpos[1:] - root) @ Rh.T).ravel(), in_heading(xquat).ravel(), (lin @ Rh.T).ravel(),
                  (ang @ Rh.T).ravel(), [root[2] - ground]]
         k = self._start + self._step
         for f in self._future:
             _, rpos, rquat, rvel, rang = self._ref(k + int(f))
-            parts += [((rpos - root) @ Rh.T).ravel(), local_quat(rquat).ravel(), (rvel @ Rh.T).ravel(),
+            parts += [((rpos - root) @ Rh.T).ravel(), in_heading(rquat).ravel(), (rvel @ Rh.T).ravel(),
                       (rang @ Rh.T).ravel()]
         grid = egocentric_heightmap(hm, root[:2], np.float64(yaw), size=self.cfg.heightmap_size,
                                     spacing=self.cfg.heightmap_spacing_m, fill=floor)

@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from embodmocap.body.humanoid import (
     HUMANOID_TO_SMPL, R_HUMANOID_SMPL, SMPL_HUMANOID_BODIES, humanoid_skeleton, mimickit_frames,
 )
+from embodmocap.geometry.rotations import matrix_to_rotvec, quat_to_matrix, rotvec_to_quat, wxyz_to_xyzw, xyzw_to_wxyz
 from embodmocap.motion.terms import ANATOMICAL_RANGES
 from embodmocap.sim.config import HumanoidConfig
 from embodmocap.types import SmplParams
@@ -257,8 +258,7 @@ def reference_qpos(params: SmplParams, rest_joints: NDArray) -> NDArray[np.float
     humanoid axes) and the hinges' XYZ Euler angles of each SMPL joint rotation, unwrapped in time."""
     T = len(params)
     frames = mimickit_frames(params, rest_joints)  # root pos | root exp-map | ... (humanoid axes)
-    quat = Rotation.from_rotvec(frames[:, 3:6]).as_quat()[:, [3, 0, 1, 2]]
-    quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)
+    quat = xyzw_to_wxyz(rotvec_to_quat(frames[:, 3:6]))  # w >= 0
     poses = np.asarray(params.poses).reshape(T, 24, 3)[:, HUMANOID_TO_SMPL[1:]]
     eul = Rotation.from_rotvec(poses.reshape(-1, 3)).as_euler("XYZ").reshape(T, 69)
     eul = np.unwrap(eul, axis=0) if T > 1 else eul
@@ -270,10 +270,10 @@ def params_from_qpos(qpos: NDArray, betas: NDArray, rest_joints: NDArray, fps: f
     q = np.asarray(qpos, dtype=np.float64)
     T = len(q)
     C = R_HUMANOID_SMPL
-    R_root = Rotation.from_quat(q[:, [4, 5, 6, 3]]).as_matrix() @ C
+    R_root = quat_to_matrix(wxyz_to_xyzw(q[:, 3:7])) @ C
     local = Rotation.from_euler("XYZ", q[:, 7:].reshape(-1, 3)).as_rotvec().reshape(T, 23, 3)
     poses = np.zeros((T, 24, 3))
     poses[:, HUMANOID_TO_SMPL[1:]] = local
-    poses[:, 0] = Rotation.from_matrix(R_root).as_rotvec()
+    poses[:, 0] = matrix_to_rotvec(R_root)
     transl = q[:, :3] - np.asarray(rest_joints)[0]
     return SmplParams(np.asarray(betas), poses[:, 0], poses[:, 1:].reshape(T, 69), transl, fps=fps)

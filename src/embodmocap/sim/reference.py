@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from embodmocap.geometry.heightmap import HeightMap
+from embodmocap.geometry.rotations import matrix_to_rotvec, quat_to_matrix, wxyz_to_xyzw, xyzw_to_wxyz
 
 
 @dataclass(frozen=True)
@@ -58,8 +59,8 @@ def resample_qpos(qpos: NDArray, fps: float, hz: float) -> NDArray[np.float64]:
     out = np.empty((n, q.shape[1]))
     for c in list(range(3)) + list(range(7, q.shape[1])):
         out[:, c] = np.interp(t, t_src, q[:, c])
-    rot = Rotation.from_quat(q[:, [4, 5, 6, 3]])
-    out[:, 3:7] = Slerp(t_src, rot)(t).as_quat()[:, [3, 0, 1, 2]]
+    rot = Rotation.from_quat(wxyz_to_xyzw(q[:, 3:7]))
+    out[:, 3:7] = xyzw_to_wxyz(Slerp(t_src, rot)(t).as_quat())
     return out
 
 
@@ -86,8 +87,8 @@ def make_clip(name: str, xml: str, heightmap: HeightMap, qpos: NDArray, fps: flo
         qvel[-1] = qvel[-2]
         vel[:-1] = np.diff(xpos, axis=0) / dt
         vel[-1] = vel[-2]
-        R = Rotation.from_quat(xquat.reshape(-1, 4)[:, [1, 2, 3, 0]]).as_matrix().reshape(N, nb, 3, 3)
+        R = quat_to_matrix(wxyz_to_xyzw(xquat))
         dR = R[1:] @ np.swapaxes(R[:-1], -1, -2)  # world-frame increments
-        angvel[:-1] = Rotation.from_matrix(dR.reshape(-1, 3, 3)).as_rotvec().reshape(N - 1, nb, 3) / dt
+        angvel[:-1] = matrix_to_rotvec(dR) / dt
         angvel[-1] = angvel[-2]
     return Clip(name, xml, heightmap, q, qvel, xpos, xquat, vel, angvel, dt)

@@ -45,9 +45,9 @@ def _smooth_noise(n: int, sigma_frames: float, rng: np.random.Generator, dims: i
 
 def _small_rotations(rotvec: NDArray) -> NDArray[np.float64]:
     """Rotation matrices (T, 3, 3) of rotation vectors (T, 3) (Rodrigues)."""
-    from scipy.spatial.transform import Rotation
+    from embodmocap.geometry.rotations import rotvec_to_matrix
 
-    return Rotation.from_rotvec(rotvec).as_matrix()
+    return rotvec_to_matrix(rotvec)
 
 
 @dataclass(frozen=True)

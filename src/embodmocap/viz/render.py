@@ -170,7 +170,7 @@ def render_sequence(session: str | Path, seq: str, cfg: RenderConfig = RenderCon
         InputError: Stage IV outputs are missing or malformed (run the motion stage first), or a
             camera names a raw frame the capture does not have.
     """
-    from tqdm import tqdm
+    from embodmocap.progress import progress
 
     from embodmocap.body.model import load_body_model
     from embodmocap.io.video import VideoWriter
@@ -203,7 +203,7 @@ def render_sequence(session: str | Path, seq: str, cfg: RenderConfig = RenderCon
         paths.append(out_dir / "side_by_side.mp4")
         writers.append(VideoWriter(paths[-1], fps, sum(w for w, _ in sbs_sizes.values()), H, crf=cfg.crf))
     try:
-        for i, t in enumerate(tqdm(data.frames, desc=f"render {seq}", unit="frame", disable=not cfg.progress)):
+        for i, t in enumerate(progress(data.frames, f"render {seq}", unit="frame", disable=not cfg.progress)):
             verts = body.vertices(i)
             tiles = []
             for v, writer in zip(views, writers):

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import require
-from embodmocap.geometry.transforms import matrix_to_quat
+from embodmocap.geometry.rotations import matrix_to_quat, xyzw_to_wxyz
 from embodmocap.io.layout import SessionLayout
 from embodmocap.viz.config import ViewerConfig
 from embodmocap.viz import BodyFrames, SequenceData, load_sequence
@@ -153,8 +153,7 @@ class ViewerHandle:
 
 def _wxyz(R: NDArray) -> NDArray[np.float64]:
     """Rotation matrix -> viser's (w, x, y, z) quaternion (the package stores (x, y, z, w))."""
-    q = matrix_to_quat(R)
-    return np.array([q[3], q[0], q[1], q[2]])
+    return xyzw_to_wxyz(matrix_to_quat(R))
 
 
 def _downscaled(rgb: NDArray[np.uint8], max_side: int) -> NDArray[np.uint8]:

@@ -12,7 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
-from embodmocap.geometry.transforms import T_zup_from_yup, gl_to_cv_cam, make_T, quat_to_matrix
+from embodmocap.geometry.rotations import quat_to_matrix
+from embodmocap.geometry.transforms import T_zup_from_yup, gl_to_cv_cam, make_T
 from embodmocap.io.captures.common import Problem
 
 FORMAT = "record3d"
@@ -78,12 +79,12 @@ def world_poses(meta: Record3dMetadata, where: Path) -> tuple[NDArray[np.float64
     Poses relative to the first camera (``poses[0]`` the identity) are put in ARKit's world with
     ``initPose``; without one they are refused, since their world is not gravity-aligned.
     """
-    T_pose = make_T(_safe_quat_to_matrix(meta.poses[:, :4]), meta.poses[:, 4:])
+    T_pose = make_T(quat_to_matrix(meta.poses[:, :4], invalid="nan"), meta.poses[:, 4:])
     problems: list[Problem] = []
     note = "poses in ARKit's world"
     if len(T_pose) and _is_identity(T_pose[0]):
         if meta.init_pose is not None:
-            T_init = make_T(_safe_quat_to_matrix(meta.init_pose[:4]), meta.init_pose[4:])
+            T_init = make_T(quat_to_matrix(meta.init_pose[:4], invalid="nan"), meta.init_pose[4:])
             T_pose = T_init @ T_pose
             note = "poses relative to the first camera, put in ARKit's world with initPose"
         else:
@@ -100,9 +101,3 @@ def _is_identity(T: NDArray) -> bool:
                 and np.abs(T[:3, 3]).max() < IDENTITY_TOL)
 
 
-def _safe_quat_to_matrix(q: NDArray) -> NDArray[np.float64]:
-    """Rotation matrices of quaternions (x, y, z, w); NaN where a quaternion is NaN or zero."""
-    R = np.full(q.shape[:-1] + (3, 3), np.nan)
-    ok = np.all(np.isfinite(q), axis=-1) & (np.linalg.norm(np.nan_to_num(q), axis=-1) > 1e-9)
-    R[ok] = quat_to_matrix(q[ok])
-    return R

@@ -246,9 +246,7 @@ def read_pose_jsonl(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
     except (KeyError, TypeError) as err:
         raise InputError(path, f"pose line lacks {err}", "expected time, position{x,y,z}, orientation{w,x,y,z}") from err
     order = np.argsort(t, kind="stable")
-    R = np.full((len(q), 3, 3), np.nan)
-    ok = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(np.nan_to_num(q), axis=1) > 1e-9)
-    R[ok] = quat_to_matrix(q[ok])
+    R = quat_to_matrix(q, invalid="nan")
     return t[order], make_T(R, p)[order]
 
 

@@ -304,12 +304,8 @@ def read_odometry(path: Path) -> Odometry:
     t = col.get("timestamp")
     xyz = np.stack([col["x"], col["y"], col["z"]], axis=1)
     quat = np.stack([col["qx"], col["qy"], col["qz"], col["qw"]], axis=1)
-    norm = np.linalg.norm(quat, axis=1)
-    # NaN rows stay NaN (pose checks report them); zero quaternions would crash quat_to_matrix.
-    quat[~(norm > 1e-9)] = np.nan
-    R = np.full((len(data), 3, 3), np.nan)
-    ok = np.all(np.isfinite(quat), axis=1)
-    R[ok] = quat_to_matrix(quat[ok])
+    # NaN or zero rows give NaN poses (pose checks report them).
+    R = quat_to_matrix(quat, invalid="nan")
     T_yup_cam = make_T(R, xyz)
     return Odometry(t, frames, T_zup_from_yup() @ T_yup_cam, intr, len(header))
 
