@@ -96,11 +96,6 @@ class SceneConfig:
     the last fused frame. Frames closer than that see the same surface again and add only time."""
     fuse_step_deg: float = 4.0
     """Fusion frames: the rotation step, degrees (see ``fuse_step_m``)."""
-    fuse_backend: Literal["tensor", "legacy"] = "tensor"
-    """TSDF implementation: ``"tensor"`` = Open3D's tensor ``VoxelBlockGrid`` (parallel, about 1.5x
-    less CPU; :func:`embodmocap.scene.tsdf.fuse_open3d_tensor`) or ``"legacy"`` = Open3D's
-    ``ScalableTSDFVolume`` (the path before 2026-12-04; :func:`embodmocap.scene.tsdf.fuse_open3d`).
-    Same TSDF (voxel, truncation, weight-1 running average); the meshes differ by the extraction."""
     fuse_min_valid_fraction: float = 0.02
     """A frame with fewer valid depth pixels than this share is not fused (a covered sensor, the
     phone facing the sky)."""
@@ -155,7 +150,6 @@ class SceneConfig:
             (0 <= self.min_valid_depth_fraction < 1 and 0 <= self.fuse_min_valid_fraction < 1,
              "valid depth fractions must be in [0, 1)"),
             (self.fuse_step_m >= 0 and self.fuse_step_deg >= 0, "fuse steps must be >= 0"),
-            (self.fuse_backend in ("tensor", "legacy"), "fuse_backend must be 'tensor' or 'legacy'"),
             (self.structure_min_extent_m >= 0, "structure_min_extent_m must be >= 0"),
             (self.depth_trunc_m_indoor > 0 and self.depth_trunc_m_outdoor > 0, "depth truncation must be > 0"),
             (self.depth_weight_range_m >= 0, "depth_weight_range_m must be >= 0 (0 = off)"),

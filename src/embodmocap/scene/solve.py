@@ -24,7 +24,7 @@ from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.depth import DepthStats, fusion_frames, prefetch
 from embodmocap.scene.keyframes import choose_keyframes, fusion_rows
 from embodmocap.scene.mesh import clean_mesh, mesh_stats, simplify_mesh
-from embodmocap.scene.tsdf import fuse_open3d, fuse_open3d_tensor
+from embodmocap.scene.tsdf import fuse_open3d
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +93,7 @@ def fuse_mesh(capture, cfg: SceneConfig, indoor: bool, *, label: str = "", sourc
     poses = carry_drift(drift, capture.trajectory.timestamps_s[rows], capture.trajectory.T_world_cam[rows])
     stats = DepthStats()
     frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=depth_refiner(cfg), stats=stats))
-    fuse = fuse_open3d_tensor if cfg.fuse_backend == "tensor" else fuse_open3d
-    v, f, c = fuse(_progress(frames, len(ids), f"scene {label}: fusing"), cfg.voxel_m(indoor),
+    v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {label}: fusing"), cfg.voxel_m(indoor),
                           cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor))
     t_fuse = time.perf_counter() - t0
     v, f, c = clean_mesh(v, f, c, cfg)

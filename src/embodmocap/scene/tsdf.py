@@ -1,13 +1,10 @@
 """TSDF fusion of posed depth maps into a coloured triangle mesh.
 
-Three implementations of the same projective TSDF (Curless & Levoy style, weight 1 per observation,
+Two implementations of the same projective TSDF (Curless & Levoy style, weight 1 per observation,
 running average, signed distance measured along the camera ray and truncated at ``sdf_trunc``):
 
-- :func:`fuse_open3d_tensor`: Open3D's tensor ``VoxelBlockGrid`` (hashed 8^3 voxel blocks, C++,
-  integration and extraction spread over the cores): the product's path (``SceneConfig.fuse_backend``
-  "tensor"), about 1.5x less CPU than the legacy volume and parallel.
-- :func:`fuse_open3d`: Open3D's legacy ``ScalableTSDFVolume`` (hashed voxel blocks, C++), the
-  previous path (``fuse_backend`` "legacy"). Both need open3d 0.19 (0.20 extracts empty meshes).
+- :func:`fuse_open3d`: Open3D's ``ScalableTSDFVolume`` (hashed voxel blocks, C++): the product's
+  path. Needs open3d 0.19 (0.20 extracts empty meshes).
 - :class:`NumpyTSDF`: a plain, vectorised NumPy version on a dense grid over given bounds, kept
   readable as the reference the tests and ``benchmarks/bench_tsdf.py`` compare against. Its
   surface comes out by marching tetrahedra (no lookup tables beyond a 16-entry one built here).
@@ -77,62 +74,6 @@ def fuse_open3d(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: floa
     c = np.asarray(mesh.vertex_colors, dtype=np.float64)
     log.debug("open3d TSDF: %d frames -> %d vertices, %d faces", n, len(v), len(f))
     return v, f, c if len(c) == len(v) else np.zeros((0, 3))
-
-
-def fuse_open3d_tensor(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: float,
-                       depth_trunc_m: float) -> MeshArrays:
-    """As :func:`fuse_open3d` (same arguments and return), through Open3D's tensor ``VoxelBlockGrid``.
-
-    Blocks of 8^3 voxels are allocated where a frame's depth (plus the truncation band) lands; each
-    voxel keeps its TSDF, weight and colour as a running average of weight-1 observations, like the
-    legacy volume. The surface is extracted from voxels observed at least once. The block table is
-    filled by several threads, so the raw face order is not repeatable; the faces are returned
-    sorted (and their vertices numbered in order of first use) so the same frames give the same
-    arrays. The voxel values themselves do not depend on the threads (one thread per voxel).
-    """
-    import open3d as o3d
-    import open3d.core as o3c
-
-    trunc_voxels = float(sdf_trunc_m) / float(voxel_m)
-    grid = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight", "color"), attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
-        attr_channels=((1), (1), (3)), voxel_size=float(voxel_m), block_resolution=8,
-        block_count=20000, device=o3c.Device("CPU:0"))  # the block table grows as needed
-    n = 0
-    for rgb, depth, K, T_world_cam in frames:
-        if rgb.shape[:2] != depth.shape or depth.shape != (K.height, K.width):
-            raise ValueError(f"rgb {rgb.shape[:2]}, depth {depth.shape} and intrinsics {K.width}x{K.height} disagree")
-        intr = o3c.Tensor(np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]]), o3c.float64)
-        extr = o3c.Tensor(invert_T(np.asarray(T_world_cam, dtype=np.float64)), o3c.float64)
-        d = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth, dtype=np.float32)))
-        # Float depth in metres needs float colour (the kernel takes (float, float) or (uint16, uint8)).
-        c = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb, dtype=np.float32) / np.float32(255.0)))
-        blocks = grid.compute_unique_block_coordinates(d, intr, extr, 1.0, float(depth_trunc_m), trunc_voxels)
-        grid.integrate(blocks, d, c, intr, intr, extr, 1.0, float(depth_trunc_m), trunc_voxels)
-        n += 1
-    if n == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
-    mesh = grid.extract_triangle_mesh(weight_threshold=1.0)
-    v = mesh.vertex.positions.numpy().astype(np.float64)
-    f = mesh.triangle.indices.numpy().astype(np.int64).reshape(-1, 3)
-    c = mesh.vertex.colors.numpy().astype(np.float64) if "colors" in mesh.vertex else np.zeros((0, 3))
-    v, f, c = _canonical_order(v, f, c)
-    log.debug("open3d tensor TSDF: %d frames -> %d vertices, %d faces", n, len(v), len(f))
-    return v, f, np.clip(c, 0.0, 1.0) if len(c) == len(v) else np.zeros((0, 3))
-
-
-def _canonical_order(v: NDArray, f: NDArray, c: NDArray) -> MeshArrays:
-    """The same mesh whatever order a parallel extraction gave: vertices merged where they repeat
-    and sorted by (x, y, z) (:func:`embodmocap.scene.mesh.merge_duplicate_vertices`), each face
-    rotated to start at its smallest index (winding kept), faces sorted."""
-    from embodmocap.scene.mesh import merge_duplicate_vertices
-
-    if len(f) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
-    v, f, c = merge_duplicate_vertices(v, f, c)
-    roll = np.argmin(f, axis=1)
-    f = np.take_along_axis(f, (roll[:, None] + np.arange(3)[None, :]) % 3, axis=1)
-    return v, f[np.lexsort((f[:, 2], f[:, 1], f[:, 0]))], c
 
 
 # ------------------------------------------------------------------------------------------------
