@@ -132,7 +132,8 @@ def main() -> None:
                   f"{', '.join(f'{k} {v:.1f}' for k, v in steps.items())} |", flush=True)
     if "scene" in args.stages:
         _scene_accuracy(codes)
-    print(f"\n{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps); load average at the end: {os.getloadavg()}")
+    seq = f"{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps); " if frames else ""
+    print(f"\n{seq}load average at the end: {os.getloadavg()}")
     if args.old_src is None:
         return
     print("\n| stage | wall new / old | CPU new / old | peak RSS new / old |")
@@ -141,10 +142,12 @@ def main() -> None:
     for stage in [s for s, _ in stages]:
         (wo, co, ro), (wn, cn, rn) = rows[stage, "old"], rows[stage, "new"]
         print(f"| {stage} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} |")
+    if len(four) < 4:
+        return
     tot = {c: [sum(rows[s, c][k] for s in four) for k in range(2)] + [max(rows[s, c][2] for s in four)] for c in ("old", "new")}
     print(f"| Stages I-IV | {tot['new'][0] / tot['old'][0]:.3f} ({tot['new'][0]:.0f} / {tot['old'][0]:.0f} s) | "
           f"{tot['new'][1] / tot['old'][1]:.3f} | {tot['new'][2] / tot['old'][2]:.3f} ({tot['new'][2]} / {tot['old'][2]} MB) |")
-    if "evaluate" not in args.stages:
+    if "evaluate" not in args.stages:  # the evaluation's figures need every stage
         return
     acc = {c: _accuracy(s) for c, _, s in codes}
     print("\n| figure | old | new | new / old |")
