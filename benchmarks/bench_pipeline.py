@@ -11,6 +11,9 @@ interleaved stage by stage on two copies of the session (old then new for one st
 for the next, so that a load spike on a shared machine does not fall on one side only); the table
 then has both rows per stage and the new / old ratios, and the evaluation's accuracy figures of both.
 ``--device cuda`` passes ``--device`` to the new code's Stage IV (the old code runs on its default).
+``--stages scene`` (or any subset, in pipeline order) times only those stages (each needs its
+predecessors' outputs: ``scene`` alone needs nothing). When the session has ground truth, the scene
+stage's mesh accuracy and completeness of each code are printed too (one evaluator, this checkout's).
 
 Targets: Stage III on a 60 s two-view sequence <= 3 min (issue 5, split between feature work =
 registration and optimisation = refinement); Stage IV fit of 1800 frames <= 2 min (issue 6);
@@ -60,6 +63,23 @@ def _accuracy(session: Path) -> dict[str, float]:
     return {k: v for k, v in flat.items() if k.split(".")[-1] in ACCURACY}
 
 
+def _scene_accuracy(codes) -> None:
+    """Stage I mesh accuracy (mean distance to the true surface) and completeness (5 cm) of each
+    code's ``mesh_raw.ply``, with this checkout's evaluator, plus the sparse model's figures."""
+    from embodmocap.evaluate.session import scene_errors
+    from embodmocap.io.layout import SessionLayout
+
+    print("\n| code | mesh accuracy cm | mesh completeness % | mesh faces | sfm points | sfm reproj px |")
+    print("|---|---|---|---|---|---|")
+    for code, _, sess in codes:
+        if not (sess / "ground_truth" / "ground_truth.json").is_file():
+            continue
+        fig = json.loads((sess / STAGES[0][1]).read_text())["figures"]
+        err = scene_errors(SessionLayout(sess), "scene0")
+        print(f"| {code} | {err['mesh_accuracy_cm']} | {err['mesh_completeness_pct']} | {fig['mesh_faces']} | "
+              f"{fig['sfm_points']} | {fig['sfm_mean_reproj_error_px']} |", flush=True)
+
+
 def _copy_session(src: Path, dst: Path) -> Path:
     """A fresh copy of the synthesised inputs (no stage outputs), so each code starts from scratch."""
     if dst.exists():
@@ -75,6 +95,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench_out/pipeline"))
     ap.add_argument("--old-src", type=Path, default=None, help="src folder of the code to compare with (interleaved)")
     ap.add_argument("--device", default=None, help="--device of the new code's Stage IV (auto, cpu, cuda)")
+    ap.add_argument("--stages", nargs="+", default=[s for s, _ in STAGES], choices=[s for s, _ in STAGES],
+                    help="the stages to time (default all, in pipeline order)")
     args = ap.parse_args()
     from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize
@@ -93,7 +115,8 @@ def main() -> None:
     rows: dict[tuple[str, str], tuple[float, float, int]] = {}
     print("| stage | code | wall s | CPU s | peak RSS MB | frames/s | steps (wall s) |")
     print("|---|---|---|---|---|---|---|")
-    for i, (stage, manifest) in enumerate(STAGES):
+    stages = [(s, m) for s, m in STAGES if s in args.stages]
+    for i, (stage, manifest) in enumerate(stages):
         order = codes if i % 2 == 0 else codes[::-1]
         for code, src, sess in order:
             extra = [] if stage == "evaluate" else ["--force"]
@@ -107,18 +130,25 @@ def main() -> None:
             fps = f"{frames / wall:.1f}" if frames and stage != "scene" else "-"
             print(f"| {stage} | {code} | {wall:.1f} | {cpu:.1f} | {rss} | {fps} | "
                   f"{', '.join(f'{k} {v:.1f}' for k, v in steps.items())} |", flush=True)
-    print(f"\n{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps); load average at the end: {os.getloadavg()}")
+    if "scene" in args.stages:
+        _scene_accuracy(codes)
+    seq = f"{frames} sequence frames per view ({args.seconds:.0f} s at 30 fps); " if frames else ""
+    print(f"\n{seq}load average at the end: {os.getloadavg()}")
     if args.old_src is None:
         return
     print("\n| stage | wall new / old | CPU new / old | peak RSS new / old |")
     print("|---|---|---|---|")
-    four = [s for s, _ in STAGES[:4]]
-    for stage in four + ["evaluate"]:
+    four = [s for s, _ in STAGES[:4] if s in args.stages]
+    for stage in [s for s, _ in stages]:
         (wo, co, ro), (wn, cn, rn) = rows[stage, "old"], rows[stage, "new"]
         print(f"| {stage} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} |")
+    if len(four) < 4:
+        return
     tot = {c: [sum(rows[s, c][k] for s in four) for k in range(2)] + [max(rows[s, c][2] for s in four)] for c in ("old", "new")}
     print(f"| Stages I-IV | {tot['new'][0] / tot['old'][0]:.3f} ({tot['new'][0]:.0f} / {tot['old'][0]:.0f} s) | "
           f"{tot['new'][1] / tot['old'][1]:.3f} | {tot['new'][2] / tot['old'][2]:.3f} ({tot['new'][2]} / {tot['old'][2]} MB) |")
+    if "evaluate" not in args.stages:  # the evaluation's figures need every stage
+        return
     acc = {c: _accuracy(s) for c, _, s in codes}
     print("\n| figure | old | new | new / old |")
     print("|---|---|---|---|")
