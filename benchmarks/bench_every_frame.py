@@ -67,7 +67,7 @@ def manual_copy(auto: Path, dst: Path, scene: str, seq: str) -> Path:
     """The recording of ``auto`` with sync_frame given for both views (see the module docstring)."""
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
-    from embodmocap.io.manifest_write import write_manifest
+    from embodmocap.io.manifest import write_manifest
 
     if (dst / "session.toml").is_file():
         return dst
