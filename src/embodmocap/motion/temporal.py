@@ -123,12 +123,30 @@ def _torso_relative(kp: NDArray, min_conf: float) -> NDArray | None:
     # Interpolate the centre over frames without the whole torso (it moves smoothly); the size
     # through a running median of the sequence (a person's size in the image changes slowly).
     # The centre through a short running median (its own points jitter), the size through a long
-    # one (a person's size in the image changes slowly).
-    c = np.stack([np.interp(t, t[full], _running_median(np.where(full, centre[:, k], np.nan), 3)[full])
+    # one (a person's size in the image changes slowly). The centre's window stays centred: near
+    # the first (last) frame of a run of torsos it shrinks on both sides, since a window cut on
+    # one side is the median of the frames after (before) the frame, up to 1.5 frames of image
+    # motion off (issue 29: outdoor seed 5, the person entering view 1 at 40 px a frame, the
+    # first frame's correct wrist and elbow 0.5 torso lengths from the next frames, dropped as a
+    # guess, the fitted hand 11 cm off).
+    c = np.stack([np.interp(t, t[full], _centred_median(np.where(full, centre[:, k], np.nan), 3)[full])
                   for k in range(2)], -1)
     s = np.interp(t, t[full], _running_median(np.where(full, size, np.nan), 15)[full])
     s = np.maximum(s, 1.0)
     return (kp[..., :2] - c[:, None]) / s[:, None, None]
+
+
+def _centred_median(x: NDArray, h: int) -> NDArray:
+    """(T,) median of each frame's centred window of 2k+1 frames, k the largest up to ``h`` whose
+    window has no missing (NaN) value (NaN where the frame's own is)."""
+    out = np.array(x, dtype=np.float64, copy=True)
+    for k in range(1, h + 1):
+        pad = np.concatenate([np.full(k, np.nan), x, np.full(k, np.nan)])
+        m = np.median(np.lib.stride_tricks.sliding_window_view(pad, 2 * k + 1), axis=-1)  # NaN if any is
+        if not np.isfinite(m).any():
+            break
+        out = np.where(np.isfinite(m), m, out)  # a window with no hole at k has none at k - 1
+    return out
 
 
 def _running_median(x: NDArray, h: int) -> NDArray:
