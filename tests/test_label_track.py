@@ -116,3 +116,24 @@ def test_a_confusion_at_the_start_is_not_carried_across_a_gap_into_correct_label
         short[50:53, 1, j, 2] = 0.0
     fixed, flipped = track_labels(short, P=P)
     assert flipped[40:50, 1, 0].all() and flipped[53:60, 1, 0].all()
+
+
+def test_the_anatomy_cost_names_the_view_whose_legs_are_exchanged(walk):
+    """Issue 29 (indoor seed 4): with ``anatomy_m`` each joint state's triangulated knees are
+    judged by the hip they hang from. View 2's legs exchanged: the states that put them right
+    (view 2 exchanged back, or both views exchanged is the mirror, wrong) must cost least."""
+    from embodmocap.motion.label_track import _disagreement
+
+    P, kp = walk
+    bad = _swap(kp, 1, slice(0, 120), "legs")
+    cfg = LabelTrackConfig(anatomy_m=0.3)
+    geo, anat = _disagreement(P, bad, TRACKED_GROUPS["legs"], cfg, "legs")
+    # States (v1, v2): (0, 0), (1, 0), (0, 1), (1, 1). (0, 1) is the truth: no anatomy cost; its
+    # mirror (1, 0) has every knee on the wrong side wherever the knees are apart from the hips'
+    # line (most frames).
+    assert (anat[:, 2] == 0).mean() > 0.9
+    assert (anat[:, 1] > 0).mean() > 0.6
+    assert np.all(anat <= cfg.anatomy_cap_m / cfg.anatomy_m + 1e-12)
+    # Off (the default): no anatomy cost at all.
+    _, off = _disagreement(P, bad, TRACKED_GROUPS["legs"], LabelTrackConfig(), "legs")
+    assert not off.any()

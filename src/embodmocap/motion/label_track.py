@@ -75,6 +75,18 @@ class LabelTrackConfig:
     geometry_switch: float = 0.3
     """With two views: cost of a view changing state at a frame where only the views' agreement
     (not its own trajectories) speaks."""
+    anatomy_m: float = 0.0
+    """With two views: a frame whose two views' labels, triangulated, put the elbows (knees) this
+    many metres nearer the other side's shoulder (hip) than their own
+    (:func:`embodmocap.motion.swaps.limb_side_score`) costs as much as one torso length of
+    movement (at most ``anatomy_cap_m``); 0 = off. Where one view sees a leg pair overlapping
+    (from the side) and the other has them exchanged from the first frame to where the legs
+    cross, neither view's trajectories nor the views' agreement can say which view is wrong, and
+    exchanging the right view's labels costs least (issue 29, indoor seed 4: view 1 exchanged in
+    frames 0-10, the fitted left foot 30 cm off)."""
+    anatomy_cap_m: float = 0.2
+    """The most a frame's wrong-side vote counts, metres (one wild triangulated point must not
+    decide)."""
 
 
 def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
@@ -108,8 +120,8 @@ def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
         trans = [_transitions(rels[v], kp[:, v, :, 2] >= cfg.min_conf, pairs, cfg) if rels[v] is not None
                  else np.zeros((T, 2, 2)) for v in range(V)]
         if P is not None and V == 2:
-            geo = _disagreement(P, kp, pairs, cfg)  # (T, 2): cost of views agreeing as labelled / not
-            states = _viterbi_pair(trans, geo, cfg)
+            geo, anat = _disagreement(P, kp, pairs, cfg, list(groups)[g])  # (T, 2), (T, 4)
+            states = _viterbi_pair(trans, geo, cfg, anat)
         else:
             states = np.stack([_viterbi(trans[v], cfg) for v in range(V)], -1)
         for v in range(V):
@@ -174,15 +186,18 @@ def _viterbi(trans: NDArray, cfg: LabelTrackConfig) -> NDArray[np.bool_]:
     return out
 
 
-def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig) -> NDArray[np.bool_]:
-    """(T, 2) best path over both views' states (four joint states)."""
+def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig, anat: NDArray | None = None
+                  ) -> NDArray[np.bool_]:
+    """(T, 2) best path over both views' states (four joint states; ``anat`` (T, 4) their
+    anatomy costs, :func:`_disagreement`)."""
     T = len(geo)
     S = [(0, 0), (1, 0), (0, 1), (1, 1)]
     geo_seen = np.abs(geo[:, 0] - geo[:, 1]) > 0
     sw = [_switch_cost(trans[v], geo_seen, cfg) for v in range(2)]
 
     def node(t):
-        return np.array([cfg.flip_cost * (s1 + s2) + geo[t, 0 if s1 == s2 else 1] for s1, s2 in S])
+        a = np.zeros(4) if anat is None else anat[t]
+        return np.array([cfg.flip_cost * (s1 + s2) + geo[t, 0 if s1 == s2 else 1] for s1, s2 in S]) + a
 
     acc = node(0)
     back = np.zeros((T, 4), dtype=np.int64)
@@ -200,15 +215,20 @@ def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig) -> 
     return out
 
 
-def _disagreement(P: NDArray, kp: NDArray, pairs, cfg: LabelTrackConfig) -> NDArray:
+def _disagreement(P: NDArray, kp: NDArray, pairs, cfg: LabelTrackConfig, group: str = "") -> tuple[NDArray, NDArray]:
     """(T, 2) cost of the group's labels as given agreeing between the two views (column 0) and of
     view 2's exchanged (column 1): the mean reprojection error of the group's points (each capped at
-    ``cap_px``) over ``geometry_px``; 0 where the group is not triangulated."""
+    ``cap_px``) over ``geometry_px``; 0 where the group is not triangulated. And (T, 4) the anatomy
+    cost of the joint states ``(v1, v2)`` = (0, 0), (1, 0), (0, 1), (1, 1)
+    (:attr:`LabelTrackConfig.anatomy_m`; zeros when off or where the sides cannot be told):
+    exchanging both views' labels mirrors the triangulated sides, so two triangulations say it
+    all."""
     from embodmocap.geometry.triangulation import TriangulationConfig, triangulate
+    from embodmocap.motion.swaps import limb_side_score
 
     joints = [j for pair in pairs for j in pair]
     tcfg = TriangulationConfig(min_conf=cfg.min_conf, reject_px=np.inf, max_gap_frames=0, drop_unresolved=False)
-    out = []
+    out, side = [], []
     for swap in (False, True):
         trial = kp.copy()
         if swap:
@@ -218,7 +238,14 @@ def _disagreement(P: NDArray, kp: NDArray, pairs, cfg: LabelTrackConfig) -> NDAr
         err = np.minimum(tri.reproj_err_px[:, joints], cfg.cap_px)  # (T, j, V)
         seen = np.isfinite(err)
         out.append(np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1))
-    return np.stack(out, -1) / cfg.geometry_px
+        if cfg.anatomy_m > 0 and group == "legs":
+            side.append(np.nan_to_num(limb_side_score(tri.points, group)))
+    anat = np.zeros((len(kp), 4))
+    if side:
+        sx, sy = side  # as given, view 2 exchanged; states (1, 1) and (1, 0) mirror them
+        score = np.stack([sx, -sy, sy, -sx], -1)
+        anat = np.minimum(np.maximum(-score, 0.0), cfg.anatomy_cap_m) / cfg.anatomy_m
+    return np.stack(out, -1) / cfg.geometry_px, anat
 
 
 def _d(x: NDArray, y: NDArray, cap: float) -> float:

@@ -93,19 +93,32 @@ def _mislabelled(points: NDArray, group: str) -> NDArray[np.bool_]:
 
     with np.errstate(invalid="ignore"):
         if group in ("arms", "legs"):
-            (l_end, r_end), (l_root, r_root) = (((_L_ELBOW, _R_ELBOW), (_L_SHOULDER, _R_SHOULDER)) if group == "arms"
-                                                else ((_L_KNEE, _R_KNEE), (_L_HIP, _R_HIP)))
-            # Each elbow (knee) seen votes with how much nearer its own shoulder (hip) it is; one
-            # seen side is enough (the other limb is often occluded).
-            votes = np.stack([d(l_end, r_root) - d(l_end, l_root), d(r_end, l_root) - d(r_end, r_root)])
-            score = np.nansum(votes, axis=0)
-            return ~((score > 0) & np.isfinite(votes).any(axis=0))
+            score = limb_side_score(points, group)
+            return ~(score > 0)
         mid = 0.5 * (p[:, _L_SHOULDER] + p[:, _R_SHOULDER])
         facing = p[:, _NOSE] - mid
         left = np.stack([-facing[:, 1], facing[:, 0], np.zeros(len(p))], axis=-1)  # z x facing
         pair = {"shoulders": (_L_SHOULDER, _R_SHOULDER), "hips": (_L_HIP, _R_HIP), "face": (_L_EAR, _R_EAR)}[group]
         side = np.sum((p[:, pair[0]] - p[:, pair[1]]) * left, axis=-1)
         return ~(side > 0)
+
+
+def limb_side_score(points: NDArray, group: str) -> NDArray:
+    """(T,) metres: how much nearer each elbow (knee) is to the shoulder (hip) of its own side
+    than to the other's, summed over the sides seen (positive: labelled the right way round; NaN
+    where no side can be told). One seen side is enough (the other limb is often occluded).
+
+    Args:
+        points: (T, 17, 3) COCO-17 points (NaN = missing); group: ``arms`` or ``legs``.
+    """
+    (l_end, r_end), (l_root, r_root) = (((_L_ELBOW, _R_ELBOW), (_L_SHOULDER, _R_SHOULDER)) if group == "arms"
+                                        else ((_L_KNEE, _R_KNEE), (_L_HIP, _R_HIP)))
+    def d(a, b):  # noqa: E306
+        return np.linalg.norm(points[:, a] - points[:, b], axis=-1)
+
+    votes = np.stack([d(l_end, r_root) - d(l_end, l_root), d(r_end, l_root) - d(r_end, r_root)])
+    seen = np.isfinite(votes).any(axis=0)
+    return np.where(seen, np.nansum(votes, axis=0), np.nan)
 
 
 #: Bones (parent, child) of each limb group, both sides.
