@@ -76,14 +76,19 @@ class LabelTrackConfig:
     """With two views: cost of a view changing state at a frame where only the views' agreement
     (not its own trajectories) speaks."""
     anatomy_m: float = 0.0
-    """With two views: a frame whose two views' labels, triangulated, put the elbows (knees) this
-    many metres nearer the other side's shoulder (hip) than their own
+    """With two views, legs only: a frame whose two views' leg labels, triangulated, put the knees
+    this many metres nearer the other side's hip than their own
     (:func:`embodmocap.motion.swaps.limb_side_score`) costs as much as one torso length of
-    movement (at most ``anatomy_cap_m``); 0 = off. Where one view sees a leg pair overlapping
-    (from the side) and the other has them exchanged from the first frame to where the legs
-    cross, neither view's trajectories nor the views' agreement can say which view is wrong, and
-    exchanging the right view's labels costs least (issue 29, indoor seed 4: view 1 exchanged in
-    frames 0-10, the fitted left foot 30 cm off)."""
+    movement (at most ``anatomy_cap_m``). Where one view sees the legs overlapping (from the side)
+    and the other has them exchanged from the first frame to where they cross, neither view's
+    trajectories nor the views' agreement say which view is wrong, and exchanging the right
+    view's labels can cost least (issue 29, indoor seed 4: view 1's correct legs exchanged in
+    frames 0-10, view 2's wrong ones kept, the fitted left foot 30-34 cm off). 0 = off, the
+    default: on six hard studio sessions (2026-12-04, benchmarks/history/2026-12-04-s8-edges2.md)
+    0.3 took that seed's W-MPJPE c100 from 103.1 to 64.7 mm (first five frames 84.8 -> 40.7 mm,
+    WA 28.9 -> 23.8 mm) but outdoor seed 1's from 28.3 to 42.1 mm (its frames 33-36 1-2 mm
+    worse, which the two-frame alignment magnifies); with the arms judged too, outdoor seed 5
+    went from 108.7 to 454.6 mm."""
     anatomy_cap_m: float = 0.2
     """The most a frame's wrong-side vote counts, metres (one wild triangulated point must not
     decide)."""
