@@ -14,7 +14,9 @@ all vectorised over frames:
    points the upper bone at the observed middle joint and its twist that puts the hinge (knee,
    elbow) axis normal to the plane of the observed limb, then the hinge joint's swing that points
    the lower bone at the observed end joint. A limb bent less than ``min_bend_deg`` keeps the
-   swing's twist (the plane is undefined when it is straight).
+   swing's twist (the plane is undefined when it is straight). Where the end point is seen but
+   the middle joint is not (one view's depth gives the wrist, the elbow is hidden), the limb
+   filled from its neighbours is turned and bent to reach the end point (:func:`reach_end`).
 
 Frames where a step has nothing to go on (too few torso points, a limb not seen) take the
 rotation interpolated from their neighbours (:func:`embodmocap.motion.fill.fill_rotations`).
