@@ -113,6 +113,33 @@ def test_ik_start_survives_missing_points_and_refuses_no_torso(body, motion):
         init_ik(body, pts, np.where(np.arange(17) >= 5, 0.0, 1.0)[None].repeat(T, 0))
 
 
+def test_ik_start_reaches_a_seen_wrist_whose_elbow_is_hidden(body, motion):
+    """One phone's case (issue 28, studio seed 3): the wrist lifted from the LiDAR depth, the
+    elbow not seen at the start of the take and over a gap. The start must put the wrist on its
+    point (the fit's robust term writes off a point it starts far from), the elbow near the truth."""
+    params, _, _ = motion
+    T = len(params)
+    # The left arm swings up from the side and the right leg kicks forward over the first second,
+    # so the pose where the elbow (knee) is first seen is far from the earlier frames'.
+    pose = np.array(params.body_pose).reshape(T, 23, 3)
+    ramp = np.clip(np.arange(T) / 30.0, 0, 1)[:, None]
+    pose[:, 15] = (Rotation.from_rotvec(ramp * [0.0, 0.0, -1.3]) * Rotation.from_rotvec(pose[:, 15])).as_rotvec()
+    pose[:, 1] = (Rotation.from_rotvec(ramp * [-1.0, 0.0, 0.0]) * Rotation.from_rotvec(pose[:, 1])).as_rotvec()
+    pts = _coco(body, replace(params, body_pose=pose.reshape(T, 69)))
+    kp = {"COCO17": pts}
+    pts, conf = pts.copy(), np.ones((T, 17))
+    hidden = np.zeros(T, bool)
+    hidden[:18] = hidden[60:75] = True
+    conf[hidden, 7] = 0.0  # left elbow unseen; its wrist (9) seen
+    conf[hidden, 14] = 0.0  # right knee unseen; its ankle (16) seen
+    init = init_from_keypoints(body, pts, conf)
+    err = np.linalg.norm(_coco(body, init) - kp["COCO17"], axis=-1)[hidden]
+    assert np.percentile(err[:, [9, 16]], 95) < 0.02  # the end points reached
+    assert np.median(err[:, [7, 14]]) < 0.05 and err[:, [7, 14]].max() < 0.15  # bent like the neighbours
+    # The rest of the body is as good as with every point seen.
+    assert np.median(err[:, [5, 6, 8, 10, 11, 12, 13, 15]]) < 0.005
+
+
 def test_ik_start_then_fit_beats_noisy_keypoints_without_a_prior(body, motion):
     params, _, kp = motion
     rng = np.random.default_rng(1)

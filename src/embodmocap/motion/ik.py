@@ -14,7 +14,9 @@ all vectorised over frames:
    points the upper bone at the observed middle joint and its twist that puts the hinge (knee,
    elbow) axis normal to the plane of the observed limb, then the hinge joint's swing that points
    the lower bone at the observed end joint. A limb bent less than ``min_bend_deg`` keeps the
-   swing's twist (the plane is undefined when it is straight).
+   swing's twist (the plane is undefined when it is straight). Where the end point is seen but
+   the middle joint is not (one view's depth gives the wrist, the elbow is hidden), the limb
+   filled from its neighbours is turned and bent to reach the end point (:func:`reach_end`).
 
 Frames where a step has nothing to go on (too few torso points, a limb not seen) take the
 rotation interpolated from their neighbours (:func:`embodmocap.motion.fill.fill_rotations`).
@@ -446,7 +448,45 @@ def limb_ik(sk: RestSkeleton, b: NDArray, R_local: NDArray, pelvis: NDArray, poi
         b2 = np.tile(J[end] - J[hinge], (T, 1))
         rv_h = _fill(_swing(b2, f_l), ok2)
         R_local[:, hinge] = Rotation.from_rotvec(rv_h).as_matrix()
+        # End point seen, middle joint not (a wrist lifted from one view's depth, its elbow
+        # hidden): the filled limb can be far off, and the fit's robust term then writes the end
+        # point off. Reach it instead, bent in the plane of the filled (neighbouring) pose.
+        only_end = seen[:, k_end] & ~ok1
+        if only_end.any():
+            R_local[only_end, root], R_local[only_end, hinge] = reach_end(
+                J[hinge] - J[root], sk.keypoints(b)[k_end] - J[hinge], np.asarray(axis), Rp[only_end],
+                R_local[only_end, root], points[only_end, k_end] - pos[only_end, root])
     return R_local
+
+
+def reach_end(b1: NDArray, b2: NDArray, axis: NDArray, R_parent: NDArray, R_root: NDArray, target: NDArray,
+              max_bend_deg: float = 160.0, steps: int = 321) -> tuple[NDArray, NDArray]:
+    """Two-bone IK from the end point alone: root and hinge rotations (N, 3, 3) that put the
+    limb's end at ``target``, the bend plane kept from ``R_root``.
+
+    The hinge turns about its ``axis`` (the allowed way, 0..``max_bend_deg``) so that the
+    root-to-end distance matches ``|target|`` (straight when it is farther than the limb reaches,
+    most bent when nearer); then the smallest rotation of the root takes the end onto the target,
+    so the bend plane is the one ``R_root`` gave (e.g. interpolated from frames where the middle
+    joint is seen).
+
+    Args:
+        b1: (3,) rest root-to-hinge bone; b2: (3,) rest hinge-to-end offset (in the hinge's frame).
+        axis: (3,) hinge axis in the hinge joint's frame (positive turns bend the limb).
+        R_parent: (N, 3, 3) world rotation of the root's parent; R_root: (N, 3, 3) its starting local
+            rotation.
+        target: (N, 3) end point minus root joint, world.
+    """
+    theta = np.deg2rad(np.linspace(0.0, max_bend_deg, steps))
+    Rh_grid = Rotation.from_rotvec(axis[None] * theta[:, None])
+    reach = np.linalg.norm(b1 + Rh_grid.apply(b2), axis=-1)  # (steps,)
+    d = np.linalg.norm(target, axis=-1)
+    k = np.abs(reach[None] - d[:, None]).argmin(1)
+    Rh = Rh_grid[k].as_matrix()  # (N, 3, 3)
+    e_l = np.einsum("nij,nj->ni", R_root, b1 + np.einsum("nij,j->ni", Rh, b2))  # in the parent's frame
+    t_l = np.einsum("nji,nj->ni", R_parent, target)
+    S = Rotation.from_rotvec(_swing(e_l, t_l)).as_matrix()
+    return S @ R_root, Rh
 
 
 def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_conf: float = 0.1,
