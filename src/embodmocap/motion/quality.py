@@ -17,7 +17,12 @@ frame of the fitted motion:
   where the fit is does not count), the largest over the joints. A fitted limb on the other side's
   place (left and right exchanged in the fit) is as far from both views as any other wrong limb;
 - ``suspect`` (T,): a limb joint further than ``suspect_m`` from every view that sees it, in the
-  frame and in one of its neighbours (``limb_off_m`` says how far in the frame).
+  frame and in one of its neighbours (``limb_off_m`` says how far in the frame); or, with the views'
+  depth maps, a limb part (thigh, lower leg, upper arm, forearm) whose vertices lie for more than
+  ``free_space_share`` in space a view's depth saw empty (more than ``free_space_m`` in front of
+  the measured surface: :mod:`embodmocap.motion.free_space`), in the frame and a neighbour. This
+  catches what the rays cannot: a limb on one view's ray at the wrong depth, or held by smoothness
+  where one view alone sees it.
 
 Ray distances are metric where pixels are not (a limb 3 m from the camera is half as many pixels
 off as at 1.5 m), and a view says nothing about depth along its own ray, which is why a joint is
@@ -49,6 +54,20 @@ class QualityConfig:
     """A frame is suspect when a limb joint is further than this (metres) from the ray of every
     view that detects it, in this frame and a neighbouring one (a drifting limb stays off; a
     detector's one-frame blunder does not make a frame suspect)."""
+    free_space_m: float = 0.10
+    """A fitted limb vertex more than this (metres) in front of the depth a view measured at its
+    pixel (the nearest within ``free_space_window_px``) is in space the sensor saw empty. 0 = no
+    depth test (the flag then rests on the keypoints alone). On the 10 hard studio seeds (6 s) the
+    depth test took the frames with a joint > 15 cm off that no flag caught from 3.6 % to 1.7 %,
+    flagging 3.6 % of the right frames (benchmarks/history/2026-12-04-s9-flags.md)."""
+    free_space_share: float = 0.4
+    """A limb part is contradicted by a view's depth when more than this share of its measured
+    vertices lie in empty space (``free_space_m``); lower flags more wrong frames and more right
+    ones (0.3: 1.6 % of the right frames' thighs and upper arms alone on the studio seeds)."""
+    free_space_window_px: int = 3
+    """The depth-pixel neighbourhood whose nearest depth a vertex is held against: a vertex a
+    pixel or two off a thin limb's measured silhouette is not in empty space (7: the thighs of
+    studio seed 4's swapped legs, 5-10 cm off, passed too)."""
     repair_frames: int = 0
     """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
     views takes the local rotations of the first frame within this many where it is not, when
@@ -62,7 +81,9 @@ class QualityConfig:
 class FrameQuality:
     """Per-frame quality of a fitted motion (see the module docstring); ``views`` names the
     columns of ``reproj_px``; ``joint_off_m`` (T, 17) each joint's distance from the closest view
-    that sees it (NaN: none does; not written to the files)."""
+    that sees it (NaN: none does); ``free_space`` (T, P) the largest share over the views of each
+    limb part in empty space (:func:`embodmocap.motion.free_space.free_space_limbs`; None: no depth
+    test); neither is written to the files."""
 
     reproj_px: NDArray
     kp3d_err_m: NDArray
@@ -70,6 +91,7 @@ class FrameQuality:
     suspect: NDArray
     views: tuple[str, ...]
     joint_off_m: NDArray | None = None
+    free_space: NDArray | None = None
 
     def arrays(self) -> dict[str, NDArray]:
         """The keys written into ``smpl_fit.npz`` / ``smpl_world.npz`` (docs/formats.md)."""
@@ -98,7 +120,7 @@ def ray_distance(points: NDArray, K: NDArray, T_world_cam: NDArray, uv: NDArray)
 
 def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
                   points: NDArray, filled: NDArray | None, views: tuple[str, ...],
-                  cfg: QualityConfig = QualityConfig()) -> FrameQuality:
+                  cfg: QualityConfig = QualityConfig(), free_space: NDArray | None = None) -> FrameQuality:
     """The per-frame quality of a fit (module docstring).
 
     Args:
@@ -107,7 +129,9 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
         used2d: (T, V, 17, 3) the 2D keypoints the fit used (labels tracked, swaps undone,
             guesses dropped); raw2d: (T, V, 17, 3) the detector's, on the same instants;
         points: (T, 17, 3) triangulated keypoints (NaN = none); filled: (T, 17) bool gap-filled
-            points (not measured; None = none filled); views: the view names.
+            points (not measured; None = none filled); views: the view names;
+        free_space: (T, P) each limb part's share of vertices in a view's empty space
+            (:func:`embodmocap.motion.free_space.free_space_limbs`; None: no depth test).
     """
     T, V = used2d.shape[:2]
     X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
@@ -126,10 +150,18 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
     per_joint = joint[:, list(LIMB_JOINTS)]
     limb = np.where(np.isfinite(per_joint).any(-1), np.nanmax(np.nan_to_num(per_joint, nan=-1.0), axis=-1), np.nan)
     off = np.nan_to_num(per_joint, nan=0.0) > cfg.suspect_m  # (T, 12) contradicted
+    suspect = _lasting(off)
+    if free_space is not None:
+        suspect = suspect | _lasting(np.nan_to_num(free_space, nan=0.0) > cfg.free_space_share)
+    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint, free_space)
+
+
+def _lasting(off: NDArray) -> NDArray:
+    """(T,) frames where some column of ``off`` (T, K) bool holds in the frame and a neighbour
+    (a drifting limb stays off; a one-frame blunder of a detector or a depth map does not count)."""
     before = np.concatenate([np.zeros_like(off[:1]), off[:-1]])
     after = np.concatenate([off[1:], np.zeros_like(off[:1])])
-    suspect = (off & (before | after)).any(-1)
-    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint)
+    return (off & (before | after)).any(-1)
 
 
 def joint_offsets(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,

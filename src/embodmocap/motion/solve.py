@@ -144,7 +144,7 @@ class Fitted:
 
 def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
                T: int, fps: float, priors: Mapping, layout: str = "COCO17", gender: str | None = None, *,
-               label: str = "", source: object = None) -> Fitted:
+               label: str = "", source: object = None, depth: Mapping | None = None) -> Fitted:
     """The world SMPLify on the 3D and both views' 2D keypoints.
 
     Args:
@@ -153,7 +153,10 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         priors: view -> (camera-space body prior with one row per frame 0..T-1, (T,) bool has-estimate)
             (:func:`embodmocap.io.body_prior.body_priors_by_frame`; empty: start from the keypoints);
         layout: the detector's keypoint layout; gender: the session's (None: neutral);
-        label: the sequence (messages); source: what an error names (``keypoints3d.npz``).
+        label: the sequence (messages); source: what an error names (``keypoints3d.npz``);
+        depth: view -> ``(depth_mm, (width, height))``, the view's depth stack ((T', h, w) uint16
+            millimetres, Stage II's ``depth.npy``) for the quality's free-space test (None or a view
+            left out: not tested there).
 
     Raises:
         InputError: too few triangulated joints, or no starting body without a prior.
@@ -263,10 +266,10 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     # The per-frame quality figures and the suspect flag; with QualityConfig.repair_frames, limbs the
     # views contradict at the edges of placeable runs first take the first fine frame's pose.
     t_quality = time.perf_counter()
-    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T)
+    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T, depth)
     params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T, quality)
     if n_repaired:
-        quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T)
+        quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T, depth)
     t_quality = time.perf_counter() - t_quality
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
@@ -313,10 +316,11 @@ def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: s
 
 
 def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
-                kp2d: NDArray, k3: Keypoints3DFile, T: int):
+                kp2d: NDArray, k3: Keypoints3DFile, T: int, depth: Mapping | None = None):
     """The per-frame quality of fitted ``params`` (:func:`embodmocap.motion.quality.frame_quality`):
     against the 2D keypoints the fit used (``kp2d`` (T, V, 17, 3)), the detector's (``kps``), the
-    triangulation ``k3``, with the cameras ``cams`` (all on view 1's instants)."""
+    triangulation ``k3``, with the cameras ``cams`` (all on view 1's instants), and the views'
+    ``depth`` (as :func:`fit_motion`; the free-space test, off with ``cfg.quality.free_space_m`` 0)."""
     import torch
 
     from embodmocap.body.joints import smpl_to_coco17
@@ -327,9 +331,17 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
         fitted = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
     filled = k3["filled"] if "filled" in k3.files else None
     names = [v for v in VIEWS if v in cams]  # two views, or one (a one-phone sequence)
-    return frame_quality(fitted, np.stack([cams[v]["K"] for v in names]),
-                         np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d,
-                         np.stack([kps[v][:T] for v in names], axis=1), k3["points"], filled, tuple(names), cfg.quality)
+    K, T_world_cam = np.stack([cams[v]["K"] for v in names]), np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1)
+    free = None
+    if depth and cfg.quality.free_space_m > 0:
+        from embodmocap.motion.free_space import free_space_limbs
+
+        free = free_space_limbs(out.vertices.numpy(), model.lbs_weights, K, T_world_cam,
+                                [depth[v][1] if v in depth else (0, 0) for v in names],
+                                [depth[v][0] if v in depth else None for v in names],
+                                cfg.quality.free_space_m, cfg.quality.free_space_window_px)
+    return frame_quality(fitted, K, T_world_cam, kp2d, np.stack([kps[v][:T] for v in names], axis=1), k3["points"],
+                         filled, tuple(names), cfg.quality, free)
 
 
 @dataclass(frozen=True)

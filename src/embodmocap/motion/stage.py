@@ -119,11 +119,15 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     fp_fit = STEPS.fingerprint("fit", cfg, after={"triangulate": fp_tri}, context={"layout": layout, "gender": manifest.gender},
                                reads={"<view>/body_prior.npz": {v: out.view(v).body_prior for v in priors},
                                       # the model's content, not its absolute path: a moved session redoes nothing
-                                      "body model": Path(manifest.body_model) if manifest.body_model else model.source})
+                                      "body model": Path(manifest.body_model) if manifest.body_model else model.source,
+                                      # the quality's free-space test reads each view's depth
+                                      "<view>/depth.npy": {v: out.view(v).depth for v in names if out.view(v).depth.is_file()}
+                                      if cfg.quality.free_space_m > 0 else None})
     with sm.step("fit", fp_fit, force=force, label=label) as step:
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
-                                   manifest.gender, label=entry.name, source=out.keypoints3d)
+                                   manifest.gender, label=entry.name, source=out.keypoints3d,
+                                   depth=quality_depth(out, names) if cfg.quality.free_space_m > 0 else None)
             write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays(),
                            one_view=entry.one_view)
             step.record([out.smpl_fit], fit.figures)
@@ -160,6 +164,20 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
         log.warning("%s: the views' keypoints come from different layouts %s; fitting with COCO-17 hips", seq, found)
         return "COCO17"
     return found[0]
+
+
+def quality_depth(out: SequenceLayout, names) -> dict:
+    """view -> ``(depth_mm, (width, height))`` for the quality's free-space test
+    (:mod:`embodmocap.motion.free_space`): Stage II's depth stack, memory-mapped; views without
+    ``depth.npy`` are left out. View 2's frame ``t`` stands for view 1's instant ``t``: the
+    sub-frame offset (under one frame) moves a limb far less than the test's tolerance."""
+    found = {}
+    for v in names:
+        vl = out.view(v)
+        if vl.depth.is_file():
+            cams = read_cameras(vl.cameras)
+            found[v] = (np.load(vl.depth, mmap_mode="r"), (int(cams["width"]), int(cams["height"])))
+    return found
 
 
 def view_depth(out: SequenceLayout, v: str, cfg: MotionConfig):
