@@ -125,3 +125,17 @@ def test_cli_exports_trc_and_smplx_of_a_session(session, params):  # noqa: F811
     assert data["valid"].all()  # the fixture's smpl_world has no valid key: every frame valid
     out = export_sequence(session, "seq0", "trc", session / "elsewhere" / "x.trc")
     assert out.is_file()
+
+
+def test_smplx_and_trc_carry_the_suspect_flags(tmp_path, params, caplog):  # noqa: F811
+    suspect = np.zeros(len(params), bool)
+    suspect[[2, 5]] = True
+    data = np.load(write_smplx(tmp_path / "m.npz", params, suspect=suspect))
+    np.testing.assert_array_equal(data["suspect"], suspect)
+    assert not np.load(write_smplx(tmp_path / "n.npz", params))["suspect"].any()  # not given: none suspect
+    with pytest.raises(ValueError, match="suspect"):
+        write_smplx(tmp_path / "bad.npz", params, suspect=suspect[:-1])
+    joints = np.zeros((len(params), 24, 3))
+    with caplog.at_level("WARNING"):
+        write_trc(tmp_path / "w.trc", joints, FPS, suspect=suspect)
+    assert "2 of 8 frames are suspect" in caplog.text

@@ -119,7 +119,7 @@ def _export_sequence(session: str | Path, seq: str, to: str, out: str | Path | N
         joints = _read_joints(_need(seq_layout.joints_world, seq, layout.root, "motion"), len(params))
         return write_joints_csv(out, joints, params.fps, frames, flags=flags)
     if to in ("trc", "smplx"):
-        return _export_trc_smplx(seq_layout, layout.root, seq, to, out, params, frames, flags[0])
+        return _export_trc_smplx(seq_layout, layout.root, seq, to, out, params, frames, *flags)
     if to == "mjcf":
         from embodmocap.sim.config import SceneCollisionConfig
         from embodmocap.sim.session import export_mjcf
@@ -145,17 +145,17 @@ def _export_sequence(session: str | Path, seq: str, to: str, out: str | Path | N
 
 
 def _export_trc_smplx(seq_layout, root: Path, seq: str, to: str, out: Path, params, frames,
-                      valid) -> Path:
+                      valid, suspect) -> Path:
     """``--to trc`` (the world joints, :mod:`.trc`) and ``--to smplx`` (:mod:`.smplx_npz`), each
-    with the fit's ``valid`` flags (T,) bool."""
+    with the fit's ``valid`` and ``suspect`` flags (T,) bool."""
     if to == "smplx":
         from embodmocap.export.smplx_npz import write_smplx
 
-        return write_smplx(out, params, frames=frames, valid=valid)
+        return write_smplx(out, params, frames=frames, valid=valid, suspect=suspect)
     from embodmocap.export.trc import write_trc
 
     joints = _read_joints(_need(seq_layout.joints_world, seq, root, "motion"), len(params))
-    return write_trc(out, joints, params.fps, frames, valid=valid)
+    return write_trc(out, joints, params.fps, frames, valid=valid, suspect=suspect)
 
 
 def _export_robot(session: str | Path, seq: str, out: str | Path | None, config: ExportConfig) -> Path:

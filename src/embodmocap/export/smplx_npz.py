@@ -24,6 +24,7 @@ Keys written (format version 1), T frames::
     trans             (T, 3)    = transl (AMASS's name)
     frames            (T,)      sequence frame of each row
     valid             (T,) bool the fit's flags (False: the body was filled in from neighbours)
+    suspect           (T,) bool the fit's ``suspect`` flags (a view contradicts a limb; all False when not given)
     surface_model_type () str   "smplx"
     source_model      () str    "smpl": the model the values were fitted with
     version           () int64  1
@@ -63,20 +64,21 @@ def smplx_arrays(params: SmplParams) -> dict[str, NDArray]:
 
 
 def write_smplx(path: str | Path, params: SmplParams, *, frames: NDArray | None = None,
-                valid: NDArray | None = None) -> Path:
+                valid: NDArray | None = None, suspect: NDArray | None = None) -> Path:
     """Write ``params`` (world, Z up) as an SMPL-X-compatible npz (atomically); returns the path."""
     T = len(params)
     frames = np.arange(T, dtype=np.int64) if frames is None else np.asarray(frames, dtype=np.int64)
     valid = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
-    if frames.shape != (T,) or valid.shape != (T,):
-        raise ValueError(f"frames and valid must be ({T},), got {frames.shape}, {valid.shape}")
+    suspect = np.zeros(T, dtype=bool) if suspect is None else np.asarray(suspect, dtype=bool)
+    if frames.shape != (T,) or valid.shape != (T,) or suspect.shape != (T,):
+        raise ValueError(f"frames, valid and suspect must be ({T},), got {frames.shape}, {valid.shape}, {suspect.shape}")
     pose = smplx_arrays(params)
     transl = np.asarray(params.transl, dtype=np.float64)
     betas = np.asarray(params.betas, dtype=np.float64).reshape(-1)
     order = ("global_orient", "body_pose", "jaw_pose", "leye_pose", "reye_pose", "left_hand_pose", "right_hand_pose")
     write_npz(path, **pose, transl=transl, betas=betas, num_betas=np.int64(len(betas)), gender=np.array(params.gender),
               mocap_frame_rate=np.float64(params.fps), poses=np.concatenate([pose[k] for k in order], axis=1),
-              trans=transl, frames=frames, valid=valid, surface_model_type=np.array("smplx"),
+              trans=transl, frames=frames, valid=valid, suspect=suspect, surface_model_type=np.array("smplx"),
               source_model=np.array("smpl"), version=np.int64(SMPLX_NPZ_VERSION))
     log.info("wrote SMPL-X-compatible motion %s (%d frames; hands, jaw and eyes zero)", path, T)
     return Path(path)

@@ -20,7 +20,8 @@ writes and OpenSim reads::
 - ``Frame#`` counts rows from 1; ``Time`` is the sequence frame divided by the frame rate (the
   ``time_s`` of the CSV export), so a sequence with dropped frames keeps true times.
 - Units ``m``, 6 decimals (micrometres). Frames the fit flags not ``valid`` (the body was filled in
-  from neighbouring frames) are written like the others; the export warns with their count.
+  from neighbouring frames) or ``suspect`` (a view contradicts a limb) are written like the others
+  (the format has no column for them); the export warns with their counts.
 """
 
 from __future__ import annotations
@@ -73,12 +74,15 @@ def trc_text(joints: NDArray, fps: float, frames: NDArray | None = None, *, name
 
 
 def write_trc(path: str | Path, joints: NDArray, fps: float, frames: NDArray | None = None,
-              valid: NDArray | None = None) -> Path:
-    """Write :func:`trc_text` to ``path`` atomically; ``valid`` (T,) bool only feeds the warning."""
+              valid: NDArray | None = None, suspect: NDArray | None = None) -> Path:
+    """Write :func:`trc_text` to ``path`` atomically; ``valid``, ``suspect`` (T,) bool only feed the warnings."""
     path = Path(path)
     write_text(path, trc_text(joints, fps, frames, name=path.name))
     if valid is not None and not np.all(valid):
         log.warning("%s: %d of %d frames are not valid in the fit (filled from neighbours); they are "
                     "written like the others", path, int(np.sum(~np.asarray(valid, bool))), len(joints))
+    if suspect is not None and np.any(suspect):
+        log.warning("%s: %d of %d frames are suspect in the fit (a view contradicts a limb: smpl_world.npz's "
+                    "`suspect`); they are written like the others", path, int(np.sum(suspect)), len(joints))
     log.info("wrote OpenSim marker file %s (%d frames, %d markers, Y up)", path, len(joints), np.shape(joints)[1])
     return path
