@@ -234,7 +234,12 @@ def test_validity_flags_follow_stage4_sync_and_depth(training_export, tmp_path):
     params, frames = read_smpl_npz(sl.smpl_world)
     valid = np.ones(len(frames), bool)
     valid[3] = False
-    write_smpl_npz(sl.smpl_world, params, frames, valid)
+    suspect = np.zeros(len(frames), bool)
+    suspect[4] = True  # the fit's suspect flag travels as smpl_suspect, apart from valid
+    T0 = len(frames)
+    quality = {"suspect": suspect, "limb_off_m": np.zeros(T0), "reproj_px": np.zeros((T0, 2)), "kp3d_err_m": np.zeros(T0),
+               "quality_views": np.array(["v1", "v2"])}
+    write_smpl_npz(sl.smpl_world, params, frames, valid, quality=quality)
     depth = np.load(sl.view("v1").depth)
     depth[5] = 0
     np.save(sl.view("v1").depth, depth)
@@ -250,6 +255,7 @@ def test_validity_flags_follow_stage4_sync_and_depth(training_export, tmp_path):
     assert np.flatnonzero(~lab["smpl_valid"]).tolist() == [3]
     assert np.flatnonzero(~lab["depth_present"]).tolist() == [5]
     assert np.flatnonzero(~lab["in_sync"]).tolist() == [7]
+    assert np.flatnonzero(lab["smpl_suspect"]).tolist() == [4]
     assert np.flatnonzero(~_labels(out, "v2")["valid"]).tolist() == [3]
 
 

@@ -61,7 +61,7 @@ log = logging.getLogger(__name__)
 #: The dataset's format name (``manifest.json`` ``format``); the reader checks it.
 TRAINING_FORMAT = "embodmocap.training/1"
 #: Version of ``labels.npz``.
-LABELS_VERSION = 1
+LABELS_VERSION = 2  # 2: smpl_suspect
 #: Bumped when the written bytes change for the same inputs (invalidates earlier exports).
 EXPORT_VERSION = 1
 
@@ -235,7 +235,7 @@ def _depth_intrinsics(cams_stage2, K: NDArray, width: int, height: int, shape: t
     return Intrinsics.from_K(K, width, height).scaled(w, h).K
 
 
-def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: NDArray, smpl_valid: NDArray,
+def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: NDArray, smpl_flags: tuple[NDArray, NDArray],
                 out_dir: Path, config: ExportConfig) -> dict:
     """Write one view's folder (into ``out_dir``, a temporary folder); returns its frame counts."""
     import cv2
@@ -273,6 +273,7 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
     poses = np.concatenate([params.global_orient, params.body_pose], axis=1)
     poses_v, transl_v, i0, i1, w, inside = resample_motion(poses, params.transl, fit_t, body_t)
     # Between two rows that are not neighbouring sequence frames (a gap in the fit) nothing was fitted.
+    smpl_valid, smpl_suspect = smpl_flags
     has_smpl = inside & smpl_valid[i0] & smpl_valid[i1] & (frames[i1] - frames[i0] <= 1)
     T_world_cam = np.asarray(cams.T_world_cam, np.float64)
     T_cam_world = invert_T(T_world_cam)
@@ -308,6 +309,7 @@ def _write_view(layout: SessionLayout, inp: _ViewInputs, model, params, frames: 
         gender=np.array(params.gender), joints_cam=joints_c, keypoints_fit=kp_fit,
         keypoints=keypoints, boxes=boxes,
         seen=np.asarray(kp.seen[:N], bool), valid=valid, smpl_valid=has_smpl, in_sync=in_sync,
+        smpl_suspect=smpl_suspect[i0] | smpl_suspect[i1],
         depth_present=depth_present, body_time_s=body_t, body_rows=np.stack([i0, i1], axis=1), body_weight=w)
     write_npz(out_dir / "labels.npz", **labels)
     with write_stack(out_dir / "depth.npy", (N,) + depth.shape[1:], np.uint16) as stack:
@@ -386,7 +388,7 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
     """
     from embodmocap.body.model import load_body_model
     from embodmocap.io.manifest import load_manifest
-    from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid
+    from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_suspect, read_smpl_valid
     from embodmocap.io.stage_manifest import require_sequence_stages
 
     if not 1 <= int(config.training_jpeg_quality) <= 100:
@@ -417,7 +419,7 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
         fix = _motion_fix(layout.root, entry.name)
         _need(sl.smpl_world, "world SMPL motion (smpl_world.npz)", fix)
         params, frames = read_smpl_npz(sl.smpl_world)
-        smpl_valid = read_smpl_valid(sl.smpl_world)
+        smpl_flags = (read_smpl_valid(sl.smpl_world), read_smpl_suspect(sl.smpl_world))
         if len(frames) == 0:
             raise InputError(sl.smpl_world, "the motion has no frame", fix)
         for v in entry.view_names:
@@ -434,7 +436,7 @@ def export_training(session: str | Path, seq: str | None = None, out: str | Path
             with sm.step(f"{entry.name}/{v}", fp, force=force, label="training export") as step:
                 if step.run:
                     with atomic_dir(view_dir) as tmp:
-                        info = _write_view(layout, inp, model, params, frames, smpl_valid, tmp, config)
+                        info = _write_view(layout, inp, model, params, frames, smpl_flags, tmp, config)
                     step.record([view_dir], {f"{entry.name}_{v}_frames": info["frames"],
                                              f"{entry.name}_{v}_valid_frames": info["valid_frames"]})
             views.append(_view_entry(out, entry.name, v))
