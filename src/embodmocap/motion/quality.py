@@ -59,11 +59,13 @@ class QualityConfig:
     pixel (the nearest within ``free_space_window_px``) is in space the sensor saw empty. 0 = no
     depth test (the flag then rests on the keypoints alone). On the 10 hard studio seeds (6 s) the
     depth test took the frames with a joint > 15 cm off that no flag caught from 3.6 % to 1.7 %,
-    flagging 3.6 % of the right frames (benchmarks/history/2026-12-04-s9-flags.md)."""
+    flagging 3.4 % of the frames with every joint within 15 cm (most of them 7-13 cm off: a thin
+    forearm 9 cm off lies wholly outside what a view saw) (benchmarks/history/2026-12-04-s9-flags.md)."""
     free_space_share: float = 0.4
     """A limb part is contradicted by a view's depth when more than this share of its measured
     vertices lie in empty space (``free_space_m``); lower flags more wrong frames and more right
-    ones (0.3: 1.6 % of the right frames' thighs and upper arms alone on the studio seeds)."""
+    ones (on the studio seeds, 0.5: 2.1 % wrong unflagged and 2.5 % of the right frames flagged;
+    0.3 with hands and feet judged too: 0.7 % and 60 %)."""
     free_space_window_px: int = 3
     """The depth-pixel neighbourhood whose nearest depth a vertex is held against: a vertex a
     pixel or two off a thin limb's measured silhouette is not in empty space (7: the thighs of
