@@ -290,10 +290,11 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     }
     if (quality.suspect & valid).any():
         bad = np.flatnonzero(quality.suspect & valid)
-        log.warning("%s: %d placeable frames are suspect (a limb %.0f cm or more from every view that sees it; "
-                    "the worst %.0f cm at frame %d): flagged `suspect` in smpl_world.npz", label, len(bad),
-                    100 * cfg.quality.suspect_m, 100 * np.nanmax(quality.limb_off_m[bad]),
-                    int(bad[np.nanargmax(quality.limb_off_m[bad])]))
+        log.warning("%s: %d placeable frames are suspect (a limb %.0f cm or more from every view that sees it, "
+                    "the worst %.0f cm at frame %d; or in space a view's depth saw empty): flagged `suspect` in "
+                    "smpl_world.npz", label, len(bad), 100 * cfg.quality.suspect_m,
+                    100 * np.nanmax(np.nan_to_num(quality.limb_off_m[bad])),
+                    int(bad[np.nanargmax(np.nan_to_num(quality.limb_off_m[bad]))]))
     return Fitted(with_fps(params, fps, gender), valid, figures, quality)
 
 
