@@ -332,7 +332,6 @@ JSON_READERS = {
     "embodmocap/sim/commands.py": "a training run's run.json (sim's own run folder)",
     "embodmocap/sim/skill_train.py": "a training run's run.json (sim's own run folder)",
     "embodmocap/sim/train.py": "a training run's run.json (sim's own run folder)",
-    "embodmocap/skills/files.py": "skills.json's typed, versioned reader itself (it needs skills.boxes)",
     "embodmocap/viz/browser.py": "the browser's DevTools messages",
 }
 #: Names of a session folder in the code (``<name> / "..."`` builds a path under it).
