@@ -250,10 +250,7 @@ def test_no_import_cycles_between_modules():
 #: Packages every package may import (the foundation row of the table).
 FOUNDATION = ("errors", "types", "logs", "progress", "device")
 #: Imports the table does not allow yet, and why they are still there.
-KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("perception", "sequence"): "registry.make() defaults its settings to Stage II's SequenceConfig (the backends "
-                                "read its model fields); to go: those fields moved into perception/config.py",
-}
+KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 def allowed_imports(doc: Path) -> dict[str, set[str] | None]:
