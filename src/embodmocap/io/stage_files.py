@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
 from embodmocap.io.atomic import write_npz
