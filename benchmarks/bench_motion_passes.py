@@ -96,9 +96,10 @@ def main() -> None:
 
 
 def table(rows: list[dict]) -> str:
-    """Per variant: the median over its sessions of each figure and of its change from all on."""
+    """Per variant: its sessions (``n``), those where any figure moved (``changed``), and the median
+    over its sessions of each figure and (in brackets) of its change from all on."""
     base = {r["session"]: r for r in rows if r["variant"] == "all on"}
-    lines = ["| variant | n | " + " | ".join(KEYS) + " | first5/median |", "|---" * (len(KEYS) + 3) + "|"]
+    lines = ["| variant | n | changed | " + " | ".join(KEYS) + " | first5/median |", "|---" * (len(KEYS) + 4) + "|"]
     for name in dict.fromkeys(r["variant"] for r in rows):
         sel = [r for r in rows if r["variant"] == name]
         cells = []
@@ -111,7 +112,8 @@ def table(rows: list[dict]) -> str:
             else:
                 d = float(np.median([val(r) - val(base[r["session"]]) for r in sel]))
                 cells.append(f"{med:.2f} ({d:+.2f})")
-        lines.append(f"| {name} | {len(sel)} | " + " | ".join(cells) + " |")
+        changed = sum(any(r[k] != base[r["session"]][k] for k in KEYS) for r in sel)
+        lines.append(f"| {name} | {len(sel)} | {changed} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
