@@ -16,6 +16,7 @@ first five frames' unaligned error over the median frame's, and the frames with 
 15 cm off that no flag marks (``wrong_unflagged_pct``).
 
     PYTHONPATH=src python benchmarks/bench_motion_passes.py SESSION [SESSION ...] [--json OUT.json]
+    PYTHONPATH=src python benchmarks/bench_motion_passes.py --table OUT.json   # the tables again
 
 With ``--check-files``, the all-on fit is also compared with the session's own ``smpl_fit.npz``
 (equal when the session was processed by the same code, with the same settings).
@@ -114,8 +115,27 @@ def table(rows: list[dict]) -> str:
                 cells.append(f"{med:.2f} ({d:+.2f})")
         changed = sum(any(r[k] != base[r["session"]][k] for k in KEYS) for r in sel)
         lines.append(f"| {name} | {len(sel)} | {changed} | " + " | ".join(cells) + " |")
+    sessions = list(base)
+    lines += ["", "W-MPJPE c100 (mm) per session; in brackets the change from all on:", "",
+              "| variant | mean change | worst change | " + " | ".join(sessions) + " |", "|---" * (len(sessions) + 3) + "|"]
+    for name in dict.fromkeys(r["variant"] for r in rows):
+        by = {r["session"]: r["w_mpjpe_mm"] for r in rows if r["variant"] == name}
+        d = [by[x] - base[x]["w_mpjpe_mm"] for x in sessions if x in by]
+        cells = [f"{by[x]:.1f}" + ("" if name == "all on" else f" ({by[x] - base[x]['w_mpjpe_mm']:+.1f})") if x in by else "-"
+                 for x in sessions]
+        lines.append(f"| {name} | {np.mean(d):+.2f} | {max(d, key=abs):+.2f} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
+def _table_from_json(path: str) -> None:
+    """Print the tables of a ``--json`` file again (``python bench_motion_passes.py --table OUT.json``)."""
+    print(table(json.loads(Path(path).read_text())))
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    if sys.argv[1:2] == ["--table"]:
+        _table_from_json(sys.argv[2])
+    else:
+        main()
