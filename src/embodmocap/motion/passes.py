@@ -114,8 +114,8 @@ class PassContext:
     layout: str = "COCO17"
     fps: float = 30.0
     gender: str | None = None
-    priors: Mapping = None
-    cameras: Mapping = None
+    priors: Mapping | None = None
+    cameras: Mapping | None = None
     quality_of: Callable | None = None
 
 
