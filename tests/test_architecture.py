@@ -250,10 +250,7 @@ def test_no_import_cycles_between_modules():
 #: Packages every package may import (the foundation row of the table).
 FOUNDATION = ("errors", "types", "logs", "progress", "device")
 #: Imports the table does not allow yet, and why they are still there.
-KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {
-    ("perception", "sequence"): "registry.make() defaults its settings to Stage II's SequenceConfig (the backends "
-                                "read its model fields); to go: those fields moved into perception/config.py",
-}
+KNOWN_EXCEPTIONS: dict[tuple[str, str], str] = {}
 
 
 def allowed_imports(doc: Path) -> dict[str, set[str] | None]:
@@ -332,7 +329,6 @@ JSON_READERS = {
     "embodmocap/sim/commands.py": "a training run's run.json (sim's own run folder)",
     "embodmocap/sim/skill_train.py": "a training run's run.json (sim's own run folder)",
     "embodmocap/sim/train.py": "a training run's run.json (sim's own run folder)",
-    "embodmocap/skills/files.py": "skills.json's typed, versioned reader itself (it needs skills.boxes)",
     "embodmocap/viz/browser.py": "the browser's DevTools messages",
 }
 #: Names of a session folder in the code (``<name> / "..."`` builds a path under it).

@@ -205,3 +205,16 @@ def test_hub_unreachable_uses_the_cache_or_says_id_cache_and_fetch_command(tmp_p
     assert error.startswith("tiny-org/absent: not a local folder, and it could not be downloaded into the Hugging Face "
                             f"cache {cache}")
     assert "ConnectError" in error and "`hf download tiny-org/absent`" in error
+
+
+def test_the_registrys_default_model_sources_are_stage_twos():
+    """registry.make's default settings (perception.config.ModelSources, so that perception needs no
+    import of sequence) hold Stage II's defaults for every field the backends read."""
+    from dataclasses import fields
+
+    from embodmocap.perception.config import ModelSources
+    from embodmocap.sequence.config import SequenceConfig
+
+    ours, stage2 = ModelSources(), SequenceConfig()
+    for f in fields(ModelSources):
+        assert getattr(ours, f.name) == getattr(stage2, f.name), f.name

@@ -14,16 +14,14 @@ trimesh = pytest.importorskip("trimesh")
 
 from embodmocap.errors import InputError  # noqa: E402
 from embodmocap.geometry.transforms import apply_T, invert_T, make_T, rot_z  # noqa: E402
+from embodmocap.io.colmap import colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap  # noqa: E402
+from embodmocap.scene.adjust import _fit_similarity  # noqa: E402
 from embodmocap.scene.sfm import (  # noqa: E402
     SfmConfig,
-    _fit_similarity,
     build_sparse_model,
-    colmap_camera_params,
     colmap_intrinsics,
     image_poses,
-    intrinsics_from_colmap,
     overlap_matrix,
-    pixels_from_colmap,
     read_sparse_model,
     select_pairs,
     sparse_points,

@@ -13,7 +13,7 @@ import torch
 
 from embodmocap.body.model import load_body_model
 from embodmocap.skills.config import SkillsConfig
-from embodmocap.skills.files import FORMAT, read_skills
+from embodmocap.io.stage_files import SKILLS_FORMAT as FORMAT, read_skills
 from embodmocap.skills.stage import clips_of_motion
 from skills_truth import FPS, bed_seeds, corner_error, match, scripted, surface_corners
 
@@ -241,7 +241,7 @@ def test_viewer_draws_the_clip_boxes_and_lists_the_clips(tmp_path_factory, body)
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.skills.contact import find_surfaces
-    from embodmocap.skills.files import SkillClip, SkillObject, SkillsFile, SkillTarget, write_skills
+    from embodmocap.io.stage_files import SkillClip, SkillObject, SkillsFile, SkillTarget, write_skills
     from embodmocap.viz.skills_layer import SKILL_RGB
     from embodmocap.viz.viewer import ViewerConfig, serve
     from stage4_session import SYNTH, make_stage4_session

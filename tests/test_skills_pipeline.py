@@ -11,7 +11,7 @@ pytest.importorskip("mujoco")
 
 import embodmocap.sim  # noqa: E402,F401  (registers the environments)
 from embodmocap.skills import tasks  # noqa: E402
-from embodmocap.skills.files import read_skills  # noqa: E402
+from embodmocap.io.stage_files import read_skills  # noqa: E402
 from embodmocap.skills.stage import find_skills  # noqa: E402
 from skill_session import make_skill_session  # noqa: E402
 from skills_truth import bed_seeds  # noqa: E402

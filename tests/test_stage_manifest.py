@@ -48,32 +48,3 @@ def test_corrupt_or_foreign_manifest_means_redo(tmp_path):
     assert not StageManifest(man, "scene", {}).is_current("x", "fp")
 
 
-def test_a_file_completed_downstream_is_not_a_change_behind_the_upstream_stage(tmp_path):
-    """Stage III completes Stage II's sync.json: Stage II must not redo its step, Stage III must
-    not refuse to run; a change made by anyone else is still caught."""
-    import pytest
-
-    from embodmocap.errors import InputError
-    from embodmocap.io.stage_manifest import Upstream, amend_output, require_upstream
-
-    seq = tmp_path / "sequences" / "seq0"
-    seq.mkdir(parents=True)
-    sync = seq / "sync.json"
-    sync.write_text(json.dumps({"chosen": {"final": False}}))
-    up = StageManifest(seq / "manifest.json", "sequence", {"a": 1}, root=tmp_path)
-    up.record("sync", "fp-sync", [sync], 0.1)
-    up.finish("ok")
-    upstream = Upstream(seq / "manifest.json", "sequence", "embodmocap sequence S")
-    require_upstream(upstream)
-
-    sync.write_text(json.dumps({"chosen": {"final": True}}))  # Stage III's choice
-    with pytest.raises(InputError, match="sync.json"):
-        require_upstream(upstream)  # unannounced: caught
-    amend_output(seq / "manifest.json", sync)
-    require_upstream(upstream)  # announced: fine
-    again = StageManifest(seq / "manifest.json", "sequence", {"a": 1}, root=tmp_path)
-    assert again.is_current("sync", "fp-sync")  # Stage II does not redo (and undo) the sync
-
-    sync.write_text(json.dumps({"chosen": {"final": "edited by hand"}}))
-    assert not again.is_current("sync", "fp-sync")
-    amend_output(tmp_path / "missing.json", sync)  # no manifest: nothing to amend, no error

@@ -329,7 +329,7 @@ def _skills_section(page: _Page, path: Path, seq: str) -> None:
     """The skill clips (``embodmocap skills``), when found: a timeline and one row per clip."""
     if not path.is_file():
         return
-    from embodmocap.skills.files import read_skills
+    from embodmocap.io.stage_files import read_skills
 
     try:
         sf = read_skills(path)

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence, Union
+from dataclasses import fields
+from typing import Iterable, Iterator, Mapping, Sequence, Union
 
 import numpy as np
 
@@ -106,3 +107,47 @@ def check_finite(path: str | Path, arrays: Mapping[str, np.ndarray], keys: Itera
     bad = [k for k in keys if arrays.get(k) is not None and not np.isfinite(np.asarray(arrays[k], dtype=float)).all()]
     if bad:
         raise InputError(path, f"non-finite values in {', '.join(bad)}", fix)
+
+
+class NpzRecord:
+    """``np.load``-like access to a dataclass whose field names are a file's keys (the typed
+    records of :mod:`embodmocap.io.stage_files` and :mod:`embodmocap.io.stage_json`)."""
+
+    def __getitem__(self, key: str):
+        value = getattr(self, key, None) if key in self._names() else None
+        if value is None:
+            raise KeyError(f"{key} is not a file in the archive")
+        return value
+
+    def __contains__(self, key: object) -> bool:
+        return isinstance(key, str) and key in self._names() and getattr(self, key) is not None
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.files)
+
+    def keys(self) -> list[str]:
+        return self.files
+
+    def items(self) -> list[tuple[str, np.ndarray]]:
+        return [(k, getattr(self, k)) for k in self.files]
+
+    def get(self, key: str, default=None):
+        return self[key] if key in self else default
+
+    @property
+    def files(self) -> list[str]:
+        """The keys present (as ``NpzFile.files``)."""
+        return [k for k in self._names() if getattr(self, k) is not None]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The keys present and their arrays (what the writer stores)."""
+        return {k: getattr(self, k) for k in self.files}
+
+    @classmethod
+    def _names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
+
+
+def record_fields(cls, data: dict) -> dict:
+    """The dataclass's fields from a file's arrays (None for the keys the file lacks)."""
+    return {f.name: data.get(f.name) for f in fields(cls)}

@@ -22,23 +22,36 @@ Attribute names are the files' key names, and every dataclass also answers ``obj
 absent from the file are None and not "in" it), so code written against ``np.load`` switches to a
 checked reader by changing only its load line.
 
+The JSON hand-over files (``sync.json``, ``frame_map.json``, ``calibration.json``, ``keyframes.json``,
+the stage manifests' records, ``skills.json``) have their readers and writers in
+:mod:`embodmocap.io.stage_json`, imported from here as well.
+
 The sequence frame rate lives in Stage II's ``cameras.npz`` (key ``fps``); :func:`sequence_fps`
 reads it, and falls back to Stage II's manifest figure for files written before the key existed.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
 
 from embodmocap.errors import InputError
-from embodmocap.io.atomic import write_json, write_npz
+from embodmocap.io.atomic import write_npz
 from embodmocap.io.layout import SequenceLayout
-from embodmocap.io.npz_file import check_finite, check_shapes, load_npz
+from embodmocap.io.npz_file import NpzRecord, check_finite, check_shapes, load_npz, record_fields
+# The JSON hand-over files (sync, frame maps, calibration, key frames, manifests' records, skills):
+# their own module, re-exported here so that every hand-over file reads from one place.
+from embodmocap.io.stage_json import (CALIBRATION_VERSIONS, EVALUATION_VERSIONS, FRAME_MAP_VERSION,  # noqa: F401
+                                      KEYFRAMES_VERSIONS, MAX_STAGE_JSON_BYTES, SKILLS, SKILLS_FORMAT,
+                                      SYNC_RECORD_VERSION, SYNC_VERSIONS, CalibrationFile, FrameMap, KeyframesFile,
+                                      SkillClip, SkillObject, SkillsFile, SkillTarget, StageManifestRecord, SyncFile,
+                                      read_calibration, read_evaluation, read_final_sync, read_frame_map,
+                                      read_keyframes, read_report_json, read_skills, read_stage_record, read_sync,
+                                      skills_to_json, write_calibration, write_frame_map, write_keyframes, write_skills,
+                                      write_sync)
 from embodmocap.io.smpl_file import read_smpl_npz, read_smpl_valid, write_smpl_npz  # noqa: F401 (SMPL motion)
 
 CameraForm = Literal["cameras", "cameras_world", "cameras_final"]
@@ -58,55 +71,12 @@ def _fix(path: Path, kind: str) -> str:
     return f"run `embodmocap {_WRITER[kind]} SESSION --seq {seq or 'NAME'}` to write it again"
 
 
-class _FileRecord:
-    """``np.load``-like access to a dataclass whose field names are a file's keys."""
-
-    def __getitem__(self, key: str):
-        value = getattr(self, key, None) if key in self._names() else None
-        if value is None:
-            raise KeyError(f"{key} is not a file in the archive")
-        return value
-
-    def __contains__(self, key: object) -> bool:
-        return isinstance(key, str) and key in self._names() and getattr(self, key) is not None
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.files)
-
-    def keys(self) -> list[str]:
-        return self.files
-
-    def items(self) -> list[tuple[str, np.ndarray]]:
-        return [(k, getattr(self, k)) for k in self.files]
-
-    def get(self, key: str, default=None):
-        return self[key] if key in self else default
-
-    @property
-    def files(self) -> list[str]:
-        """The keys present (as ``NpzFile.files``)."""
-        return [k for k in self._names() if getattr(self, k) is not None]
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The keys present and their arrays (what the writer stores)."""
-        return {k: getattr(self, k) for k in self.files}
-
-    @classmethod
-    def _names(cls) -> tuple[str, ...]:
-        return tuple(f.name for f in fields(cls))  # type: ignore[arg-type]
-
-
-def _take(cls, data: dict) -> dict:
-    """The dataclass's fields from a file's arrays (None for the keys the file lacks)."""
-    return {f.name: data.get(f.name) for f in fields(cls)}
-
-
 # ------------------------------------------------------------------------------------------------
 # Cameras: Stage II (VIO world), Stage III (scene world), Stage IV (after the contact alignment)
 
 
 @dataclass(frozen=True, eq=False)
-class CameraFile(_FileRecord):
+class CameraFile(NpzRecord):
     """One view's per-frame cameras, in one of three forms (``docs/formats.md``).
 
     Attributes:
@@ -172,7 +142,7 @@ def read_cameras(path: str | Path, form: CameraForm | None = None) -> CameraFile
     d = load_npz(path, what=f"{form}.npz", fix=fix, required=_CAMERA_FORM_KEYS[form])
     check_shapes(path, d, _CAMERA_SHAPES, fix)
     check_finite(path, d, ("K", "T_world_cam"), fix)
-    return CameraFile(**_take(CameraFile, d))
+    return CameraFile(**record_fields(CameraFile, d))
 
 
 def write_cameras(path: str | Path, cams: CameraFile) -> Path:
@@ -208,7 +178,7 @@ def sequence_fps(seq_root_or_cameras) -> float:
 
 
 @dataclass(frozen=True, eq=False)
-class Keypoints2DFile(_FileRecord):
+class Keypoints2DFile(NpzRecord):
     """The performer's 2D keypoints of one view.
 
     Attributes:
@@ -239,7 +209,7 @@ def read_keypoints2d(path: str | Path) -> Keypoints2DFile:
     d.setdefault("layout", np.array("COCO17"))
     check_shapes(path, d, {"keypoints": ("T", 17, 3), "boxes": ("T", 4), "raw_frames": ("T",), "seen": ("T",),
                            "track_id": (), "layout": ()}, fix)
-    return Keypoints2DFile(**_take(Keypoints2DFile, d))
+    return Keypoints2DFile(**record_fields(Keypoints2DFile, d))
 
 
 def write_keypoints2d(path: str | Path, kp: Keypoints2DFile) -> Path:
@@ -252,7 +222,7 @@ def write_keypoints2d(path: str | Path, kp: Keypoints2DFile) -> Path:
 
 
 @dataclass(frozen=True, eq=False)
-class RegistrationFile(_FileRecord):
+class RegistrationFile(NpzRecord):
     """Registration of a view's sampled frames into the scene model (``docs/formats.md``).
 
     Attributes:
@@ -303,7 +273,7 @@ def read_registration(path: str | Path) -> RegistrationFile:
                            "inliers": ("R",), "reproj_error_px": ("R",), "match_frames": ("M",),
                            "match_xy": ("M", 2), "match_xyz": ("M", 3), "accepted": ("R",), "run": ("R",),
                            "off_chain": ("R",)}, fix)
-    return RegistrationFile(**_take(RegistrationFile, d))
+    return RegistrationFile(**record_fields(RegistrationFile, d))
 
 
 def write_registration(path: str | Path, reg: RegistrationFile) -> Path:
@@ -316,7 +286,7 @@ def write_registration(path: str | Path, reg: RegistrationFile) -> Path:
 
 
 @dataclass(frozen=True, eq=False)
-class Keypoints3DFile(_FileRecord):
+class Keypoints3DFile(NpzRecord):
     """Triangulated COCO-17 keypoints (``docs/formats.md``, ``keypoints3d.npz``).
 
     Attributes:
@@ -351,7 +321,7 @@ def read_keypoints3d(path: str | Path) -> Keypoints3DFile:
     check_shapes(path, d, {"points": ("T", 17, 3), "conf": ("T", 17), "reproj_err_px": ("T", 17, "V"),
                            "filled": ("T", 17), "views": ("V",), "keypoints2d": ("T", "V", 17, 3),
                            "swapped": ("T", "V", "G"), "swap_groups": ("G",)}, fix)
-    return Keypoints3DFile(**_take(Keypoints3DFile, d))
+    return Keypoints3DFile(**record_fields(Keypoints3DFile, d))
 
 
 def write_keypoints3d(path: str | Path, k3: Keypoints3DFile) -> Path:
@@ -360,7 +330,7 @@ def write_keypoints3d(path: str | Path, k3: Keypoints3DFile) -> Path:
 
 
 @dataclass(frozen=True, eq=False)
-class WorldJointsFile(_FileRecord):
+class WorldJointsFile(NpzRecord):
     """Joints of the final body (``joints_world.npz``).
 
     Attributes:
@@ -383,295 +353,9 @@ def read_world_joints(path: str | Path) -> WorldJointsFile:
     d = load_npz(path, what="joints_world.npz", fix=fix, required=("joints", "coco17"))
     d.setdefault("frames", np.arange(len(d["joints"]), dtype=np.int64))
     check_shapes(path, d, {"joints": ("T", 24, 3), "coco17": ("T", 17, 3), "frames": ("T",)}, fix)
-    return WorldJointsFile(**_take(WorldJointsFile, d))
+    return WorldJointsFile(**record_fields(WorldJointsFile, d))
 
 
 def write_world_joints(path: str | Path, wj: WorldJointsFile) -> Path:
     write_npz(path, **wj.arrays())
     return Path(path)
-
-
-
-# ------------------------------------------------------------------------------------------------
-# JSON hand-over files: key frames (Stage I), sync and frame maps (Stage II), calibration and the
-# final sync (Stage III), and the stage manifests' records. Each is written by one stage only.
-
-#: Largest hand-over JSON read (a frame map of a 10-minute 60 fps sequence is a few MB).
-MAX_STAGE_JSON_BYTES = 256 << 20
-#: Version Stage II writes in ``sync.json`` and Stage III in ``final_sync.json``; version-1 files
-#: (before the geometric sync) still read.
-SYNC_RECORD_VERSION = 2
-SYNC_VERSIONS = (1, SYNC_RECORD_VERSION)
-#: Versions of ``calibration.json``, ``keyframes.json`` and ``frame_map.json`` this reader knows.
-CALIBRATION_VERSIONS = (1,)
-KEYFRAMES_VERSIONS = (1,)
-FRAME_MAP_VERSION = 1
-
-
-def _read_doc(path: str | Path, what: str, fix: str, versions: tuple = ()) -> dict:
-    """A hand-over JSON object (bounded read), its ``version`` one of ``versions`` when given."""
-    from embodmocap.io.jsonfile import read_json
-
-    doc = read_json(path, max_bytes=MAX_STAGE_JSON_BYTES, what=what, fix=fix)
-    if not isinstance(doc, dict):
-        raise InputError(path, f"{what} is not a JSON object", fix)
-    if versions and doc.get("version") not in versions:
-        raise InputError(path, f"{what} is version {doc.get('version')!r}; this package reads version "
-                         f"{' or '.join(map(str, versions))}", fix)
-    return doc
-
-
-def _seq_fix(path: Path, command: str) -> str:
-    return f"run `embodmocap {command} SESSION --seq {Path(path).parent.name or 'NAME'}` to write it again"
-
-
-@dataclass(frozen=True, eq=False)
-class SyncFile:
-    """A sync record: Stage II's ``sync.json`` (laser and manual sources, the slicing) or Stage III's
-    ``final_sync.json`` (the same plus the geometric source, the agreement and the final ``chosen``;
-    ``docs/formats.md``).
-
-    Attributes:
-        version: 1 or 2.
-        views: view -> its slicing event (``frame``, ``confidence``, ``method``, ...).
-        record: the whole JSON object as written.
-    """
-
-    version: int
-    views: dict
-    record: dict
-
-    @property
-    def chosen(self) -> dict:
-        return self.record.get("chosen") or {}
-
-    @property
-    def final(self) -> bool:
-        """Stage III made the final choice (``final_sync.json``, or an older session's ``sync.json``)."""
-        return bool(self.chosen.get("final"))
-
-    @property
-    def residual_s(self) -> float:
-        """The offset Stage IV applies to the second view on top of the slicing, seconds (0 for
-        version-1 records and where none was chosen)."""
-        if self.version != SYNC_RECORD_VERSION:
-            return 0.0
-        r = self.chosen.get("residual_s", 0.0)
-        return float(r) if r is not None and np.isfinite(float(r)) else 0.0
-
-
-def read_sync(path: str | Path) -> SyncFile:
-    """Read and check a sync record (``sync.json`` or ``final_sync.json``)."""
-    path = Path(path)
-    final = path.name == "final_sync.json"
-    fix = _seq_fix(path, "calibrate" if final else "sequence")
-    doc = _read_doc(path, path.name, fix, SYNC_VERSIONS)
-    if not isinstance(doc.get("views"), dict):
-        raise InputError(path, f"{path.name} has no `views` object", fix)
-    return SyncFile(int(doc["version"]), doc["views"], doc)
-
-
-def read_final_sync(seq) -> SyncFile:
-    """The sequence's final sync: Stage III's ``final_sync.json``, or, in sessions written before
-    that file existed, ``sync.json`` (which Stage III then completed in place).
-
-    Args:
-        seq: the sequence's :class:`~embodmocap.io.layout.SequenceLayout`.
-    """
-    return read_sync(seq.final_sync if seq.final_sync.is_file() else seq.sync)
-
-
-def write_sync(path: str | Path, record: dict) -> Path:
-    """Write a sync record atomically (Stage II: ``sync.json``; Stage III: ``final_sync.json``)."""
-    write_json(path, record)
-    return Path(path)
-
-
-@dataclass(frozen=True)
-class FrameMap:
-    """Map from sequence frames to the raw frames of one view (``frame_map.json``).
-
-    Attributes:
-        seq_times_s: (T,) float64 time of each sequence frame, seconds after the sync event.
-        raw_frames: (T,) int64 raw frame index of this view nearest to each sequence time.
-        dt_s: (T,) float64 ``|raw frame time - sequence time|``, seconds.
-        dropped: (T,) bool, the nearest raw frame is more than half a frame period away (the
-            frame that belonged there was dropped); the raw frame is still the nearest one.
-        event_frame: raw frame index of the view's sync event (sequence time 0).
-        event_time_s: the view's own timestamp of the event frame, seconds (its raw clock).
-        fps: frame rate of the sequence timeline.
-    """
-
-    seq_times_s: NDArray[np.float64]
-    raw_frames: NDArray[np.int64]
-    dt_s: NDArray[np.float64]
-    dropped: NDArray[np.bool_]
-    event_frame: int = 0
-    event_time_s: float = 0.0
-    fps: float = 30.0
-
-    def __post_init__(self) -> None:
-        for name, dtype in (("seq_times_s", np.float64), ("raw_frames", np.int64), ("dt_s", np.float64), ("dropped", np.bool_)):
-            a = np.array(getattr(self, name), dtype=dtype, copy=True)
-            a.setflags(write=False)
-            object.__setattr__(self, name, a)
-        n = len(self.seq_times_s)
-        if any(getattr(self, k).shape != (n,) for k in ("raw_frames", "dt_s", "dropped")):
-            raise ValueError("frame map arrays must all be (T,)")
-
-    def __len__(self) -> int:
-        return len(self.seq_times_s)
-
-    @property
-    def num_dropped(self) -> int:
-        return int(self.dropped.sum())
-
-
-def write_frame_map(path: str | Path, fm: FrameMap) -> Path:
-    """Write a view's ``frame_map.json`` atomically."""
-    write_json(path, {
-        "version": FRAME_MAP_VERSION, "fps": fm.fps, "event_frame": fm.event_frame, "event_time_s": fm.event_time_s,
-        "num_frames": len(fm), "seq_times_s": fm.seq_times_s.tolist(), "raw_frames": fm.raw_frames.tolist(),
-        "dt_s": fm.dt_s.tolist(), "dropped": fm.dropped.tolist(),
-    })
-    return Path(path)
-
-
-def read_frame_map(path: str | Path) -> FrameMap:
-    """Read and check a view's ``frame_map.json``."""
-    path = Path(path)
-    fix = "delete the file to redo the slicing"
-    obj = _read_doc(path, "frame_map.json", fix, (FRAME_MAP_VERSION,))
-    try:
-        fm = FrameMap(np.asarray(obj["seq_times_s"], float), np.asarray(obj["raw_frames"], np.int64),
-                      np.asarray(obj["dt_s"], float), np.asarray(obj["dropped"], bool),
-                      int(obj["event_frame"]), float(obj["event_time_s"]), float(obj["fps"]))
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(path, f"malformed frame map: {err}", fix) from err
-    if len(fm) != obj.get("num_frames", len(fm)):
-        raise InputError(path, f"frame map holds {len(fm)} frames but says num_frames = {obj['num_frames']}", fix)
-    return fm
-
-
-@dataclass(frozen=True, eq=False)
-class CalibrationFile:
-    """Stage III's ``calibration.json``: per-view offsets and the residual report (``docs/formats.md``).
-
-    Attributes:
-        version: 1.
-        views: view -> its record (``T_world_vio`` (4, 4) as lists, ``refine_shift_m``, ``drift``, ...).
-        warnings: the report's warnings.
-        record: the whole JSON object as written.
-    """
-
-    version: int
-    views: dict
-    warnings: list
-    record: dict
-
-    def T_world_vio(self, view: str) -> NDArray[np.float64]:
-        """(4, 4) the view's refined offset (its VIO world in the scene's world)."""
-        return np.asarray(self.views[view]["T_world_vio"], dtype=np.float64)
-
-
-def read_calibration(path: str | Path) -> CalibrationFile:
-    """Read and check ``calibration.json`` (every view with a (4, 4) ``T_world_vio``)."""
-    path = Path(path)
-    fix = _seq_fix(path, "calibrate")
-    doc = _read_doc(path, "calibration.json", fix, CALIBRATION_VERSIONS)
-    views = doc.get("views")
-    if not isinstance(views, dict):
-        raise InputError(path, "calibration.json has no `views` object", fix)
-    for v, rec in views.items():
-        try:
-            ok = np.asarray(rec["T_world_vio"], dtype=np.float64).shape == (4, 4)
-        except (KeyError, TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise InputError(path, f"view {v} has no 4x4 `T_world_vio`", fix)
-    return CalibrationFile(int(doc["version"]), views, list(doc.get("warnings", [])), doc)
-
-
-def write_calibration(path: str | Path, report: dict) -> Path:
-    """Write ``calibration.json`` atomically (Stage III's ``refine`` step)."""
-    write_json(path, report)
-    return Path(path)
-
-
-@dataclass(frozen=True, eq=False)
-class KeyframesFile(_FileRecord):
-    """Stage I's ``keyframes.json``: the scene capture's key frames.
-
-    Attributes:
-        version: 1.
-        frame_ids: (K,) capture frames chosen.
-        T_world_cam: (K, 4, 4) their poses (VIO world).
-        sharpness: (K,) their sharpness.
-        record: the whole JSON object as written (``capture``, ``indoor``, ...).
-    """
-
-    version: int
-    frame_ids: NDArray[np.int64]
-    T_world_cam: NDArray[np.float64]
-    sharpness: NDArray[np.float64]
-    record: dict
-
-
-def read_keyframes(path: str | Path) -> KeyframesFile:
-    """Read and check ``keyframes.json``."""
-    path = Path(path)
-    fix = f"re-run `embodmocap scene SESSION --scene {path.parent.name or 'NAME'}`"
-    data = _read_doc(path, "keyframes.json", fix, KEYFRAMES_VERSIONS)
-    try:
-        return KeyframesFile(int(data["version"]), np.asarray(data["frame_ids"], dtype=np.int64),
-                             np.asarray(data["T_world_cam"], dtype=np.float64).reshape(-1, 4, 4),
-                             np.asarray(data["sharpness"], dtype=np.float64), data)
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(path, f"malformed keyframes.json ({err})", fix) from err
-
-
-def write_keyframes(path: str | Path, record: dict) -> Path:
-    """Write ``keyframes.json`` atomically (Stage I's ``keyframes`` step)."""
-    write_json(path, record)
-    return Path(path)
-
-
-@dataclass(frozen=True)
-class StageManifestRecord:
-    """What other modules read of a stage manifest (``manifest.json``, ``calibrate_manifest.json``,
-    ``motion_manifest.json``, the downstream commands' ``manifest.json``): written by
-    :class:`embodmocap.io.stage_manifest.StageManifest` only.
-
-    Attributes:
-        stage: the stage's name; status: ``ok``, ``failed``, ``running``, ``interrupted``.
-        config: the resolved settings; figures: the quality figures; steps: one record per step.
-    """
-
-    stage: str
-    status: str
-    config: dict
-    figures: dict
-    steps: dict
-
-
-def read_stage_record(path: str | Path) -> StageManifestRecord:
-    """Read a stage manifest's record (any manifest version: missing parts are empty)."""
-    doc = _read_doc(path, "stage manifest", "run the stage again to rewrite it")
-    from_doc = {k: doc.get(k) if isinstance(doc.get(k), dict) else {} for k in ("config", "figures", "steps")}
-    return StageManifestRecord(str(doc.get("stage", "")), str(doc.get("status", "")), **from_doc)
-
-
-#: Versions of ``evaluation.json`` (``embodmocap evaluate``) this reader knows.
-EVALUATION_VERSIONS = (1,)
-
-
-def read_evaluation(path: str | Path) -> dict:
-    """``evaluation.json``, checked for its version (``embodmocap evaluate`` writes it; keys:
-    ``docs/formats.md``, "Evaluation keys")."""
-    return _read_doc(path, "evaluation.json", "run `embodmocap evaluate SESSION` to write it again", EVALUATION_VERSIONS)
-
-
-def read_report_json(path: str | Path, what: str, command: str) -> dict:
-    """A downstream command's JSON report (``robot_report.json``, ``sim_check.json``), bounded;
-    ``command`` is what writes it again."""
-    return _read_doc(path, what, f"run `{command}` to write it again")

@@ -350,39 +350,6 @@ def _changed_outputs(manifest: Path, rec: dict) -> list[str]:
     return bad
 
 
-def amend_output(manifest: str | Path, output: str | Path) -> None:
-    """Record the new content of ``output`` in the (upstream) stage manifest that lists it.
-
-    A few files are started by one stage and completed by the next: Stage II writes ``sync.json``
-    with the laser events, Stage III adds the geometric sync and the final choice. Without this the
-    completed file would look changed behind Stage II's back: Stage II would redo its sync (undoing
-    Stage III's choice) and every stage after it would refuse to run. Only the recorded fingerprint
-    of that one file changes; a manifest that is missing, unreadable or of another version is left
-    alone (it says nothing about the run anyway, see :func:`require_upstream`).
-    """
-    path = Path(_abspath(manifest))
-    if not path.is_file():
-        return
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError, RecursionError):
-        return
-    if not isinstance(data, dict) or data.get("version") != MANIFEST_VERSION:
-        return
-    target = _abspath(output)
-    changed = False
-    for rec in (data.get("steps") or {}).values():
-        if not isinstance(rec, dict):
-            continue
-        fps = rec.setdefault("output_fingerprints", {})
-        for o in rec.get("outputs", []):
-            if _abspath(_resolve(path, o)) == target:
-                fps[o] = fingerprint(path_fingerprint(target))
-                changed = True
-    if changed:
-        write_json(path, data)
-
-
 def require_upstream(up: Upstream) -> None:
     """Refuse to go on when an upstream stage failed, did not finish, or is out of date.
 

@@ -258,6 +258,9 @@ class MotionConfig:
     """A frame whose prior-started body is this much further (median over the triangulated joints)
     from the 3D keypoints than the keypoint-started body starts from the keypoints instead and
     gets no pull towards the prior's pose: the triangulation wins."""
+    prefer_keypoints: bool = True
+    """Apply ``prior_disagree_m`` (the ``prefer_keypoints`` pass of :mod:`embodmocap.motion.passes`);
+    False: a prior-started body keeps the prior's start and pull in every frame."""
     prior_limb_disagree_m: float = 0.0
     """Per limb, as ``prior_disagree_m`` per frame: where the prior body's elbow and wrist (knee and
     ankle) are this much further from their 3D keypoints than the keypoint-started body's (mean

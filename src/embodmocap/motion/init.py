@@ -144,3 +144,44 @@ def snap_to_keypoints(model: BodyModel, params: SmplParams, points: NDArray, con
     from dataclasses import replace
 
     return replace(params, transl=np.asarray(params.transl) + shift)
+
+
+def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_conf: float, margin_m: float,
+                     layout: str = "COCO17"):
+    """``init`` with the frames where it is more than ``margin_m`` further from the 3D keypoints
+    than ``kp_init`` (median over the triangulated joints) taken from ``kp_init``; and those frames
+    (T,) bool. Betas stay ``init``'s."""
+    import torch
+    from dataclasses import replace
+
+    from embodmocap.body.joints import smpl_to_coco17
+
+    seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
+
+    def err(p):
+        with torch.no_grad():
+            out = model.from_params(p, dtype=torch.float64)
+            kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
+        n = seen.sum(1)
+        # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).
+        d = np.sort(np.where(seen, d, np.inf), axis=1)
+        mid = np.take_along_axis(d, np.clip((n - 1) // 2, 0, None)[:, None], 1)[:, 0]
+        mid2 = np.take_along_axis(d, np.clip(n // 2, 0, None)[:, None], 1)[:, 0]
+        return np.where(n > 0, 0.5 * (mid + np.where(n > 0, mid2, 0.0)), 0.0)
+
+    kp_same_shape = replace(kp_init, betas=init.betas,
+                            transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))
+    worse = err(init) > err(kp_same_shape) + margin_m
+    if not worse.any():
+        return init, worse
+    pick = lambda a, b: np.where(worse.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
+    return replace(init, global_orient=pick(init.global_orient, kp_same_shape.global_orient),
+                   body_pose=pick(init.body_pose, kp_same_shape.body_pose),
+                   transl=pick(init.transl, kp_same_shape.transl)), worse
+
+
+def with_fps(params, fps: float, gender: str | None):
+    from dataclasses import replace
+
+    return replace(params, fps=float(fps), gender=gender or params.gender)

@@ -2,7 +2,7 @@
 
 Stage IV pulls the fit towards a body prior's pose (a monocular regressor's, one view) frame by
 frame, and drops the pull in frames whose prior-started body is far from the triangulated points
-(:func:`embodmocap.motion.solve.prefer_keypoints`: the median over the frame's joints). A single
+(:func:`embodmocap.motion.init.prefer_keypoints`: the median over the frame's joints). A single
 limb the regressor got wrong (an arm the prior's view does not see) leaves that median alone, so
 the pull stays on the whole pose and bends the limb away from where both views put it: on the
 studio's hard outdoor seed 3 the left wrist sat 10-20 cm off for 10 frames where its 3D keypoints

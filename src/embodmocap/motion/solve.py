@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -30,11 +30,11 @@ from embodmocap.io.layout import VIEWS
 from embodmocap.io.stage_files import CameraFile, Keypoints3DFile, WorldJointsFile
 from embodmocap.motion.config import MotionConfig
 from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
-from embodmocap.motion.init import init_from_keypoints, init_from_prior, snap_to_keypoints
-from embodmocap.motion.label_track import TRACKED_GROUPS, track_labels
+from embodmocap.motion.init import prefer_keypoints, with_fps  # noqa: F401 (prefer_keypoints re-exported)
+from embodmocap.motion.label_track import TRACKED_GROUPS
+from embodmocap.motion.passes import Evidence, PassContext, carry_edge_limbs, report_of, run_passes
 from embodmocap.motion.smplify import ViewObservations, fit_world_smpl
-from embodmocap.motion.swaps import COCO17_SWAP_GROUPS, fix_swaps
-from embodmocap.motion.temporal import drop_guessed_runs
+from embodmocap.motion.swaps import COCO17_SWAP_GROUPS
 
 log = logging.getLogger(__name__)
 
@@ -61,14 +61,13 @@ def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mappi
             sequence (log lines).
     """
     K = np.stack([cams[v]["K"] for v in VIEWS])
-    P = projection_matrices(K, np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1))
+    T_wc = np.stack([cams[v]["T_world_cam"][:T] for v in VIEWS], axis=1)  # (T, V, 4, 4)
+    P = projection_matrices(K, T_wc)
     kp = np.stack([kps[v][:T] for v in VIEWS], axis=1)  # (T, V, 17, 3)
-    kp, tracked = track_labels(kp, cfg.label_track, P=P)
-    if cfg.fix_swaps:
-        kp, swapped = fix_swaps(P, kp, cfg.triangulation)
-    else:
-        swapped = np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)
-    kp, guessed = drop_guessed_runs(kp, cfg.temporal)
+    # The keypoint passes (label tracking, swaps undone, guessed runs dropped: motion.passes).
+    ev, reports = run_passes("keypoints", Evidence(kp, np.zeros((T, len(VIEWS), len(COCO17_SWAP_GROUPS)), dtype=bool)),
+                             PassContext(cfg, VIEWS, K, T_wc, P=P, label=label))
+    kp, swapped = ev.keypoints2d, ev.swapped
     tri = triangulate(P, kp[..., :2], kp[..., 2], cfg.triangulation)
     file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=tri.points, conf=tri.conf,
                            reproj_err_px=tri.reproj_err_px, filled=tri.filled, views=np.array(VIEWS), keypoints2d=kp,
@@ -78,12 +77,12 @@ def triangulate_views(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mappi
         "triangulated_fraction": round(float(seen.mean()), 4),
         "filled_fraction": round(float(tri.filled.mean()), 4),
         "long_gaps": len(tri.long_gaps),
-        "keypoints_dropped_temporal": int(guessed.sum()),
-        "limb_labels_tracked": {f"{v}_{g}": int(tracked[:, i, k].sum()) for i, v in enumerate(VIEWS)
-                                for k, g in enumerate(TRACKED_GROUPS)},
+        "keypoints_dropped_temporal": report_of(reports, "temporal").get("keypoints_dropped", 0),
+        "limb_labels_tracked": _labels_tracked(reports, VIEWS),
         "triangulation_reproj_px_median": _nanmedian(tri.reproj_err_px),
         **{f"{v}_swaps_undone": {g: int(swapped[:, i, k].sum()) for k, g in enumerate(COCO17_SWAP_GROUPS)}
            for i, v in enumerate(VIEWS)},
+        "keypoint_passes": reports,
     }
     if tri.long_gaps:
         worst = max(tri.long_gaps, key=lambda g: g[2] - g[1])
@@ -108,9 +107,11 @@ def lift_view(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, 
 
     (v,) = cams
     kp = np.asarray(kps[v][:T], dtype=np.float64)[:, None]  # (T, 1, 17, 3)
-    kp, tracked = track_labels(kp, cfg.label_track)
-    kp, guessed = drop_guessed_runs(kp, cfg.temporal)
     K, T_wc = np.asarray(cams[v]["K"]), np.asarray(cams[v]["T_world_cam"])[:T]
+    # The same keypoint passes as before a triangulation (the swap check needs two views).
+    ev, reports = run_passes("keypoints", Evidence(kp, np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), dtype=bool)),
+                             PassContext(cfg, (v,), K[None], T_wc[:, None], label=label))
+    kp = ev.keypoints2d
     min_conf = cfg.triangulation.min_conf
     lifted = lift_keypoints(kp[:, 0], K, T_wc, depth_at, rgb_size, cfg.lift, min_conf, cfg.triangulation.max_gap_frames)
     file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=lifted.points, conf=lifted.conf,
@@ -122,9 +123,10 @@ def lift_view(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, 
         "lifted_fraction": round(float(np.isfinite(lifted.points[..., 0]).mean()), 4),
         "filled_fraction": round(float(lifted.filled.mean()), 4),
         "long_gaps": len(lifted.long_gaps),
-        "keypoints_dropped_temporal": int(guessed.sum()),
-        "limb_labels_tracked": {f"{v}_{g}": int(tracked[:, 0, k].sum()) for k, g in enumerate(TRACKED_GROUPS)},
+        "keypoints_dropped_temporal": report_of(reports, "temporal").get("keypoints_dropped", 0),
+        "limb_labels_tracked": _labels_tracked(reports, (v,)),
         **lift_figures(lifted, kp[:, 0], min_conf),
+        "keypoint_passes": reports,
     }
     log.info("%s: one view: %.0f%% of the 3D keypoints lifted with %s's depth (no triangulation)", label,
              100 * figures["lifted_fraction"], v)
@@ -169,124 +171,48 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in names], axis=1)
     views = [ViewObservations(K=cams[v]["K"], T_world_cam=cams[v]["T_world_cam"][:T], keypoints=kp2d[:, i], name=v)
              for i, v in enumerate(names)]
-    min_conf = cfg.smplify.min_conf
-    points, conf3 = k3["points"], k3["conf"]
-    if cfg.kp3d_conf == "min":
-        # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
-        # the triangulated point along the other view's ray without any reprojection error.
-        c2 = np.nan_to_num(kp2d[..., 2])
-        used = c2 >= cfg.triangulation.min_conf
-        weakest = np.where(used, c2, np.inf).min(axis=1)
-        conf3 = np.where(np.isfinite(weakest), np.minimum(conf3, weakest), conf3)
-    if cfg.bone_tol > 0:
-        from embodmocap.motion.ik import (betas_from_bone_lengths, implausible_points, implausible_torso,
-                                          observed_bone_lengths, rest_skeleton, torso_anchors)
-
-        sk = rest_skeleton(model, layout)
-        seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf3) >= min_conf)
-        b_bones = betas_from_bone_lengths(sk, observed_bone_lengths(points, seen))
-        # Torso points that break the torso's shape first: the limbs are judged from the torso.
-        torso_bad = implausible_torso(sk, b_bones, points, seen, cfg.torso_tol_m)
-        seen = seen & ~torso_bad
-        # An elbow (knee) whose shoulder (hip) was not triangulated is judged against the
-        # shoulder of the torso placed on the other torso points.
-        anchors = torso_anchors(sk, b_bones, points, seen) if cfg.bone_anchor_torso else None
-        gated = implausible_points(sk, b_bones, points, seen, cfg.bone_tol, anchors) | torso_bad
-        conf3 = np.where(gated, 0.0, conf3)
-    else:
-        gated = np.zeros(points.shape[:2], dtype=bool)
-    try:
-        kp_init = init_from_keypoints(model, running_median(points, cfg.init_median_frames), conf3, fps,
-                                      gender or "neutral", min_conf, layout)
-    except ValueError as err:
-        kp_init = None
-        if not priors:
-            raise InputError(source, f"cannot place a starting body in sequence {label}: {err}",
-                             "both views must see the hips and shoulders in some frames; or give a body prior "
-                             "(body_prior in session.toml)") from err
-    prior_pose, v_best, prior_w, n_replaced, n_limbs_gated = None, None, None, 0, 0
-    if priors:
-        v_best = max(priors, key=lambda v: priors[v][1].mean())
-        prior, has = priors[v_best]
-        init = init_from_prior(model, prior, cams[v_best]["T_world_cam"][:T], fps, gender or "neutral")
-        # The prior's depth can be far off; start where the triangulation says the body is.
-        init = snap_to_keypoints(model, init, points, conf3)
-        prior_pose = init.body_pose
-        if kp_init is not None:
-            # Where the prior disagrees with the triangulation (a flipped body, limbs elsewhere),
-            # the triangulation wins: start there from the keypoints, and do not pull to the prior.
-            init, worse = prefer_keypoints(model, init, kp_init, points, conf3, min_conf,
-                                           cfg.prior_disagree_m, layout)
-            prior_w, n_replaced = (~worse).astype(np.float64), int(worse.sum())
-            if cfg.prior_limb_disagree_m > 0:
-                from dataclasses import replace
-
-                from embodmocap.motion.prior_limbs import gate_prior_limbs, limb_columns
-
-                # Only triangulated points judge a limb: points filled over a gap are interpolated,
-                # and where both ends were wrong they contradict a right prior (studio indoor seed 2).
-                measured = points if "filled" not in k3.files else np.where(k3["filled"][..., None], np.nan, points)
-                prior_pose, limbs_gated = gate_prior_limbs(model, prior_pose, init, kp_init, measured, conf3, min_conf,
-                                                           cfg.prior_limb_disagree_m, layout)
-                # The fit starts there too: from the prior's wrong limb it stays in that basin.
-                init = replace(init, body_pose=np.where(limb_columns(limbs_gated), prior_pose, init.body_pose))
-                n_limbs_gated = int(limbs_gated.sum())
-        log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)",
-                 label, v_best, 100 * has.mean(), n_replaced)
-    else:
-        init = kp_init
-    init = with_fps(init, fps, gender)
-    n_propagated = 0
-    if cfg.propagate_limbs:
-        from embodmocap.motion.propagate import propagate_limbs
-        from embodmocap.motion.smplify import KeypointBody
-
-        # Limbs whose start both views and the 3D points reject take the pose carried over from
-        # the frames where the limb fits its evidence.
-        init, carried = propagate_limbs(
-            KeypointBody(model, layout=layout), init, points, conf3, np.stack([cams[v]["K"] for v in names]),
-            np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d, cfg.smplify.kp3d_scale_m,
-            cfg.smplify.reproj_scale_px, min_conf)
-        n_propagated = int(carried.sum())
-    n_turned = 0
-    # Only a keypoint start holds a neighbour's orientation there: a body prior's own estimate for
-    # the frame is kept (measured on the hard outdoor seed: the search from one view with swapped
-    # limbs turned the prior's start up to 115 degrees the wrong way).
-    if cfg.turn_unplaced and not priors and not valid.all():
-        from embodmocap.motion.smplify import KeypointBody
-        from embodmocap.motion.unplaced import turn_unplaced
-
-        # Unplaceable frames hold a neighbour's orientation; face them the way the views that see them say.
-        init, turn = turn_unplaced(
-            KeypointBody(model, layout=layout), init, valid, np.stack([cams[v]["K"] for v in names]),
-            np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1), kp2d, cfg.smplify.reproj_scale_px, min_conf)
-        n_turned = int((turn != 0).sum())
-    res = fit_world_smpl(model, points, conf3, views, init, prior_pose, cfg.smplify, layout=layout,
-                         prior_weight=prior_w, valid=valid)
+    filled = k3["filled"] if "filled" in k3.files else None
+    K, T_wc = np.stack([cams[v]["K"] for v in names]), np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1)
+    ctx = PassContext(cfg, tuple(names), K, T_wc, label=label, source=source, model=model, layout=layout, fps=fps,
+                      gender=gender, priors=priors, cameras=cams,
+                      quality_of=lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T, depth))
+    # The start passes (confidences, bone-length gate, keypoint and prior starts, limbs carried,
+    # unplaceable frames turned: motion.passes), then the fit from their start.
+    ev = Evidence(kp2d, k3["swapped"] if "swapped" in k3.files else None, k3["points"], k3["conf"], filled, valid)
+    ev, reports = run_passes("start", ev, ctx)
+    start, points, conf3 = ev.start, ev.points, ev.conf
+    if start.prior_view:
+        log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)", label,
+                 start.prior_view, 100 * priors[start.prior_view][1].mean(),
+                 report_of(reports, "prefer_keypoints").get("frames_from_keypoints", 0))
+    init = with_fps(start.init, fps, gender)
+    res = fit_world_smpl(model, points, conf3, views, init, start.prior_pose, cfg.smplify, layout=layout,
+                         prior_weight=start.prior_weight, valid=valid)
     # The per-frame quality figures and the suspect flag; with QualityConfig.repair_frames, limbs the
     # views contradict at the edges of placeable runs first take the first fine frame's pose.
     t_quality = time.perf_counter()
-    quality = fit_quality(cfg, model, res.params, layout, cams, kps, kp2d, k3, T, depth)
-    params, n_repaired = repair_run_edges(cfg, model, res.params, valid, layout, cams, kps, k3, T, quality)
-    if n_repaired:
-        quality = fit_quality(cfg, model, params, layout, cams, kps, kp2d, k3, T, depth)
+    fitted, after = run_passes("fitted", replace(ev, params=res.params, quality=ctx.quality_of(res.params)), ctx)
+    params, quality, reports = fitted.params, fitted.quality, reports + after
     t_quality = time.perf_counter() - t_quality
+    v_best = start.prior_view
     figures = {
         "init": f"body prior {v_best}" if v_best else "keypoints",
-        "init_frames_from_keypoints": n_replaced if v_best else int(T),
-        "prior_limbs_from_keypoints": n_limbs_gated,
+        "init_frames_from_keypoints": report_of(reports, "prefer_keypoints").get("frames_from_keypoints", 0)
+        if v_best else int(T),
+        "prior_limbs_from_keypoints": report_of(reports, "prior_limbs").get("limbs_from_keypoints", 0),
         "keypoint_layout": layout,
-        "points_dropped_bone_length": int(gated.sum()),
-        "limb_starts_propagated": n_propagated,
-        "unplaced_frames_turned": n_turned,
+        "points_dropped_bone_length": report_of(reports, "bone_gate").get("points_dropped", 0),
+        "limb_starts_propagated": report_of(reports, "propagate").get("limb_starts", 0),
+        "unplaced_frames_turned": report_of(reports, "turn_unplaced").get("frames_turned", 0),
         "valid_frames": int(valid.sum()), "invalid_frames": int((~valid).sum()),
         "suspect_frames": int((quality.suspect & valid).sum()),
-        "edge_limb_frames_carried": n_repaired,
+        "edge_limb_frames_carried": report_of(reports, "edge_repair").get("limb_frames_carried", 0),
         "terms_before": res.terms_before, "terms_after": res.terms_after,
         **{f"{v}_reproj_px": round(float(res.reproj_px[v]), 3) for v in names},
         "one_view": len(names) == 1,
         "fit_seconds": {**{k: round(float(x), 2) for k, x in res.phase_seconds.items()},
                         "quality": round(t_quality, 2)},
+        "fit_passes": reports,
     }
     if (quality.suspect & valid).any():
         bad = np.flatnonzero(quality.suspect & valid)
@@ -307,13 +233,10 @@ def repair_run_edges(cfg: MotionConfig, model, params, valid: NDArray, layout: s
     when the caller has it."""
     if cfg.quality.repair_frames <= 0:
         return params, 0
-    from embodmocap.motion.edge_repair import repair_edges
-
     names = [v for v in VIEWS if v in cams]
     kp2d = k3["keypoints2d"] if "keypoints2d" in k3.files else np.stack([kps[v][:T] for v in names], axis=1)
-    return repair_edges(params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T).joint_off_m,
-                        cfg.quality.suspect_m, cfg.quality.repair_frames,
-                        None if quality is None else quality.joint_off_m)
+    return carry_edge_limbs(cfg, params, valid, lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T),
+                            quality)
 
 
 def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
@@ -464,25 +387,6 @@ def solve(cfg: MotionConfig, inputs: MotionInputs) -> MotionResult:
     return MotionResult(tri.file, fit, final)
 
 
-def running_median(points: NDArray, frames: int) -> NDArray:
-    """(T, J, 3) points through a centred running median of ``frames`` frames per coordinate,
-    ignoring NaN (a point stays NaN where it was NaN: only the seen ones are replaced)."""
-    if frames <= 1:
-        return points
-    from numpy.lib.stride_tricks import sliding_window_view
-
-    h = frames // 2
-    pad = np.concatenate([np.full((h,) + points.shape[1:], np.nan), points, np.full((h,) + points.shape[1:], np.nan)])
-    win = sliding_window_view(pad, 2 * h + 1, axis=0)  # (T, J, 3, w)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(win, axis=-1)
-    return np.where(np.isfinite(points), med, np.nan)
-
-
 def placeable_frames(path, seq: str, points: NDArray, conf: NDArray, cfg: MotionConfig) -> NDArray[np.bool_]:
     """(T,) frames where the body can be placed (see :attr:`MotionConfig.min_valid_joints`);
     ``path`` is what the error names (``keypoints3d.npz``).
@@ -505,45 +409,10 @@ def placeable_frames(path, seq: str, points: NDArray, conf: NDArray, cfg: Motion
     return (n >= cfg.min_valid_joints) & (torso >= 2)
 
 
-def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_conf: float, margin_m: float,
-                     layout: str = "COCO17"):
-    """``init`` with the frames where it is more than ``margin_m`` further from the 3D keypoints
-    than ``kp_init`` (median over the triangulated joints) taken from ``kp_init``; and those frames
-    (T,) bool. Betas stay ``init``'s."""
-    import torch
-    from dataclasses import replace
-
-    from embodmocap.body.joints import smpl_to_coco17
-
-    seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
-
-    def err(p):
-        with torch.no_grad():
-            out = model.from_params(p, dtype=torch.float64)
-            kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
-        d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
-        n = seen.sum(1)
-        # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).
-        d = np.sort(np.where(seen, d, np.inf), axis=1)
-        mid = np.take_along_axis(d, np.clip((n - 1) // 2, 0, None)[:, None], 1)[:, 0]
-        mid2 = np.take_along_axis(d, np.clip(n // 2, 0, None)[:, None], 1)[:, 0]
-        return np.where(n > 0, 0.5 * (mid + np.where(n > 0, mid2, 0.0)), 0.0)
-
-    kp_same_shape = replace(kp_init, betas=init.betas,
-                            transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))
-    worse = err(init) > err(kp_same_shape) + margin_m
-    if not worse.any():
-        return init, worse
-    pick = lambda a, b: np.where(worse.reshape((-1,) + (1,) * (np.ndim(a) - 1)), b, a)  # noqa: E731
-    return replace(init, global_orient=pick(init.global_orient, kp_same_shape.global_orient),
-                   body_pose=pick(init.body_pose, kp_same_shape.body_pose),
-                   transl=pick(init.transl, kp_same_shape.transl)), worse
-
-
-def with_fps(params, fps: float, gender: str | None):
-    from dataclasses import replace
-
-    return replace(params, fps=float(fps), gender=gender or params.gender)
+def _labels_tracked(reports: list[dict], names) -> dict:
+    """The ``label_track`` pass's counts per view and group (0 where it did not run)."""
+    got = report_of(reports, "label_track").get("labels_tracked", {})
+    return {f"{v}_{g}": got.get(f"{v}_{g}", 0) for v in names for g in TRACKED_GROUPS}
 
 
 def _nanmedian(a: NDArray) -> float | None:

@@ -45,8 +45,7 @@ from embodmocap.io.stage_files import (read_cameras, read_keypoints2d, read_keyp
 from embodmocap.io.stage_manifest import StageManifest, Upstream, tracked_stage
 from embodmocap.motion import solve
 from embodmocap.motion.config import MotionConfig  # noqa: F401 (re-exported: defined in config.py)
-from embodmocap.motion.solve import (KEYPOINTS3D_VERSION, placeable_frames, prefer_keypoints,  # noqa: F401 (re-exported)
-                                     running_median)
+from embodmocap.motion.solve import KEYPOINTS3D_VERSION, placeable_frames, prefer_keypoints  # noqa: F401 (re-exported)
 from embodmocap.motion.steps import STEPS
 from embodmocap.sequence.subframe import synced_views
 

@@ -1,5 +1,6 @@
 """Settings of the perception helpers that Stage II's config holds: :class:`TrackingConfig` (also
-importable from :mod:`embodmocap.perception.tracking`). No model or image library is imported here."""
+importable from :mod:`embodmocap.perception.tracking`) and :class:`ModelSources` (what the model
+backends read). No model or image library is imported here."""
 
 from __future__ import annotations
 
@@ -34,3 +35,24 @@ class TrackingConfig:
     pieces must not hand their identity to the piece's new track)."""
     age_frames: int = 30
     """Observations after which a track gets the full ``age_bonus``."""
+
+
+@dataclass(frozen=True)
+class ModelSources:
+    """What the registry's model backends read of their settings: the model folders or hub ids,
+    the device, offline. Stage II's :class:`~embodmocap.sequence.config.SequenceConfig` has the same
+    fields (documented there) and is what Stage II passes; this is the default of
+    :func:`embodmocap.perception.registry.make` when none is given (same defaults, tested)."""
+
+    detector_model: str = ""
+    """RT-DETR model: a local folder or a hub id; empty = the backend's default."""
+    keypoints_model: str = ""
+    """ViTPose model: a local folder or a hub id; empty = the backend's default."""
+    masks_model: str = ""
+    """SAM 2 model: a local folder or a hub id; empty = the backend's default."""
+    depth_model: str = ""
+    """Prompt Depth Anything model: a local folder or a hub id; empty = the backend's default."""
+    offline: bool = False
+    """Never download model weights."""
+    device: str = "cpu"
+    """cpu or cuda."""

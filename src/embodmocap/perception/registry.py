@@ -145,8 +145,9 @@ def make(role: str, name: str, view=None, config=None, shared: dict | None = Non
         name: a backend name of that role (:func:`names`).
         view: the view's manifest entry (:class:`~embodmocap.io.manifest.ViewEntry`): where the
             precomputed files are; None for model backends.
-        config: the Stage II settings (:class:`~embodmocap.sequence.config.SequenceConfig`): model
-            folders or hub ids, device, offline; None = the defaults.
+        config: the model folders or hub ids, device, offline: Stage II's settings
+            (:class:`~embodmocap.sequence.config.SequenceConfig`) or any object with the fields of
+            :class:`~embodmocap.perception.config.ModelSources`; None = the defaults.
         shared: instances to reuse across roles (one dict per view and call site).
 
     Raises:
@@ -158,9 +159,9 @@ def make(role: str, name: str, view=None, config=None, shared: dict | None = Non
     if build is None:
         raise ValueError(f"no {role} backend named {name!r}; {role} backends: {', '.join(names(role))}")
     if config is None:
-        from embodmocap.sequence.config import SequenceConfig
+        from embodmocap.perception.config import ModelSources
 
-        config = SequenceConfig()
+        config = ModelSources()
     backend = build(view, config, {} if shared is None else shared)
     assert isinstance(backend, PROTOCOLS[role]), f"{type(backend).__name__} does not follow {PROTOCOLS[role].__name__}"
     return backend

@@ -17,7 +17,7 @@ matches) and the binary model are kept on disk::
       summary.json    quality figures, image order and timings of the run (see docs/formats.md)
 
 Pixel convention: this package puts the centre of the top-left pixel at (0, 0); COLMAP puts it at
-(0.5, 0.5). So COLMAP's principal point is ours plus 0.5 (:func:`colmap_camera_params`) and COLMAP
+(0.5, 0.5). So COLMAP's principal point is ours plus 0.5 (:func:`embodmocap.io.colmap.colmap_camera_params`) and COLMAP
 keypoint coordinates are ours plus 0.5 (:mod:`embodmocap.io.colmap` converts). Focal lengths and
 poses are the same in both.
 
@@ -42,12 +42,8 @@ from numpy.typing import NDArray
 from embodmocap.errors import InputError, require
 from embodmocap.geometry.transforms import invert_T, is_rigid
 from embodmocap.io.atomic import atomic_dir, write_json, write_text
-from embodmocap.io.colmap import (  # noqa: F401 (the conversions moved to io; old import path kept)
-    COLMAP_PIXEL_OFFSET, colmap_camera_params, intrinsics_from_colmap, pixels_from_colmap,
-)
-from embodmocap.scene.adjust import (  # noqa: F401 (_fit_similarity, _rms_reprojection: old import path kept)
-    _fit_similarity, _rms_reprojection, adjust_with_vio_prior, correction_of,
-)
+from embodmocap.io.colmap import intrinsics_from_colmap
+from embodmocap.scene.adjust import adjust_with_vio_prior, correction_of
 from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
     _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
 )

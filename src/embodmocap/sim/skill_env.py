@@ -45,7 +45,7 @@ from embodmocap.sim.deps import gymnasium, mujoco
 from embodmocap.sim.model import BODY_NAMES, hinge_ranges
 from embodmocap.sim.reference import Clip, make_clip
 from embodmocap.skills import tasks
-from embodmocap.skills.files import read_skills
+from embodmocap.io.stage_files import read_skills
 from embodmocap.skills.tasks.common import heading_frame, rot6d
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ class SkillClip:
 
 
 def _goal(c, skill: str, root_q: NDArray, fps: float, floor_z: float, path: Path) -> tasks.SkillGoal:
-    """The task goal of one skills.json clip (:class:`embodmocap.skills.files.SkillClip`; its
+    """The task goal of one skills.json clip (:class:`embodmocap.io.stage_files.SkillClip`; its
     reference root positions ``root_q`` (n, 3))."""
     one = lambda a: None if a is None else np.asarray(a, dtype=np.float64)[None]  # noqa: E731
     if skill == "follow":

@@ -7,9 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-#: Corner order of a box: signs along the box axes, corner k = centre + R @ (sign_k * size / 2).
-CORNER_SIGNS = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
-                         [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
+from embodmocap.io.stage_json import CORNER_SIGNS  # noqa: F401 (skills.json's corner order, used below)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from embodmocap.skills.config import SkillsConfig
 from embodmocap.skills.contact import NONE, Contacts, Surfaces
-from embodmocap.skills.files import SkillClip, SkillObject, SkillTarget
+from embodmocap.io.stage_files import SkillClip, SkillObject, SkillTarget
 
 
 def runs(mask: NDArray) -> list[tuple[int, int]]:

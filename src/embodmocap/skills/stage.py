@@ -2,7 +2,7 @@
 
 Reads (through :class:`SessionLayout`): ``sequences/<seq>/smpl_world.npz``, the session's body
 model and the sequence's scene mesh (the simplified one when Stage I wrote it). Writes
-``sequences/<seq>/skills/skills.json`` (:mod:`embodmocap.skills.files`) and the stage manifest
+``sequences/<seq>/skills/skills.json`` (:func:`embodmocap.io.stage_files.write_skills`) and the stage manifest
 ``sequences/<seq>/skills/manifest.json``: the one step ``clips`` is skipped when the motion, the
 mesh, the body model and the settings are unchanged (``--force`` redoes it); the file is written
 atomically, so an interrupted run leaves the old file or none. ``run(config, session, seq, force=)``
@@ -62,7 +62,7 @@ def run(config: SkillsConfig, session: str | Path, seq: str | None = None, *, fo
     from embodmocap.io.manifest import load_manifest
     from embodmocap.io.mesh_file import read_mesh_ply
     from embodmocap.io.smpl_file import read_smpl_npz
-    from embodmocap.skills.files import SkillsFile, write_skills
+    from embodmocap.io.stage_files import SkillsFile, write_skills
 
     layout = SessionLayout(Path(session))
     manifest = load_manifest(layout.manifest)

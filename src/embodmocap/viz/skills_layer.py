@@ -44,7 +44,7 @@ def clip_labels(clips, fps: float) -> list[str]:
 
 def add_skills(handle, session: Path) -> None:
     """Add the skill layer and the clip list to a running viewer, if the sequence has clips."""
-    from embodmocap.skills.files import read_skills
+    from embodmocap.io.stage_files import read_skills
 
     handle.skills = None
     path = skills_path(session, handle.data.name)
