@@ -238,10 +238,18 @@ class MotionConfig:
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""
-    kp3d_conf: str = "mean"
+    kp3d_conf: str = "min"
     """Confidence of a triangulated point in the fit: ``mean`` (the triangulation's: mean of the
     views' confidences times the share of views used) or ``min`` (the lowest confidence of the
-    views used, if lower)."""
+    views used, if lower; the default since issue 29). With two views one view's occluded guess
+    (confidence 0.3-0.5, 30-90 px off) moves the point along the other view's ray without any
+    reprojection error, and ``mean`` let the fit follow it (hard outdoor studio seed 5, frames
+    132-134: the right wrist and elbow 11-17 cm off, seen well by view 1 only). ``mean`` -> ``min``
+    on the ten hard studio seeds (Stage IV in memory, label_track.fresh_start on): WA-MPJPE and
+    PA-MPJPE lower on all ten (WA median 22.4 -> 21.7 mm), W-MPJPE c100 with a chunk at every start
+    lower on 8 of 10 (seed 5 50.5 -> 40.9, seed 6 79.4 -> 54.6 mm), fixed-chunk W-MPJPE c100 per
+    seed within +-3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
+    benchmarks/history/2026-12-04-s9-edges.md)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that
