@@ -245,10 +245,10 @@ class MotionConfig:
     (confidence 0.3-0.5, 30-90 px off) moves the point along the other view's ray without any
     reprojection error, and ``mean`` let the fit follow it (hard outdoor studio seed 5, frames
     132-134: the right wrist and elbow 11-17 cm off, seen well by view 1 only). ``mean`` -> ``min``
-    on the ten hard studio seeds (Stage IV in memory, label_track.fresh_start on): WA-MPJPE and
-    PA-MPJPE lower on all ten (WA median 22.4 -> 21.7 mm), W-MPJPE c100 with a chunk at every start
-    lower on 8 of 10 (seed 5 50.5 -> 40.9, seed 6 79.4 -> 54.6 mm), fixed-chunk W-MPJPE c100 per
-    seed within +-3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
+    on the ten hard studio seeds (Stage IV in memory, label_track.fresh_start on): WA-MPJPE lower on
+    all ten (median 22.4 -> 22.0 mm), PA-MPJPE on nine (seed 6 equal), W-MPJPE c100 with a chunk at
+    every start lower on 8 of 10 (seed 5 52.4 -> 40.9 mm), fixed-chunk W-MPJPE c100 per seed within
+    +-3.3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
     benchmarks/history/2026-12-04-s9-edges.md)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
