@@ -243,8 +243,9 @@ class MotionConfig:
     views' confidences times the share of views used) or ``min`` (the lowest confidence of the
     views used, if lower; the default since issue 29). With two views one view's occluded guess
     (confidence 0.3-0.5, 30-90 px off) moves the point along the other view's ray without any
-    reprojection error, and ``mean`` let the fit follow it (hard outdoor studio seed 5, frames
-    132-134: the right wrist and elbow 11-17 cm off, seen well by view 1 only). ``mean`` -> ``min``
+    reprojection error; ``min`` weighs such a point as that guess (on the hard outdoor studio seed
+    5, frames 132-134, the right arm seen well by view 1 only stays 11-16 cm off with either: no
+    view pins its depth). ``mean`` -> ``min``
     on the ten hard studio seeds (Stage IV in memory, label_track.fresh_start on): WA-MPJPE lower on
     all ten (median 22.4 -> 22.0 mm), PA-MPJPE on nine (seed 6 equal), W-MPJPE c100 with a chunk at
     every start lower on 8 of 10 (seed 5 52.4 -> 40.9 mm), fixed-chunk W-MPJPE c100 per seed within
