@@ -93,9 +93,10 @@ class LabelTrackConfig:
     """The most a frame's wrong-side vote counts, metres (one wild triangulated point must not
     decide)."""
     fresh_start: bool = True
-    """A view's labels choose their state freely at the view's first evidence in the sequence
-    (its trajectories or the two views' agreement): there is no earlier state to change from, so
-    no switch is paid there and only ``flip_cost`` and the evidence decide. False: the detector's
+    """With two views: a view's labels choose their state freely at its first evidence in the
+    sequence (its trajectories or the two views' agreement): there is no earlier state to change
+    from, so no switch is paid there and only ``flip_cost`` and the evidence decide (one view, a
+    one-phone sequence: not applied, not measured there). False: the detector's
     labels are the state before the first evidence and leaving them costs ``geometry_switch`` or
     ``switch_cost``. Only the sequence's start: after a gap inside the sequence the state is still
     carried (hard outdoor seed 3, view 2's arms: the state carried across frames 20-31 is the
@@ -183,8 +184,8 @@ def _switch_cost(trans: NDArray, geo_seen: NDArray | None, cfg: LabelTrackConfig
     cost = np.where(own, cfg.switch_cost, 1e9)
     if geo_seen is not None:
         cost = np.where(~own & geo_seen, cfg.geometry_switch, cost)
-    if cfg.fresh_start:
-        cost = np.where(_fresh(own if geo_seen is None else own | geo_seen), 0.0, cost)
+    if cfg.fresh_start and geo_seen is not None:  # two views (measured there; one view: unchanged)
+        cost = np.where(_fresh(own | geo_seen), 0.0, cost)
     return cost
 
 
