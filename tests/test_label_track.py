@@ -137,3 +137,27 @@ def test_the_anatomy_cost_names_the_view_whose_legs_are_exchanged(walk):
     # Off (the default): no anatomy cost at all.
     _, off = _disagreement(P, bad, TRACKED_GROUPS["legs"], LabelTrackConfig(), "legs")
     assert not off.any()
+
+
+def test_labels_exchanged_at_the_first_frames_are_undone_from_the_first(walk):
+    """Issue 29 (hard outdoor studio seed 5): no view sees the person in the first 40 frames; when
+    they enter, view 2 has the arms exchanged (frames 40-60 here). In its first frame it sees one
+    arm only, in its third the two overlap (its own trajectories cannot tell the labels across
+    it). The chain must switch where the evidence starts: there is no earlier state to keep.
+    Before ``fresh_start`` a switch at the first two frames, where only the views' agreement
+    speaks, cost 0.3 against 0.15 at the overlap: the chain switched there and left the first two
+    frames exchanged (on the studio: W-MPJPE's anchors, the elbows triangulated 20 cm off)."""
+    P, kp = walk
+    bad = _swap(kp, 1, slice(40, 61), "arms")
+    bad[:40, :, :, 2] = 0.0  # nobody seen in frames 0-39
+    bad[40, 1, [8, 10], 2] = 0.1  # frame 40: view 2 sees its left arm only
+    for a, b in TRACKED_GROUPS["arms"]:  # frame 42: view 2's arms overlap
+        bad[42, 1, [a, b], :2] = 0.5 * (bad[42, 1, a, :2] + bad[42, 1, b, :2])
+    fixed, flipped = track_labels(bad, P=P)
+    assert flipped[40:61, 1, 0].all()
+    judged = (bad[..., 2] >= 0.3) & (np.arange(len(kp)) != 42)[:, None, None]
+    assert not (np.linalg.norm(fixed[..., :2] - kp[..., :2], axis=-1)[judged] > 5).any()
+    assert not flipped[:, 0].any() and not flipped[:, 1, 1].any() and not flipped[61:].any()
+    # The earlier rule (the detector's labels carried into the first evidence) leaves 40-41.
+    _, old = track_labels(bad, LabelTrackConfig(fresh_start=False), P=P)
+    assert not old[40:42, 1, 0].any() and old[43:61, 1, 0].all()

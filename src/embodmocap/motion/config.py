@@ -238,10 +238,19 @@ class MotionConfig:
     bone_anchor_torso: bool = True
     """The bone-length check of an elbow (knee) whose shoulder (hip) was not triangulated uses the
     shoulder (hip) of the rest torso placed on the other torso points (else it is not checked)."""
-    kp3d_conf: str = "mean"
+    kp3d_conf: str = "min"
     """Confidence of a triangulated point in the fit: ``mean`` (the triangulation's: mean of the
     views' confidences times the share of views used) or ``min`` (the lowest confidence of the
-    views used, if lower)."""
+    views used, if lower; the default since issue 29). With two views one view's occluded guess
+    (confidence 0.3-0.5, 30-90 px off) moves the point along the other view's ray without any
+    reprojection error; ``min`` weighs such a point as that guess (on the hard outdoor studio seed
+    5, frames 132-134, the right arm seen well by view 1 only stays 11-16 cm off with either: no
+    view pins its depth). ``mean`` -> ``min``
+    on the ten hard studio seeds (Stage IV in memory, label_track.fresh_start on): WA-MPJPE lower on
+    all ten (median 22.4 -> 22.0 mm), PA-MPJPE on nine (seed 6 equal), W-MPJPE c100 with a chunk at
+    every start lower on 8 of 10 (seed 5 52.4 -> 40.9 mm), fixed-chunk W-MPJPE c100 per seed within
+    +-3.3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
+    benchmarks/history/2026-12-04-s9-edges.md)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that
