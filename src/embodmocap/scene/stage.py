@@ -29,7 +29,6 @@ interrupted resumes at the first unfinished step.
 from __future__ import annotations
 
 import logging
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,46 +113,39 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
 
     # 3. TSDF fusion + clean-up.
     fp_mesh = STEPS.fingerprint("mesh", cfg, after={"keyframes": fp_kf, "sfm": fp_sfm if cfg.sfm.refine_poses else None})
-    fp_floor = STEPS.fingerprint("floor", cfg, after={"mesh": fp_mesh})
-    fp_simple = STEPS.fingerprint("simplify", cfg, after={"mesh": fp_mesh})
-    later: dict[str, Future] = {}  # the floor check and the simplification of the mesh just made
-    # One worker: the two one after the other next to the main thread's write (each holds about
-    # 1 GB of temporaries on a 5 M-face mesh; both at once would raise the stage's peak memory).
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="scene-mesh") as pool:
-        with sm.step("mesh", fp_mesh, force=force, label=label) as step:
+    stored = None  # the mesh just made, as mesh_raw.ply stores it (8-bit colours), for steps 4 and 5
+    with sm.step("mesh", fp_mesh, force=force, label=label) as step:
+        if step.run:
+            drift = read_drift_correction(out.sfm_dir) if cfg.sfm.refine_poses else None
+            mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture, drift=drift)
+            write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
+            step.record([out.mesh_raw], mesh.figures)
+            # Exactly what reading the file back gives (a rerun's steps 4 and 5 read it), without the
+            # read. Same thread on purpose: in another, its ~1 GB of temporaries would not reuse the
+            # memory the fusion freed (glibc keeps one heap per thread) and the peak would rise.
+            stored = as_stored(mesh.vertices, mesh.faces, mesh.colors)
+            del mesh
+
+    def stored_mesh():
+        return stored if stored is not None else read_mesh_ply(out.mesh_raw)
+
+    # 4. Gravity check: a Z-up world has a horizontal floor; a tilted one means wrong gravity.
+    if cfg.floor_tilt_warn_deg > 0:
+        fp_floor = STEPS.fingerprint("floor", cfg, after={"mesh": fp_mesh})
+        with sm.step("floor", fp_floor, force=force, label=label) as step:
             if step.run:
-                drift = read_drift_correction(out.sfm_dir) if cfg.sfm.refine_poses else None
-                mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture, drift=drift)
-                # Steps 4 and 5 take the mesh as mesh_raw.ply stores it (8-bit colours), as a rerun
-                # reads it, but from memory: they start on the other core while the file is written.
-                stored = as_stored(mesh.vertices, mesh.faces, mesh.colors)
-                if cfg.floor_tilt_warn_deg > 0 and (force or not sm.is_current("floor", fp_floor)):
-                    later["floor"] = pool.submit(floor_figures, stored[0], stored[1], cfg)
-                if cfg.simplify_voxel_m > 0 and (force or not sm.is_current("simplify", fp_simple)):
-                    later["simplify"] = pool.submit(solve.simplified, *stored, cfg)
-                del stored
-                write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
-                step.record([out.mesh_raw], mesh.figures)
-                del mesh
+                step.record([], floor_figures(*stored_mesh()[:2], cfg))
+        _warn_floor(sm.figures(), cfg, name, capture.format)
 
-        def stored_mesh():
-            return read_mesh_ply(out.mesh_raw)
-
-        # 4. Gravity check: a Z-up world has a horizontal floor; a tilted one means wrong gravity.
-        if cfg.floor_tilt_warn_deg > 0:
-            with sm.step("floor", fp_floor, force=force, label=label) as step:
-                if step.run:
-                    figures = later.pop("floor").result() if "floor" in later else floor_figures(*stored_mesh()[:2], cfg)
-                    step.record([], figures)
-            _warn_floor(sm.figures(), cfg, name, capture.format)
-
-        # 5. Simplified mesh.
-        if cfg.simplify_voxel_m > 0:
-            with sm.step("simplify", fp_simple, force=force, label=label) as step:
-                if step.run:
-                    simple = later.pop("simplify").result() if "simplify" in later else solve.simplified(*stored_mesh(), cfg)
-                    write_mesh_ply(out.mesh_simplified, simple.vertices, simple.faces, simple.colors)
-                    step.record([out.mesh_simplified], simple.figures)
+    # 5. Simplified mesh.
+    if cfg.simplify_voxel_m > 0:
+        fp_simple = STEPS.fingerprint("simplify", cfg, after={"mesh": fp_mesh})
+        with sm.step("simplify", fp_simple, force=force, label=label) as step:
+            if step.run:
+                simple = solve.simplified(*stored_mesh(), cfg)
+                write_mesh_ply(out.mesh_simplified, simple.vertices, simple.faces, simple.colors)
+                step.record([out.mesh_simplified], simple.figures)
+    del stored
 
     if sm.skipped:
         log.info("scene %s: up to date, skipped: %s", name, ", ".join(sm.skipped))
