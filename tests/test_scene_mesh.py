@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from embodmocap.errors import InputError
+from embodmocap.io.mesh_file import as_stored
 from embodmocap.scene.config import SceneConfig
 from embodmocap.scene.mesh import (
     clean_mesh, face_components, mesh_stats, merge_duplicate_vertices, read_mesh_ply, simplify_mesh, write_mesh_ply,
@@ -89,6 +90,13 @@ def test_ply_round_trip_is_atomic(tmp_path):
     np.testing.assert_allclose(c2, np.round(c * 255) / 255, atol=1 / 255 + 1e-9)  # stored as uint8
     v3, f3, c3 = read_mesh_ply(write_mesh_ply(tmp_path / "plain.ply", v, f))
     assert len(c3) == 0 and len(f3) == len(f)
+    # What the file gives back, without the file (Stage I's floor and simplify steps use it): the
+    # same arrays exactly, colours out of range and on half steps included.
+    c[:4] = [[-0.1, 1.2, 0.5 / 255], [1.5 / 255, 2.5 / 255, 254.5 / 255], [0, 1, 0.5], [0.2, 0.4, 0.6]]
+    for got, want in zip(as_stored(v, f, c), read_mesh_ply(write_mesh_ply(tmp_path / "c.ply", v, f, c))):
+        np.testing.assert_array_equal(got, want)
+    for got, want in zip(as_stored(v, f), (v3, f3, c3)):
+        np.testing.assert_array_equal(got, want)
     with pytest.raises(InputError, match="missing.ply: mesh file not found"):
         read_mesh_ply(tmp_path / "missing.ply")
 

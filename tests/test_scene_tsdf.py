@@ -53,6 +53,17 @@ def test_open3d_fusion_of_exact_depth_is_accurate_and_complete(rendered):
     assert comp > 0.95, comp
 
 
+def test_open3d_fusion_is_the_same_on_any_number_of_threads(rendered):
+    """One OpenMP thread (Stage I's default: no spinning on a busy machine) and one per core give
+    the same mesh, array for array."""
+    _, frames = rendered
+    one = fuse_open3d(iter(frames), 0.04, 0.12, 3.5, threads=1)
+    every = fuse_open3d(iter(frames), 0.04, 0.12, 3.5, threads=0)
+    assert len(one[1]) > 1000
+    for a, b in zip(one, every):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_numpy_reference_matches_geometry_and_open3d(rendered):
     built, frames = rendered
     lo, hi = built.vertices.min(0), built.vertices.max(0)

@@ -64,6 +64,17 @@ def write_mesh_ply(path: str | Path, vertices, faces, colours=None) -> Path:
     return path
 
 
+def as_stored(vertices, faces, colours=None) -> tuple[NDArray, NDArray, NDArray]:
+    """The arrays :func:`read_mesh_ply` gives back for a mesh :func:`write_mesh_ply` wrote, without
+    the file: vertices as float64, faces as int64, colours in [0, 1] rounded to 8 bits (as Open3D
+    writes them: nearest step, halves up). Lets a step use a mesh it has just written exactly as
+    the next run would read it."""
+    v, f, c = as_mesh(vertices, faces, colours)
+    if len(c):
+        c = np.floor(np.clip(c, 0.0, 1.0) * 255.0 + 0.5) / 255.0
+    return v, f, c
+
+
 def read_mesh_ply(path: str | Path) -> tuple[NDArray, NDArray, NDArray]:
     """Read a triangle mesh PLY as ``(vertices, faces, colours)`` (colours (0, 3) when absent)."""
     path = Path(path)

@@ -32,9 +32,14 @@ def _extract(pycolmap, root: Path, names: list[str], intrinsics: Intrinsics, cfg
     reader.camera_model = "PINHOLE"
     reader.camera_params = ",".join(f"{p:.17g}" for p in colmap_camera_params(intrinsics))
     opts = pycolmap.FeatureExtractionOptions()
-    opts.num_threads = cfg.num_threads
+    opts.num_threads = cfg.feature_threads
     opts.sift.max_num_features = cfg.max_features
     opts.sift.first_octave = cfg.first_octave
+    # COLMAP numbers new images in the order its extraction threads finish them: registered here
+    # first, in ``names`` order, they keep ids 1..K (the one-thread order) whatever the threads do.
+    pycolmap.Database.open(root / "database.db").close()
+    pycolmap.import_images(root / "database.db", root / "images", camera_mode=pycolmap.CameraMode.SINGLE,
+                           image_names=names, options=reader)
     pycolmap.extract_features(root / "database.db", root / "images", image_names=names,
                               camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                               extraction_options=opts, device=pycolmap.Device.cpu)
@@ -61,7 +66,7 @@ def _extract(pycolmap, root: Path, names: list[str], intrinsics: Intrinsics, cfg
 def _match(pycolmap, root: Path, cfg: SfmConfig) -> int:
     """Match the pairs in ``root/pairs.txt`` and verify them; returns the number of verified pairs."""
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = cfg.num_threads
+    matching.num_threads = cfg.feature_threads
     matching.sift.max_ratio = cfg.match_max_ratio
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = root / "pairs.txt"
@@ -72,7 +77,22 @@ def _match(pycolmap, root: Path, cfg: SfmConfig) -> int:
     pycolmap.match_image_pairs(root / "database.db", matching_options=matching, pairing_options=pairing,
                                verification_options=verify, device=pycolmap.Device.cpu)
     with pycolmap.Database.open(root / "database.db") as db:
-        return int(db.num_verified_image_pairs())
+        num = int(db.num_verified_image_pairs())
+    _canonical_file(root / "database.db")
+    return num
+
+
+def _canonical_file(db_path: Path) -> None:
+    """Rewrite an SQLite database in key order (``VACUUM``): the threads of extraction and matching
+    insert rows in the order they finish (same rows, different pages), so the file is made the same
+    bytes for the same content (a rerun's database matches the first run's, bit for bit)."""
+    import sqlite3
+
+    con = sqlite3.connect(db_path)
+    try:
+        con.execute("VACUUM")
+    finally:
+        con.close()
 
 
 def _triangulate(pycolmap, root: Path, names: list[str], ids: list[int], cam_id: int, T: NDArray,

@@ -62,10 +62,13 @@ class SfmConfig:
     min_track_length: int = 2
     """Points seen in fewer key frames than this are removed after triangulation (>= 2)."""
     num_threads: int = 1
-    """Threads for extraction, matching and triangulation (-1 = all cores). With more than one
-    thread COLMAP's results depend on thread timing (image ids, match order, point ids: the model
-    differs byte for byte from run to run, its point count by a few); 1 makes runs bitwise
-    repeatable at about 1.25x the time on 2 cores (BENCHMARKS.md, issue 20)."""
+    """Threads for triangulation (-1 = all cores). With more than one thread COLMAP's results
+    depend on thread timing (point ids: the model differs byte for byte from run to run, its point
+    count by a few); 1 makes runs bitwise repeatable (BENCHMARKS.md, issue 20)."""
+    feature_threads: int = 2
+    """Threads for SIFT extraction and matching (-1 = all cores). The database is the same for any
+    number: the images are registered in their order before extraction (COLMAP would number them
+    as its threads finish) and the file is rewritten in key order after matching."""
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
     refine_poses: bool = True
@@ -179,6 +182,10 @@ class SceneConfig:
     noise (LiDAR: ~1 % of the depth) or surfaces get holes; larger values round corners."""
     integrate_every: int = 1
     """Integrate every k-th fusion frame (1 = all); >1 trades completeness for speed."""
+    fusion_threads: int = 1
+    """OpenMP threads of Open3D's TSDF integration (0 = one per core). The mesh is the same for
+    any number; 1 (default) lets the frame reader have the second core and keeps a busy machine's
+    cores from spinning in OpenMP's waits (10-20x the CPU time at a load of 20 on 2 cores)."""
     fuse_step_m: float = 0.04
     """Fusion frames (not only the SfM key frames): every trajectory row with a trusted pose (no
     tracking jump) whose camera moved at least this far (metres) or turned ``fuse_step_deg`` since
@@ -246,6 +253,7 @@ class SceneConfig:
             (self.voxel_m_indoor > 0 and self.voxel_m_outdoor > 0, "voxel sizes must be > 0"),
             (self.sdf_trunc_voxels >= 1, "sdf_trunc_voxels must be >= 1"),
             (self.integrate_every >= 1, "integrate_every must be >= 1"),
+            (self.fusion_threads >= 0, "fusion_threads must be >= 0"),
             (0 <= self.min_component_fraction <= 1, "min_component_fraction must be in [0, 1]"),
             (self.min_component_triangles >= 0 and self.floater_max_extent_m >= 0, "clean-up sizes must be >= 0"),
             (self.simplify_voxel_m >= 0, "simplify_voxel_m must be >= 0"),

@@ -290,6 +290,8 @@ def _check_config(cfg: SfmConfig) -> None:
         raise ValueError(f"image_format must be 'jpg' or 'png', got {cfg.image_format!r}")
     if cfg.max_images < 2 or cfg.min_track_length < 2 or cfg.num_neighbours < 1:
         raise ValueError("max_images and min_track_length must be >= 2 and num_neighbours >= 1")
+    if cfg.feature_threads == 0 or cfg.feature_threads < -1 or cfg.num_threads == 0 or cfg.num_threads < -1:
+        raise ValueError("feature_threads and num_threads must be >= 1 or -1 (all cores)")
     if not 1 <= cfg.jpeg_quality <= 100:
         raise ValueError(f"jpeg_quality must be in 1..100, got {cfg.jpeg_quality}")
 

@@ -93,7 +93,7 @@ def fuse_mesh(capture, cfg: SceneConfig, indoor: bool, *, label: str = "", sourc
     stats = DepthStats()
     frames = prefetch(fusion_frames(capture, ids, poses, cfg, indoor, refine=depth_refiner(cfg), stats=stats))
     v, f, c = fuse_open3d(_progress(frames, len(ids), f"scene {label}: fusing"), cfg.voxel_m(indoor),
-                          cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor))
+                          cfg.sdf_trunc_m(indoor), cfg.depth_trunc_m(indoor), threads=cfg.fusion_threads)
     t_fuse = time.perf_counter() - t0
     v, f, c = clean_mesh(v, f, c, cfg)
     if len(f) == 0:

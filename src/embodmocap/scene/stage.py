@@ -37,9 +37,10 @@ import numpy as np
 from embodmocap.io.captures import open_capture
 from embodmocap.io.layout import SceneLayout, SessionLayout
 from embodmocap.io.manifest import load_manifest
-from embodmocap.io.mesh_file import read_mesh_ply, write_mesh_ply
+from embodmocap.io.mesh_file import as_stored, read_mesh_ply, write_mesh_ply
 from embodmocap.io.stage_files import read_keyframes, write_keyframes
 from embodmocap.io.stage_manifest import StageManifest, tracked_stage
+from embodmocap.parallel import import_in_background, library_threads
 from embodmocap.scene import solve
 from embodmocap.scene.adjust import read_drift_correction
 from embodmocap.scene.config import SceneConfig
@@ -99,7 +100,11 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     with sm.step("sfm", fp_sfm, force=force, label=label) as step:
         if step.run:
             images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg)
-            model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm, times_s=times)
+            # The mesh step after this one needs Open3D, whose import is seconds of CPU: done on the
+            # other core while COLMAP (native, GIL released) builds the model on this one.
+            import_in_background("open3d")
+            with library_threads(1, ("blas",)):  # the drift adjustment's small solves (see parallel.py)
+                model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm, times_s=times)
             step.record([out.sfm_dir], {
                 "sfm_images": len(images), "sfm_points": model.num_points,
                 "sfm_mean_track_length": round(model.mean_track_length, 3),
@@ -108,19 +113,28 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
 
     # 3. TSDF fusion + clean-up.
     fp_mesh = STEPS.fingerprint("mesh", cfg, after={"keyframes": fp_kf, "sfm": fp_sfm if cfg.sfm.refine_poses else None})
+    stored = None  # the mesh just made, as mesh_raw.ply stores it (8-bit colours), for steps 4 and 5
     with sm.step("mesh", fp_mesh, force=force, label=label) as step:
         if step.run:
             drift = read_drift_correction(out.sfm_dir) if cfg.sfm.refine_poses else None
             mesh = solve.fuse_mesh(capture, cfg, indoor, label=name, source=entry.capture, drift=drift)
             write_mesh_ply(out.mesh_raw, mesh.vertices, mesh.faces, mesh.colors)
             step.record([out.mesh_raw], mesh.figures)
+            # Exactly what reading the file back gives (a rerun's steps 4 and 5 read it), without the
+            # read. Same thread on purpose: in another, its ~1 GB of temporaries would not reuse the
+            # memory the fusion freed (glibc keeps one heap per thread) and the peak would rise.
+            stored = as_stored(mesh.vertices, mesh.faces, mesh.colors)
+            del mesh
+
+    def stored_mesh():
+        return stored if stored is not None else read_mesh_ply(out.mesh_raw)
 
     # 4. Gravity check: a Z-up world has a horizontal floor; a tilted one means wrong gravity.
     if cfg.floor_tilt_warn_deg > 0:
         fp_floor = STEPS.fingerprint("floor", cfg, after={"mesh": fp_mesh})
         with sm.step("floor", fp_floor, force=force, label=label) as step:
             if step.run:
-                step.record([], floor_figures(*read_mesh_ply(out.mesh_raw)[:2], cfg))
+                step.record([], floor_figures(*stored_mesh()[:2], cfg))
         _warn_floor(sm.figures(), cfg, name, capture.format)
 
     # 5. Simplified mesh.
@@ -128,9 +142,10 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
         fp_simple = STEPS.fingerprint("simplify", cfg, after={"mesh": fp_mesh})
         with sm.step("simplify", fp_simple, force=force, label=label) as step:
             if step.run:
-                simple = solve.simplified(*read_mesh_ply(out.mesh_raw), cfg)
+                simple = solve.simplified(*stored_mesh(), cfg)
                 write_mesh_ply(out.mesh_simplified, simple.vertices, simple.faces, simple.colors)
                 step.record([out.mesh_simplified], simple.figures)
+    del stored
 
     if sm.skipped:
         log.info("scene %s: up to date, skipped: %s", name, ", ".join(sm.skipped))

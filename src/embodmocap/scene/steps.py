@@ -39,4 +39,5 @@ STEPS = StageSteps("scene", SceneConfig, (
          writes=(_DIR + "mesh_simplified.ply",), doc="light mesh for viewers and physics"),
 ), not_fingerprinted={
     "min_valid_depth_fraction": "checked on every run before any step (scene.depth.check_depth); writes nothing",
+    "fusion_threads": "how many threads integrate the TSDF; the mesh is the same for any number",
 })

@@ -16,6 +16,7 @@ model puts pixel (u, v) at ``u = fx x/z + cx`` like OpenCV, so intrinsics pass t
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Iterable
 
@@ -36,7 +37,8 @@ FusionFrame = tuple[NDArray[np.uint8], NDArray[np.float32], Intrinsics, NDArray]
 MeshArrays = tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64]]
 
 
-def fuse_open3d(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: float, depth_trunc_m: float) -> MeshArrays:
+def fuse_open3d(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: float, depth_trunc_m: float,
+                threads: int = 1) -> MeshArrays:
     """Fuse posed RGB-D frames with Open3D's ``ScalableTSDFVolume`` and extract a coloured mesh.
 
     Args:
@@ -45,12 +47,24 @@ def fuse_open3d(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: floa
         voxel_m: voxel edge length, metres.
         sdf_trunc_m: truncation distance of the signed distance, metres.
         depth_trunc_m: depth beyond this is ignored, metres.
+        threads: OpenMP threads of Open3D's integration (0 = Open3D's default, one per core). The
+            mesh is the same for any number (each voxel is updated by one thread); 1 keeps a loaded
+            machine from spinning (:mod:`embodmocap.parallel`) while ``frames`` is read on another.
 
     Returns:
         ``(vertices (V, 3), faces (F, 3), colours (V, 3) in [0, 1])`` in the poses' world frame;
         empty arrays if nothing was observed.
     """
     import open3d as o3d
+
+    from embodmocap.parallel import library_threads
+
+    with library_threads(threads, ("openmp",)) if threads > 0 else contextlib.nullcontext():
+        return _fuse_open3d(o3d, frames, voxel_m, sdf_trunc_m, depth_trunc_m)
+
+
+def _fuse_open3d(o3d, frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: float,
+                 depth_trunc_m: float) -> MeshArrays:
 
     volume = o3d.pipelines.integration.ScalableTSDFVolume(
         voxel_length=float(voxel_m), sdf_trunc=float(sdf_trunc_m),

@@ -1,0 +1,57 @@
+"""Threads: the native libraries' own thread pools, and a module imported in the background.
+
+Why limit the libraries: Open3D's TSDF (OpenMP) and NumPy/SciPy's BLAS start one thread per core
+for every small parallel loop and spin while they wait for each other. On a machine whose cores
+are busy with other work (a shared box, a batch of sessions) a waiting thread spins on a core the
+other needs: Stage I's TSDF integration took 10-20x the CPU time of one thread at a load average of
+20 on 2 cores. The stages use the cores explicitly instead (a reader thread next to the fusion, the
+floor check and the simplification next to the mesh's write), with each library on one thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import logging
+import threading
+
+log = logging.getLogger(__name__)
+
+
+def library_threads(n: int, apis: tuple[str, ...] = ("blas", "openmp")):
+    """Context manager: the thread pools of the native libraries already loaded (``apis`` of
+    ``threadpoolctl``: ``"blas"``, ``"openmp"``) limited to ``n`` threads inside, restored after.
+
+    OpenMP's limit holds for parallel loops started by the calling thread. Only libraries loaded
+    before the call are limited, so import the library first. Without ``threadpoolctl`` (installed
+    with Open3D's scikit-learn) nothing changes: only the CPU time differs, never a result.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    stack = contextlib.ExitStack()
+    for api in apis:
+        stack.enter_context(threadpool_limits(int(n), user_api=api))
+    return stack
+
+
+def import_in_background(name: str) -> threading.Thread:
+    """Start importing module ``name`` in a thread and return it (joined at exit, not a daemon).
+
+    For a heavy import (Open3D: about 7 s of CPU, most of it its ML package's scikit-learn) that a
+    later step needs while an earlier one runs native code that releases the GIL (COLMAP): the
+    import then costs the other core's time, not the stage's. A later ``import name`` in any thread
+    waits for this one to finish (the import lock) and gets the same module. A failed import is
+    only logged here: the step that needs the module imports it again and raises there.
+    """
+
+    def work() -> None:
+        try:
+            importlib.import_module(name)
+        except Exception as err:  # noqa: BLE001 (the importing step reports it)
+            log.debug("background import of %s failed: %s", name, err)
+
+    th = threading.Thread(target=work, name=f"import-{name}")
+    th.start()
+    return th
