@@ -355,7 +355,7 @@ def _semantic_problems(m: SessionManifest, declared_scenes: set[str]) -> list[st
                 f"got {', '.join(seq.views) or 'none'}")
         for vname, view in seq.views.items():
             vkey = f"{key}.views.{vname}"
-            _check_path(view.capture, f"{vkey}.capture", "folder", add)
+            _check_path(view.capture, f"{vkey}.capture", "capture", add)
             for attr in ("keypoints", "masks", "depth"):
                 _check_path(getattr(view, attr), f"{vkey}.{attr}", "folder", add)
             _check_path(view.body_prior, f"{vkey}.body_prior", "file", add)
