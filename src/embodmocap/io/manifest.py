@@ -383,7 +383,12 @@ def _check_path(path: Path | None, key: str, kind: str, add: Callable[[str, str]
     # A capture is a folder, or a Record3D .r3d file (a zip of the same folder).
     exists = (path.is_dir() or (kind == "capture" and path.is_file() and path.suffix.lower() == ".r3d")) \
         if kind in ("folder", "capture") else path.is_file()
-    if not exists:
+    if not exists and kind == "capture" and path.is_file():
+        # A video or a zip named as a capture: say what a capture is (scene and view alike).
+        add(key, f"{path} is a file, not a capture: point to the folder the phone app exported "
+                 "(Stray Scanner, Spectacular AI, Record3D EXR + JPG or unzipped .r3d) or to a Record3D .r3d file"
+                 + (" (unzip a zipped recording first)" if path.suffix.lower() == ".zip" else ""))
+    elif not exists:
         add(key, f"{kind} does not exist: {path}")
 
 
