@@ -124,7 +124,7 @@ def test_cli_writes_loadable_manifest(xlsx_session: tuple[Path, Path]) -> None:
 
 def test_cli_check_refuses_missing_folders(tmp_path: Path) -> None:
     sheet = _write_csv(tmp_path / "s.csv", [HEADER, _row("scene", "seq0")])
-    with pytest.raises(InputError, match="folder does not exist") as info:
+    with pytest.raises(InputError, match="capture does not exist") as info:
         import_sheet_cli(sheet, tmp_path / "sess")
     assert "sequences.seq0.views.v1.capture" in str(info.value)
     assert not (tmp_path / "sess" / "session.toml").exists()

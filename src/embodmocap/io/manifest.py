@@ -389,7 +389,8 @@ def _check_path(path: Path | None, key: str, kind: str, add: Callable[[str, str]
                  "(Stray Scanner, Spectacular AI, Record3D EXR + JPG or unzipped .r3d) or to a Record3D .r3d file"
                  + (" (unzip a zipped recording first)" if path.suffix.lower() == ".zip" else ""))
     elif not exists:
-        add(key, f"{kind} does not exist: {path}")
+        what = " (the folder the phone app exported, or a Record3D .r3d file)" if kind == "capture" else ""
+        add(key, f"{kind} does not exist: {path}{what}")
 
 
 # ------------------------------------------------------------------------------------------------
