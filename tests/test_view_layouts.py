@@ -45,6 +45,12 @@ def _frames(cap: Capture):
     return ((cap.frames.rgb(i), cap.frames.depth_m(i), cap.frames.confidence(i)) for i in range(n))
 
 
+def _stream(cap: Capture, writer) -> None:
+    """Every frame of ``cap`` into a frame-by-frame writer (depth as the apps' uint16 millimetres)."""
+    for i, (rgb, d, c) in enumerate(_frames(cap)):
+        writer.add_frame(rgb, np.round(d * 1000).astype(np.uint16), c, cap.frame(i).T_world_cam, cap.timestamps_s[i])
+
+
 def _record3d(cap: Capture, out: Path) -> Path:
     rgb, depth, conf = zip(*_frames(cap))
     return write_record3d(out, rgb, depth, cap.trajectory.T_world_cam, cap.rgb_intrinsics, cap.fps,
@@ -70,8 +76,7 @@ def _record3d_exr(cap: Capture, out: Path) -> Path:
 def _spectacular(cap: Capture, out: Path, sdk: bool = False) -> Path:
     """A Spectacular Rec app recording, or (``sdk``) the SDK recorder's: data.mp4 + vio_config.yaml."""
     with SpectacularWriter(out, cap.rgb_intrinsics, cap.fps) as w:
-        for i, (rgb, d, c) in enumerate(_frames(cap)):
-            w.add_frame(rgb, np.round(d * 1000).astype(np.uint16), c, cap.frame(i).T_world_cam, cap.timestamps_s[i])
+        _stream(cap, w)
     if sdk:
         (out / "data.mov").rename(out / "data.mp4")
         (out / "metadata.json").unlink()
@@ -82,8 +87,7 @@ def _spectacular(cap: Capture, out: Path, sdk: bool = False) -> Path:
 def _stray_oldest(cap: Capture, out: Path) -> Path:
     """The oldest Stray Scanner export: header-less 7-column odometry.csv (no times)."""
     with StrayScannerWriter(out, cap.rgb_intrinsics, cap.fps, header=False) as w:
-        for i, (rgb, d, c) in enumerate(_frames(cap)):
-            w.add_frame(rgb, np.round(d * 1000).astype(np.uint16), c, cap.frame(i).T_world_cam, cap.timestamps_s[i])
+        _stream(cap, w)
     return out
 
 
