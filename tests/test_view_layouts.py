@@ -200,14 +200,19 @@ def test_a_view_capture_that_is_a_video_file_says_what_a_capture_is(session, tmp
     assert ".r3d" in msg and "folder the phone app exported" in msg
 
 
-def test_a_view_capture_without_depth_is_one_clear_error(session, tmp_path):
-    """A Stray Scanner export copied without depth/ cannot serve as a view (Stage II needs the
-    performer's depth): one error naming the folder, the problem and what to copy."""
-    work = _session_with(session, tmp_path, {"v1": "stray_oldest", "v2": "r3d_zip"})
+@pytest.mark.parametrize("layout, folder, fix", [
+    ("stray_oldest", "depth", "depth/ included"),
+    ("spectacular", "frames2", "frames2"),
+    ("r3d_exr", "depth", "export"),
+])
+def test_a_view_capture_without_depth_is_one_clear_error(session, tmp_path, layout, folder, fix):
+    """An export copied without its depth cannot serve as a view (Stage II needs the performer's
+    depth): one error naming the depth files, the problem and what to do, before anything is written."""
+    work = _session_with(session, tmp_path, {"v1": layout, "v2": "r3d_zip"})
     capture = load_manifest(SessionLayout(work).manifest).sequences["seq0"].views["v1"].capture
-    shutil.rmtree(capture / "depth")
+    shutil.rmtree(capture / folder)
     with pytest.raises(EmbodMocapError) as err:
         stage.run(CFG, work)
     msg = str(err.value)
-    assert str(capture / "depth") in msg and "missing" in msg and "depth/ included" in msg
+    assert str(capture / folder) in msg and "missing" in msg and fix in msg, msg
     assert not (SessionLayout(work).root / "sequences" / "seq0" / "sync.json").exists()
