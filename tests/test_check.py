@@ -39,6 +39,34 @@ def test_without_the_scene_the_check_says_what_it_could_not_check(sessions, caps
     assert f["both_seen_fraction"] > 0.6 and f["tracking_jumps"] == {"v1": 0, "v2": 0}
 
 
+def test_without_keypoints_the_check_names_what_it_skipped_and_how_to_enable_it(sessions, tmp_path, capsys):
+    """A session fresh from the phones (no keypoint folders, scene not processed): every check
+    left out is listed with its reason and what to add or run; the rest is still checked."""
+    from dataclasses import replace
+
+    from embodmocap.io.manifest import load_manifest, write_manifest
+
+    work = tmp_path / "s"
+    shutil.copytree(sessions["normal"], work)
+    m = load_manifest(work / "session.toml")
+    seq = m.sequences["seq0"]
+    views = {v: replace(e, keypoints=None) for v, e in seq.views.items()}
+    write_manifest(replace(m, sequences={"seq0": replace(seq, views=views)}), work / "session.toml")
+    rc = main(["check", str(work), "--json"])
+    rep = json.loads(capsys.readouterr().out)["sequences"][0]
+    assert rc == 1 and rep["verdict"] == "usable with warnings"
+    by_reason = {x["reason"].split(" ")[0]: x for x in rep["skipped"]}
+    kp, scene = by_reason["no"], by_reason["scene"]
+    assert kp["checks"] == ["performer", "view angle", "geometric sync"]
+    assert "v1, v2" in kp["reason"] and "[sequences.seq0.views.v1]" in kp["enable"] and "keypoints =" in kp["enable"]
+    assert scene["checks"][0] == "registration" and f"embodmocap scene {work}" in scene["enable"]
+    assert "seen_fraction" not in rep["figures"] and rep["figures"]["tracking_jumps"] == {"v1": 0, "v2": 0}
+    assert main(["check", str(work)]) == 1
+    text = capsys.readouterr().out
+    assert "skipped: performer, view angle, geometric sync (no keypoint folder in session.toml for v1, v2); " \
+           "to check them: add `keypoints" in text
+
+
 def test_performer_out_of_one_view_is_a_reshoot(sessions):
     res = check_session(CheckConfig(), sessions["away"])
     assert exit_status(res) == 2 and res[0].verdict == "reshoot"

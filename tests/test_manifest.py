@@ -149,7 +149,8 @@ def test_unknown_keys(session: Path, old: str, new: str, key: str) -> None:
 
 def test_missing_capture_folder(session: Path) -> None:
     err = _load_with(session, GOOD.replace("captures/seq0/v2", "captures/nope"))
-    assert err.problems == [f"sequences.seq0.views.v2.capture: folder does not exist: {session / 'captures/nope'}"]
+    assert err.problems == [f"sequences.seq0.views.v2.capture: capture does not exist: {session / 'captures/nope'} "
+                            "(the folder the phone app exported, or a Record3D .r3d file)"]
 
 
 def test_missing_perception_and_body_model(session: Path) -> None:

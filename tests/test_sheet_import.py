@@ -124,11 +124,27 @@ def test_cli_writes_loadable_manifest(xlsx_session: tuple[Path, Path]) -> None:
 
 def test_cli_check_refuses_missing_folders(tmp_path: Path) -> None:
     sheet = _write_csv(tmp_path / "s.csv", [HEADER, _row("scene", "seq0")])
-    with pytest.raises(InputError, match="folder does not exist") as info:
+    with pytest.raises(InputError, match="capture does not exist") as info:
         import_sheet_cli(sheet, tmp_path / "sess")
     assert "sequences.seq0.views.v1.capture" in str(info.value)
     assert not (tmp_path / "sess" / "session.toml").exists()
     assert import_sheet_cli(sheet, tmp_path / "sess", check=False).is_file()
+
+
+def test_views_recorded_as_r3d_files_import_and_pass_the_check(tmp_path: Path) -> None:
+    """Record3D phones: each view a .r3d file, named by the capture pattern, passes the folder check."""
+    root = tmp_path / "sess"
+    (root / "hall" / "seq0").mkdir(parents=True)
+    for v in ("v1", "v2"):
+        (root / "hall" / "seq0" / f"{v}.r3d").write_bytes(b"PK")  # the check looks for the file only
+    sheet = _write_csv(tmp_path / "s.csv", [HEADER, _row("hall", "seq0")])
+    path = import_sheet_cli(sheet, root, capture_pattern="{scene_folder}/{seq_name}/{view}.r3d")
+    views = load_manifest(path).sequences["seq0"].views
+    assert views["v2"].capture == root / "hall" / "seq0" / "v2.r3d"
+    # A video named as a view is refused with what a capture is.
+    (root / "hall" / "seq0" / "v1.mp4").write_bytes(b"")
+    with pytest.raises(InputError, match=r"v1.mp4 is a file, not a capture"):
+        import_sheet_cli(sheet, tmp_path / "sess", capture_pattern="{scene_folder}/{seq_name}/{view}.mp4", force=True)
 
 
 def test_csv_import_with_pattern_and_contact_csv(tmp_path: Path) -> None:

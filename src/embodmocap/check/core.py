@@ -63,11 +63,19 @@ class SequenceCheck:
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
     """What the capture cannot give by design (e.g. one phone), said without changing the verdict."""
+    skipped: list[dict] = field(default_factory=list)
+    """Checks not made: ``{"checks": [names], "reason": why, "enable": what to do or run}`` each."""
 
     def warn(self, msg: str) -> None:
         self.reasons.append(f"warning: {msg}")
         if self.verdict == "usable":
             self.verdict = "usable with warnings"
+
+    def skip(self, checks: list[str], reason: str, enable: str) -> None:
+        """``checks`` not made for ``reason`` (a warning: never a silent pass); ``enable`` says what
+        to add or run so the next check makes them."""
+        self.skipped.append({"checks": list(checks), "reason": reason, "enable": enable})
+        self.warn(f"{reason}: {', '.join(checks)} not checked")
 
     def fail(self, msg: str) -> None:
         self.reasons.append(f"reshoot: {msg}")
@@ -79,7 +87,8 @@ class SequenceCheck:
 
     def to_json(self) -> dict:
         return {"sequence": self.name, "verdict": self.verdict, "exit_status": self.exit_status,
-                "reasons": self.reasons, "notes": self.notes, "figures": self.figures, "seconds": round(self.seconds, 2)}
+                "reasons": self.reasons, "notes": self.notes, "skipped": self.skipped, "figures": self.figures,
+                "seconds": round(self.seconds, 2)}
 
 
 def check_session(cfg: CheckConfig, session: str | Path, seq: str | None = None) -> list[SequenceCheck]:
@@ -130,6 +139,7 @@ def format_text(results: list[SequenceCheck]) -> str:
             lines.append("  tracking jumps: " + ", ".join(f"{v} {n}" for v, n in f["tracking_jumps"].items()))
         lines += [f"  - {x}" for x in r.reasons]
         lines += [f"  note: {x}" for x in r.notes]
+        lines += [f"  skipped: {', '.join(x['checks'])} ({x['reason']}); to check them: {x['enable']}" for x in r.skipped]
     return "\n".join(lines)
 
 
@@ -199,8 +209,17 @@ def _performer(cfg: CheckConfig, entry, caps, maps, seq_idx, res: SequenceCheck)
                                                 track_people)
 
     views = entry.view_names
-    if any(entry.views[v].keypoints is None for v in views):
-        res.warn("no keypoint folder in session.toml for every view: performer, view angle and geometric sync not checked")
+    missing = [v for v in views if entry.views[v].keypoints is None]
+    if missing:
+        # Real captures fresh from the phones have no keypoints yet: the check reads precomputed
+        # ones only (it runs no network), so say what that leaves out and how to bring them.
+        geometry = [] if entry.one_view else ["view angle", "geometric sync"]
+        res.skip(["performer"] + geometry,
+                 f"no keypoint folder in session.toml for {', '.join(missing)}",
+                 f"add `keypoints = \"FOLDER\"` (OpenPose per-frame JSON, e.g. from OpenPose or Pose2Sim) to "
+                 + " and ".join(f"[sequences.{entry.name}.views.{v}]" for v in missing)
+                 + " in session.toml and run `embodmocap check` again; registration and tracking jumps are "
+                 "checked without them")
         return None
     tracks, sizes = {}, {}
     for v in views:
@@ -263,8 +282,9 @@ def _register(cfg: CheckConfig, lay: SessionLayout, entry, caps, maps, seq_idx, 
 
     scene = lay.scene(entry.scene)
     if not scene.sfm_model.is_dir():
-        res.warn(f"scene {entry.scene} is not processed (run `embodmocap scene {lay.root} --scene {entry.scene}`): "
-                 "registration, view angle and geometric sync not checked")
+        res.skip(["registration"] + ([] if entry.one_view else ["view angle", "geometric sync", "same laser dot"]),
+                 f"scene {entry.scene} is not processed: no Stage I sparse model in {scene.sfm_model.parent}",
+                 f"run `embodmocap scene {lay.root} --scene {entry.scene}`, then `embodmocap check` again")
         return None
     rcfg = RegisterConfig()
     if entry.scene not in indexes:

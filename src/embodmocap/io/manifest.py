@@ -355,7 +355,7 @@ def _semantic_problems(m: SessionManifest, declared_scenes: set[str]) -> list[st
                 f"got {', '.join(seq.views) or 'none'}")
         for vname, view in seq.views.items():
             vkey = f"{key}.views.{vname}"
-            _check_path(view.capture, f"{vkey}.capture", "folder", add)
+            _check_path(view.capture, f"{vkey}.capture", "capture", add)
             for attr in ("keypoints", "masks", "depth"):
                 _check_path(getattr(view, attr), f"{vkey}.{attr}", "folder", add)
             _check_path(view.body_prior, f"{vkey}.body_prior", "file", add)
@@ -383,8 +383,14 @@ def _check_path(path: Path | None, key: str, kind: str, add: Callable[[str, str]
     # A capture is a folder, or a Record3D .r3d file (a zip of the same folder).
     exists = (path.is_dir() or (kind == "capture" and path.is_file() and path.suffix.lower() == ".r3d")) \
         if kind in ("folder", "capture") else path.is_file()
-    if not exists:
-        add(key, f"{kind} does not exist: {path}")
+    if not exists and kind == "capture" and path.is_file():
+        # A video or a zip named as a capture: say what a capture is (scene and view alike).
+        add(key, f"{path} is a file, not a capture: point to the folder the phone app exported "
+                 "(Stray Scanner, Spectacular AI, Record3D EXR + JPG or unzipped .r3d) or to a Record3D .r3d file"
+                 + (" (unzip a zipped recording first)" if path.suffix.lower() == ".zip" else ""))
+    elif not exists:
+        what = " (the folder the phone app exported, or a Record3D .r3d file)" if kind == "capture" else ""
+        add(key, f"{kind} does not exist: {path}{what}")
 
 
 # ------------------------------------------------------------------------------------------------
