@@ -331,10 +331,11 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
         out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
         return out
-    for v, name in enumerate(names):
-        out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * TM.reproj_term(
-            coco, d.K[v : v + 1], d.T_world_cam[:, v : v + 1], d.kp2d[:, v : v + 1], d.conf2d[:, v : v + 1],
-            cfg.reproj_kernel, gnc * cfg.reproj_scale_px)
+    if names:  # one projection into every view, one term per view
+        per_view = TM.reproj_view_terms(coco, d.K, d.T_world_cam, d.kp2d, d.conf2d, cfg.reproj_kernel,
+                                        gnc * cfg.reproj_scale_px)
+        for v, name in enumerate(names):
+            out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * per_view[v]
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
     elif cfg.w_rest_pose > 0:
