@@ -11,6 +11,11 @@ interleaved stage by stage on two copies of the session (old then new for one st
 for the next, so that a load spike on a shared machine does not fall on one side only); the table
 then has both rows per stage and the new / old ratios, and the evaluation's accuracy figures of both.
 ``--device cuda`` passes ``--device`` to the new code's Stage IV (the old code runs on its default).
+With ``--old-src`` and every stage, the whole pipeline is then timed once more as the user runs it,
+``embodmocap run SESSION`` on two more fresh copies (old and new, in the order opposite to the last
+stage's), and the summary gives the ratio of that run's wall time, CPU and peak RSS (the issue's
+figure; ``--no-whole-run`` skips it), the ratios of each stage, and the accuracy figures of both
+codes side by side (W-, WA-, PA-MPJPE, W-MPJPE over 100-frame chunks, RTE, camera errors).
 ``--stages scene`` (or any subset, in pipeline order) times only those stages (each needs its
 predecessors' outputs: ``scene`` alone needs nothing). When the session has ground truth, the scene
 stage's mesh accuracy and completeness of each code are printed too (one evaluator, this checkout's).
@@ -38,7 +43,11 @@ STAGES = (("scene", "scenes/scene0/manifest.json"), ("sequence", "sequences/seq0
           ("calibrate", "sequences/seq0/calibrate_manifest.json"), ("motion", "sequences/seq0/motion_manifest.json"),
           ("evaluate", None))
 #: Accuracy figures of ``evaluation.json``'s sequence entry shown for both codes.
-ACCURACY = ("w_mpjpe_mm", "wa_mpjpe_mm", "rte_pct", "camera_rot_err_deg", "camera_trans_err_m")
+ACCURACY = ("w_mpjpe_mm", "wa_mpjpe_mm", "pa_mpjpe_mm", "w_mpjpe_mm_c100", "wa_mpjpe_mm_c100", "w_mpjpe_mm_c500", "rte_pct",
+            "v1_view_translation_err_cm", "v2_view_translation_err_cm", "camera_rot_err_deg", "camera_trans_err_m")
+#: The paper's names of the stages in the ratio rows.
+ROMAN = {"scene": "Stage I (scene)", "sequence": "Stage II (sequence)", "calibrate": "Stage III (calibrate)",
+         "motion": "Stage IV (motion)", "evaluate": "evaluate"}
 
 
 def _steps(session: Path, manifest: str | None) -> dict[str, float]:
@@ -97,6 +106,8 @@ def main() -> None:
     ap.add_argument("--device", default=None, help="--device of the new code's Stage IV (auto, cpu, cuda)")
     ap.add_argument("--stages", nargs="+", default=[s for s, _ in STAGES], choices=[s for s, _ in STAGES],
                     help="the stages to time (default all, in pipeline order)")
+    ap.add_argument("--no-whole-run", action="store_true",
+                    help="with --old-src: skip the timing of `embodmocap run` on two more fresh copies")
     args = ap.parse_args()
     from embodmocap.synth.config import SynthConfig
     from embodmocap.synth.studio import synthesize
@@ -136,24 +147,39 @@ def main() -> None:
     print(f"\n{seq}load average at the end: {os.getloadavg()}")
     if args.old_src is None:
         return
-    print("\n| stage | wall new / old | CPU new / old | peak RSS new / old |")
-    print("|---|---|---|---|")
     four = [s for s, _ in STAGES[:4] if s in args.stages]
+    if len(four) == 4 and not args.no_whole_run:
+        # The user's command, end to end in one process per code (order opposite to the last stage's).
+        print("\n| `embodmocap run` | code | wall s | CPU s | peak RSS MB |")
+        print("|---|---|---|---|---|")
+        last = codes if len(stages) % 2 == 1 else codes[::-1]
+        for code, src, sess in last[::-1]:
+            run_copy = _copy_session(session, args.out / f"whole_{code}")
+            extra = ["--device", args.device] if args.device and code == "new" else []
+            wall, rss, cpu = run_cli_usage("run", str(run_copy), *extra, src=src)
+            rows["run", code] = (wall, cpu, rss)
+            print(f"| run | {code} | {wall:.1f} | {cpu:.1f} | {rss} |", flush=True)
+    print(f"\nload average now: {os.getloadavg()}")
+    print("\n| ratio row | wall new / old | CPU new / old | peak RSS new / old | wall old / new s |")
+    print("|---|---|---|---|---|")
+    if ("run", "old") in rows:
+        (wo, co, ro), (wn, cn, rn) = rows["run", "old"], rows["run", "new"]
+        print(f"| whole run (`embodmocap run`) | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} | {wo:.1f} / {wn:.1f} |")
     for stage in [s for s, _ in stages]:
         (wo, co, ro), (wn, cn, rn) = rows[stage, "old"], rows[stage, "new"]
-        print(f"| {stage} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} |")
+        print(f"| {ROMAN[stage]} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} | {wo:.1f} / {wn:.1f} |")
     if len(four) < 4:
         return
     tot = {c: [sum(rows[s, c][k] for s in four) for k in range(2)] + [max(rows[s, c][2] for s in four)] for c in ("old", "new")}
-    print(f"| Stages I-IV | {tot['new'][0] / tot['old'][0]:.3f} ({tot['new'][0]:.0f} / {tot['old'][0]:.0f} s) | "
-          f"{tot['new'][1] / tot['old'][1]:.3f} | {tot['new'][2] / tot['old'][2]:.3f} ({tot['new'][2]} / {tot['old'][2]} MB) |")
+    print(f"| Stages I-IV (sum of the stage processes) | {tot['new'][0] / tot['old'][0]:.3f} | {tot['new'][1] / tot['old'][1]:.3f} | "
+          f"{tot['new'][2] / tot['old'][2]:.3f} ({tot['new'][2]} / {tot['old'][2]} MB) | {tot['old'][0]:.1f} / {tot['new'][0]:.1f} |")
     if "evaluate" not in args.stages:  # the evaluation's figures need every stage
         return
     acc = {c: _accuracy(s) for c, _, s in codes}
     print("\n| figure | old | new | new / old |")
     print("|---|---|---|---|")
-    for k in sorted(acc["old"]):
-        o, n = acc["old"][k], acc["new"].get(k, float("nan"))
+    for k in sorted(set(acc["old"]) | set(acc["new"])):  # a figure only one code writes: nan on the other side
+        o, n = acc["old"].get(k, float("nan")), acc["new"].get(k, float("nan"))
         print(f"| {k} | {o:.4g} | {n:.4g} | {n / o if o else float('nan'):.3f} |")
 
 

@@ -323,3 +323,62 @@ def test_snap_to_keypoints_moves_a_far_init_onto_the_triangulation(body, motion)
     np.testing.assert_array_equal(snapped.body_pose, far.body_pose)
     with pytest.raises(ValueError, match="points must be"):
         snap_to_keypoints(body, far, points[:-1], conf)
+
+
+# ------------------------------------------------------------------------------- speed paths (issue 30)
+
+
+def test_reproj_view_terms_equal_each_view_alone(motion):
+    _, _, coco = motion
+    T = 20
+    views = _views(coco[:T], noise_px=30.0)
+    views[1].keypoints[3, 5:9, 2] = 0.0  # some missing detections in one view
+    kp = torch.as_tensor(np.stack([v.keypoints for v in views], 1))
+    Twc = torch.as_tensor(np.stack([v.T_world_cam for v in views], 1))
+    Ks = torch.as_tensor(np.stack([v.K for v in views]))
+    pred = torch.as_tensor(coco[:T]) + 0.03
+    both = TM.reproj_view_terms(pred, Ks, Twc, kp[..., :2], kp[..., 2])
+    for v in range(2):
+        alone = TM.reproj_term(pred, Ks[v : v + 1], Twc[:, v : v + 1], kp[:, v : v + 1, :, :2], kp[:, v : v + 1, :, 2])
+        assert float(both[v]) == pytest.approx(float(alone), rel=1e-12)
+    assert float(both[0]) != pytest.approx(float(both[1]))
+
+
+def test_plain_adam_takes_torch_adams_steps():
+    from embodmocap.motion.smplify import _Adam
+
+    rng = np.random.default_rng(0)
+    x0, y0 = torch.as_tensor(rng.normal(size=(5, 3))), torch.as_tensor(rng.normal(size=7))
+    loss = lambda x, y: ((x ** 2).sum() - 0.3 * x.prod() + ((y - 1.0) ** 4).sum() + (x[:, 0] * y[:5]).sum())  # noqa: E731
+    xa, ya = x0.clone().requires_grad_(True), y0.clone().requires_grad_(True)
+    xb, yb = x0.clone().requires_grad_(True), y0.clone().requires_grad_(True)
+    ref = torch.optim.Adam([{"params": [xa], "lr": 0.1}, {"params": [ya], "lr": 0.05}])
+    ours = _Adam([xb, yb])
+    for it in range(40):
+        lrs = [0.1 * (1 - it / 50), 0.05 * (1 - it / 60)]
+        for g, lr in zip(ref.param_groups, lrs):
+            g["lr"] = lr
+        ref.zero_grad()
+        loss(xa, ya).backward()
+        ref.step()
+        xb.grad = yb.grad = None
+        loss(xb, yb).backward()
+        ours.step(lrs)
+    assert torch.equal(xa, xb) and torch.equal(ya, yb)
+    assert not torch.equal(xa, x0)
+
+
+def test_fit_twice_gives_the_same_answer_and_restores_torch_threads(body, motion):
+    params, _, coco = motion
+    T = 30
+    views = _views(coco[:T], noise_px=2.0)
+    init = SmplParams(betas=np.zeros(10), global_orient=params.global_orient[:T] + 0.1, body_pose=np.zeros((T, 69)),
+                      transl=params.transl[:T] + 0.05, fps=FPS)
+    cfg = SmplifyConfig(phase1_iterations=10, phase2_iterations=20, threads=1)
+    before = torch.get_num_threads()
+    a = fit_world_smpl(body, coco[:T], np.ones((T, 17)), views, init, cfg=cfg)
+    assert torch.get_num_threads() == before
+    b = fit_world_smpl(body, coco[:T], np.ones((T, 17)), views, init, cfg=cfg)
+    for k in ("betas", "global_orient", "body_pose", "transl"):
+        assert np.array_equal(getattr(a.params, k), getattr(b.params, k)), k
+    assert a.terms_after == b.terms_after

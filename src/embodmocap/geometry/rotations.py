@@ -182,4 +182,6 @@ def rotvec_to_matrix_torch(r: "torch.Tensor") -> "torch.Tensor":
     o = torch.zeros_like(x)
     Kx = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(r.shape[:-1] + (3, 3))
     eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    return eye + a * Kx + b * (Kx @ Kx)
+    # [r]x^2 = r r^T - |r|^2 I: an outer product instead of a batched 3x3 product (SMPLify
+    # evaluates this for every joint of every frame at each step).
+    return eye * (1.0 - b * t2[..., None]) + a * Kx + b * (r[..., :, None] * r[..., None, :])

@@ -156,6 +156,11 @@ class SmplifyConfig:
     """``float32`` or ``float64``. Single precision (the default since issue 30) is about 1.4x
     faster on the CPU for the same fitted keypoints (the finest Adam steps, ~6e-4 rad, are far above
     its resolution); ``float64`` for checks that compare fits to 1e-9."""
+    threads: int = 1
+    """Torch CPU threads while the fit runs (set for the fit, restored after); 0 leaves torch's own
+    setting. One by default: the fit's tensors are small (a step is hundreds of ops on a few
+    thousand numbers), so a second thread buys little on a quiet machine and, on a loaded one,
+    its synchronisation at every op multiplied the fit's CPU time by up to 15 (issue 30)."""
 
 
 @dataclass(frozen=True)

@@ -34,8 +34,9 @@ are not consecutive), then held fixed while each window runs both phases. Window
 blended linearly across overlaps (translations linearly, rotations by normalised quaternion
 blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
 
-Threads: this module never calls ``torch.set_num_threads`` (it is process-global); callers that
-run several fits in parallel should set it themselves.
+Threads: the fit sets ``torch.set_num_threads(cfg.threads)`` while it runs and restores the
+previous count after (process-global: fits run in parallel threads of one process should share
+one setting).
 """
 
 from __future__ import annotations
@@ -156,11 +157,26 @@ class KeypointBody:
         parents = np.asarray(model.parents, dtype=np.int64).copy()
         parents[0] = -1
         self.parents = torch.as_tensor(parents, device=device)
-        # Joints grouped by depth in the tree: each level is one batched matmul.
-        depth = np.zeros(24, dtype=np.int64)
-        for j in range(1, 24):
-            depth[j] = depth[parents[j]] + 1
-        self.levels = [(np.flatnonzero(depth == d).tolist(), parents[depth == d].tolist()) for d in range(1, depth.max() + 1)]
+        # Forward kinematics by pointer jumping: each joint's world transform is the product of its
+        # ancestors' local ones, composed for all joints at once in log2(depth) rounds (round k
+        # composes with the ancestor 2^k levels up) instead of one round per tree level: a few
+        # large tensor ops per step instead of many small ones (the fit's cost is per op, not per
+        # frame). Only the joints whose world rotation something needs take part (those with
+        # children, or that move the face vertices); a leaf's position follows from its parent.
+        weighted = np.flatnonzero(np.abs(a["weights"][ids]).sum(0) > 0)
+        self.face_joints = torch.as_tensor(weighted, device=device)  # joints that skin the face vertices
+        self.f_weights = self.f_weights[:, weighted]  # (5, F)
+        inner = sorted(set(parents[1:].tolist()) | set(weighted.tolist()) | {0})
+        slot = {j: k for k, j in enumerate(inner)}  # joint -> row of the pointer-jumping tensors
+        self.inner = torch.as_tensor(inner, device=device)
+        anc = np.array([slot[parents[j]] if j else len(inner) for j in inner])  # the identity row for the root
+        anc = np.append(anc, len(inner))
+        self.jumps = []
+        while not np.all(anc == len(inner)):
+            self.jumps.append(torch.as_tensor(anc, device=device))
+            anc = anc[anc]
+        self.parent_slot = torch.as_tensor([slot[parents[j]] for j in range(1, 24)], device=device)  # (23,)
+        self.face_slot = torch.as_tensor([slot[j] for j in weighted.tolist()], device=device)
         self.dtype, self.device = dtype, torch.device(device)
 
     def __call__(self, betas: torch.Tensor, global_orient: torch.Tensor, body_pose: torch.Tensor,
@@ -172,24 +188,24 @@ class KeypointBody:
         J_rest = self.J_template + self.J_dirs @ b  # (24, 3)
         R_local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], -1).reshape(T, 24, 3))
         bone = J_rest[1:] - J_rest[self.parents[1:]]  # (23, 3) rest offset from the parent
-        # Per-joint lists, one batched product per tree level (in-place writes into one tensor
-        # would copy the whole tensor per level, forward and backward).
-        R_loc = R_local.unbind(1)
-        R_w: list[torch.Tensor] = [R_loc[0]] + [None] * 23  # type: ignore[list-item]
-        p_w: list[torch.Tensor] = [J_rest[0].expand(T, 3)] + [None] * 23  # type: ignore[list-item]
-        for idx, par in self.levels:
-            R_par = torch.stack([R_w[p] for p in par], 1)  # (T, n, 3, 3)
-            p_par = torch.stack([p_w[p] for p in par], 1)  # (T, n, 3)
-            R_new = (R_par @ torch.stack([R_loc[j] for j in idx], 1)).unbind(1)
-            p_new = (p_par + (R_par @ bone[[i - 1 for i in idx]][..., None])[..., 0]).unbind(1)
-            for k, j in enumerate(idx):
-                R_w[j], p_w[j] = R_new[k], p_new[k]
-        R_world, pos = torch.stack(R_w, 1), torch.stack(p_w, 1)
-        # Face vertices: shape + pose blend shapes, then linear blend skinning of 5 vertices.
+        offset = torch.cat([J_rest[:1], bone], 0)[self.inner]  # (n, 3) local translation of each inner joint
+        # Rows: the inner joints' (rotation, translation), then the identity that the root's
+        # ancestors point to. Each round: G_j <- G_anc(j) o G_j.
+        R = torch.cat([R_local[:, self.inner], torch.eye(3, dtype=R_local.dtype, device=R_local.device).expand(T, 1, 3, 3)], 1)
+        t = torch.cat([offset, torch.zeros_like(offset[:1])], 0).expand(T, -1, -1)[..., None]  # (T, n + 1, 3, 1)
+        for anc in self.jumps:
+            Ra = R[:, anc]
+            t = Ra @ t + t[:, anc]
+            R = Ra @ R
+        t = t[..., 0]
+        # Every joint's position from its parent's world transform (the inner joints' equal ``t``).
+        pos = torch.cat([t[:, :1], (R[:, self.parent_slot] @ bone[..., None])[..., 0] + t[:, self.parent_slot]], 1)
+        # Face vertices: shape + pose blend shapes, then linear blend skinning by the joints that
+        # carry weight on them.
         feat = (R_local[:, 1:] - torch.eye(3, dtype=R_local.dtype, device=R_local.device)).reshape(T, 207)
         v_posed = self.f_template + self.f_dirs @ b + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
-        local = v_posed[:, :, None, :] - J_rest  # (T, 5, 24, 3) vertex relative to each rest joint
-        moved = torch.einsum("tjab,tvjb->tvja", R_world, local) + pos[:, None]
+        local = v_posed[:, :, None, :] - J_rest[self.face_joints]  # (T, 5, F, 3) vertex relative to each rest joint
+        moved = torch.einsum("tjab,tvjb->tvja", R[:, self.face_slot], local) + pos[:, None, self.face_joints]
         face = (self.f_weights[None, :, :, None] * moved).sum(2)
         joints = pos + transl[:, None]
         face = face + transl[:, None]
@@ -315,10 +331,11 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["joint_limits"] = cfg.w_joint_limits * TM.joint_limits_term(s.pose)
         out["joint_range"] = cfg.w_joint_range * TM.joint_range_term(s.pose)
         return out
-    for v, name in enumerate(names):
-        out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * TM.reproj_term(
-            coco, d.K[v : v + 1], d.T_world_cam[:, v : v + 1], d.kp2d[:, v : v + 1], d.conf2d[:, v : v + 1],
-            cfg.reproj_kernel, gnc * cfg.reproj_scale_px)
+    if names:  # one projection into every view, one term per view
+        per_view = TM.reproj_view_terms(coco, d.K, d.T_world_cam, d.kp2d, d.conf2d, cfg.reproj_kernel,
+                                        gnc * cfg.reproj_scale_px)
+        for v, name in enumerate(names):
+            out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * per_view[v]
     if d.prior is not None:
         out["pose_prior"] = cfg.w_pose_prior * TM.pose_prior_term(s.pose, d.prior, d.prior_conf)
     elif cfg.w_rest_pose > 0:
@@ -348,16 +365,38 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
 
         opt.step(closure)
         return
-    opt = torch.optim.Adam([{"params": [p], "lr": lr} for p, lr in zip(params, lrs)])
+    opt = _Adam(params)
     for it in progress(range(iterations), "SMPL fit pass", unit="step"):
         if on_step is not None:
             on_step(it)
         frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
-        for g, lr in zip(opt.param_groups, lrs):
-            g["lr"] = lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac)
-        opt.zero_grad()
+        for p in params:
+            p.grad = None
         loss_fn().backward()
-        opt.step()
+        opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
+
+
+class _Adam:
+    """Adam (default betas 0.9 / 0.999, eps 1e-8, no weight decay) with one learning rate per
+    parameter given at each step: the arithmetic of ``torch.optim.Adam``'s single-tensor path op for
+    op (the same steps to the bit), without its per-step bookkeeping and without the import of
+    ``torch._dynamo`` that its constructor triggers (about 3 CPU s per process)."""
+
+    def __init__(self, params: list[torch.Tensor], betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> None:
+        self.params, (self.b1, self.b2), self.eps, self.t = params, betas, eps, 0
+        self.m = [torch.zeros_like(p) for p in params]
+        self.v = [torch.zeros_like(p) for p in params]
+
+    @torch.no_grad()
+    def step(self, lrs: list[float]) -> None:
+        self.t += 1
+        bc1, bc2_sqrt = 1.0 - self.b1 ** float(self.t), (1.0 - self.b2 ** float(self.t)) ** 0.5
+        for p, m, v, lr in zip(self.params, self.m, self.v, lrs):
+            if p.grad is None:
+                continue
+            m.lerp_(p.grad, 1.0 - self.b1)
+            v.mul_(self.b2).addcmul_(p.grad, p.grad, value=1.0 - self.b2)
+            p.addcdiv_(m, (v.sqrt() / bc2_sqrt).add_(self.eps), value=-lr / bc1)
 
 
 def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, names: list[str], free_betas: bool,
@@ -499,6 +538,16 @@ def fit_world_smpl(
     Returns:
         :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
     """
+    threads = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid) -> SmplifyResult:
     t_start = time.perf_counter()
     kp3d, kp3d_conf = np.asarray(kp3d, dtype=np.float64), np.asarray(kp3d_conf, dtype=np.float64)
     T = _check_inputs(kp3d, kp3d_conf, views, init, prior_body_pose, model.num_betas)

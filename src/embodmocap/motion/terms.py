@@ -86,6 +86,18 @@ def project(points: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
     return uvw[..., :2], z
 
 
+def reproj_view_terms(pred: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, kp2d: torch.Tensor,
+                      conf: torch.Tensor, kind: str = "geman_mcclure", scale: float = 20.0,
+                      min_depth: float = 0.05) -> torch.Tensor:
+    """:func:`reproj_term` of each view separately, from one projection into all of them: (V,)
+    (the same arguments; what ``reproj_term`` gives for the views one at a time)."""
+    kp2d, conf = _clean(kp2d, conf)
+    uv, z = project(pred, K, T_world_cam)
+    conf = torch.where(z.detach() > min_depth, conf, torch.zeros_like(conf))
+    rho = robust_rho(((uv - kp2d) ** 2).sum(-1), kind, scale)  # (T, V, J)
+    return (conf * rho).sum((0, 2)) / conf.sum((0, 2)).clamp(min=1e-12)
+
+
 def reproj_term(pred: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, kp2d: torch.Tensor,
                 conf: torch.Tensor, kind: str = "geman_mcclure", scale: float = 20.0,
                 min_depth: float = 0.05) -> torch.Tensor:
@@ -236,10 +248,26 @@ def joint_limits_term(body_pose: torch.Tensor, hinges: tuple[tuple[int, int, flo
         hinges: (SMPL joint, axis, sign); the axis-angle component ``sign * pose[joint, axis]``
             below zero is penalised quadratically (knee hyper-extension, elbow bending backwards).
     """
-    idx = torch.tensor([3 * (j - 1) + a for j, a, _ in hinges], device=body_pose.device)
-    sign = torch.tensor([s for _, _, s in hinges], dtype=body_pose.dtype, device=body_pose.device)
+    idx, sign = _constant(("hinges", hinges), body_pose, lambda: (
+        [3 * (j - 1) + a for j, a, _ in hinges], [s for _, _, s in hinges]))
     v = torch.relu(-sign * body_pose[:, idx])
     return (v ** 2).sum(-1).mean() if len(body_pose) else body_pose.sum() * 0.0
+
+
+_CONSTANTS: dict = {}
+
+
+def _constant(key: tuple, like: torch.Tensor, make) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pair of tensors ``make()`` describes (integer indices stay int64, the rest ``like``'s
+    dtype), on ``like``'s device, built once per key, dtype and device: the fit evaluates the terms
+    hundreds of times with the same constants."""
+    k = key + (like.dtype, like.device)
+    if k not in _CONSTANTS:
+        a, b = make()
+        conv = lambda x: torch.as_tensor(np.asarray(x), device=like.device,  # noqa: E731
+                                         dtype=torch.int64 if np.asarray(x).dtype.kind == "i" else like.dtype)
+        _CONSTANTS[k] = (conv(a), conv(b))
+    return _CONSTANTS[k]
 
 
 def _range(lo_x, hi_x, lo_y, hi_y, lo_z, hi_z):
@@ -285,8 +313,8 @@ ANATOMICAL_RANGES: tuple[tuple[tuple[float, float], ...], ...] = (
 def joint_range_term(body_pose: torch.Tensor, ranges=ANATOMICAL_RANGES) -> torch.Tensor:
     """Per-axis anatomical limits: mean over frames of the summed squared distances of each
     axis-angle component of ``body_pose`` (T, 69) outside its range (:data:`ANATOMICAL_RANGES`)."""
-    r = torch.as_tensor(ranges, dtype=body_pose.dtype, device=body_pose.device).reshape(69, 2)
-    v = torch.relu(r[:, 0] - body_pose) + torch.relu(body_pose - r[:, 1])
+    lo, hi = _constant(("ranges", ranges), body_pose, lambda: tuple(np.asarray(ranges, dtype=np.float64).reshape(69, 2).T))
+    v = torch.relu(lo - body_pose) + torch.relu(body_pose - hi)
     return (v ** 2).sum(-1).mean() if len(body_pose) else body_pose.sum() * 0.0
 
 
