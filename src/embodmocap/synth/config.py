@@ -82,6 +82,11 @@ class SynthConfig:
 
     seed: int = 0
     """Random seed; the same seed gives identical files."""
+    take: int = 0
+    """Take of the performance in the seed's scene: 0 = the historic session; another take draws
+    its own performer, motion, operators' paths, laser look, clocks and detections while the room
+    and the scene capture stay those of ``seed`` (byte for byte), so several takes share one scan
+    and its Stage I."""
     preset: Literal["indoor", "outdoor"] = "indoor"
     """Scene kind: a furnished room or a fenced yard."""
     room: Literal["standard", "large", "high_ceiling", "low_texture", "repetitive"] = "standard"
@@ -178,6 +183,7 @@ class SynthConfig:
         from embodmocap.errors import InputError
 
         checks = [
+            (self.take >= 0, "take must be >= 0"),
             (self.seconds > 0 and self.scene_seconds > 0, "seconds and scene_seconds must be > 0"),
             (0 < self.fps <= 120, "fps must be in (0, 120]"),
             (16 <= self.width <= 1920 and 16 <= self.height <= 1440, "RGB size must be within 16x16..1920x1440"),
