@@ -38,12 +38,15 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 WALLS = ("scene", "reddish", "magenta", "beige", "grey", "textured")
 VIEWS = ("v1", "v2")
+#: The default rooms (their index picks the wall look of the realistic dot).
+ALL_SCENES = ("indoor:0", "outdoor:1", "indoor:2", "outdoor:3")
 
 
 def session_config(preset: str, seed: int, scene_index: int, take: int, seconds: float, scene_seconds: float):
@@ -79,14 +82,29 @@ def run_take(root: Path, preset: str, seed: int, scene_index: int, take: int, ar
     out = root / f"{preset}_{seed}_t{take}"
     lay = SessionLayout(out)
     t0 = time.perf_counter()
+    first = root / f"{preset}_{seed}_t0"
     if not lay.ground_truth.info.is_file():
         if out.exists():
             shutil.rmtree(out)
-        synthesize(cfg, out)
+        if take == 0 or not (first / "captures" / "scene0").is_dir():
+            synthesize(cfg, out)
+        else:
+            # The scene capture of take k is take 0's byte for byte (SynthConfig.take;
+            # tests/test_synth_studio.py): render a token one and link take 0's files in its place.
+            synthesize(replace(cfg, scene_seconds=0.2), out)
+            for rel in ("captures/scene0", "ground_truth/scene_scene0_device.npz", "ground_truth/scene_scene0_mesh.ply"):
+                if (out / rel).is_dir():
+                    shutil.rmtree(out / rel)
+                elif (out / rel).exists():
+                    (out / rel).unlink()
+                if (first / rel).exists():
+                    subprocess.run(["cp", "-al", str(first / rel), str(out / rel)], check=True)
+            info = json.loads(lay.ground_truth.info.read_text())
+            info["config"]["scene_seconds"] = cfg.scene_seconds
+            lay.ground_truth.info.write_text(json.dumps(info, indent=2))
     t_synth = time.perf_counter() - t0
-    first = root / f"{preset}_{seed}_t0"
     if take > 0 and not (out / "scenes").exists() and (first / "scenes").exists():
-        # The same scene capture (byte for byte): the first take's Stage I outputs are up to date here.
+        # The same scene capture: the first take's Stage I outputs are up to date here.
         subprocess.run(["cp", "-al", str(first / "scenes"), str(out / "scenes")], check=True)
     if args.redo and (out / "sequences").exists():
         shutil.rmtree(out / "sequences")
@@ -118,7 +136,8 @@ def run_take(root: Path, preset: str, seed: int, scene_index: int, take: int, ar
             consistent_pair=(laser.get("consistent_pair") or {}).get("frames"),
             slicing=json.loads(sl.sync.read_text())["slicing"]["source"],
             warnings=rec.get("warnings", []))
-    if args.check and row["stopped"] is None:
+    chose = row["stopped"] is None and (row["overrides_laser"] or row["consistent_pair"] is not None)
+    if args.check and (chose or args.check_all) and row["stopped"] is None:
         t1 = time.perf_counter()
         p = subprocess.run([sys.executable, "-m", "embodmocap.cli", "check", str(out), "--json"],
                            capture_output=True, text=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
@@ -161,22 +180,27 @@ def summarise(rows: list[dict]) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=["indoor:0", "outdoor:1", "indoor:2", "outdoor:3"],
+    ap.add_argument("--scenes", nargs="+", default=list(ALL_SCENES),
                     help="rooms as preset:seed")
     ap.add_argument("--takes", type=int, default=5, help="takes per room (false-event view alternates)")
+    ap.add_argument("--first-take", type=int, default=0,
+                    help="first take (a second worker can run takes 5.. of rooms whose take 0 ran elsewhere)")
     ap.add_argument("--seconds", type=float, default=3.0, help="performance after the event, seconds")
     ap.add_argument("--scene-seconds", type=float, default=8.0, help="scene capture, seconds")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--keep", action="store_true", help="keep the sequences' outputs")
     ap.add_argument("--redo", action="store_true", help="rerun Stages II-III")
-    ap.add_argument("--check", action="store_true", help="also run embodmocap check on each session")
+    ap.add_argument("--check", action="store_true",
+                    help="also run embodmocap check where Stage III chose against the laser's best pair")
+    ap.add_argument("--check-all", action="store_true", help="with --check: on every session")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     rows, t0 = [], time.perf_counter()
-    for take in range(args.takes):  # take-major: every room's Stage I early, then the takes
-        for i, spec in enumerate(args.scenes):
+    for take in range(args.first_take, args.first_take + args.takes):  # take-major: every room's Stage I early, then the takes
+        for spec in args.scenes:
             preset, seed = spec.split(":")
+            i = ALL_SCENES.index(spec) if spec in ALL_SCENES else len(ALL_SCENES) + int(seed)
             r = run_take(args.out, preset, int(seed), i, take, args)
             rows.append(r)
             print(json.dumps(r), flush=True)

@@ -153,6 +153,10 @@ class SynthConfig:
     edge_limb: Literal["mislabelled", "occluded"] = "mislabelled"
     """What view 1 does with the left arm over ``edge_limb_frames``: ``mislabelled`` (the two arms'
     labels exchanged) or ``occluded`` (not detected)."""
+    interactions: tuple[str, ...] | None = None
+    """The performer's interactions, as many as fit (names of
+    :data:`embodmocap.synth.motion_base.INTERACTIONS`, e.g. ``("lie",)`` to lie on the bed of a room
+    that has one); None = the motion script's default (chair, box, table, sofa)."""
     laser: LaserConfig = LaserConfig()
     """The laser dot of the sync event: easy (default), realistic range, or none."""
     cameras: Literal["standard", "hard"] = "standard"

@@ -114,7 +114,8 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     # A false disappearance needs the view to see the dot before it, gone, and back before the event.
     lead_max_s = max(cfg.lead_min_s + 0.6, 1.0, cfg.laser.false_event_lead_s[1] + 0.4 if cfg.laser.false_event else 0.0)
     total_s = lead_max_s + cfg.seconds + 0.2
-    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _take_rng(cfg, 3), MotionScriptConfig())
+    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _take_rng(cfg, 3),
+                           MotionScriptConfig() if cfg.interactions is None else MotionScriptConfig(interactions=cfg.interactions))
     params = script.params
     M = len(params)
     out_body = body.from_params(params)
