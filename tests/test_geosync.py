@@ -305,6 +305,14 @@ def test_the_laser_pair_the_geometry_agrees_with_wins_over_the_best_scoring_one(
                    FPS, {}, "s")
     assert blind["chosen"]["source"] == "laser" and blind["chosen"]["residual_s"] == 0.0
     assert any("score alike" in w for w in blind["warnings"])
+    # The geometry confirms the best-scoring pair (its rays meet far better there): no warning that
+    # the choice was blind, and the record says which pair the geometry confirmed.
+    sure = decide(_candidates_record(), _geo(0.2, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    assert sure["chosen"]["source"] == "laser" and sure["chosen"]["residual_s"] == 0.0
+    assert sure["sources"]["laser"]["geometry_confirms"] == {"v1": 40, "v2": 14}
+    assert "consistent_pair" not in sure["sources"]["laser"]
+    assert not any("score alike" in w for w in sure["warnings"])
+    assert "geometry_confirms" not in blind["sources"]["laser"]
 
 
 def test_a_confident_geometry_that_no_laser_pair_agrees_with_replaces_the_laser():
