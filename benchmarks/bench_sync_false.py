@@ -134,6 +134,7 @@ def run_take(root: Path, preset: str, seed: int, scene_index: int, take: int, ar
             laser_candidates={v: [c["frame"] for c in d.get("candidates", [])] for v, d in laser["views"].items()},
             laser_frames={v: d.get("frame") for v, d in laser["views"].items()},
             consistent_pair=(laser.get("consistent_pair") or {}).get("frames"),
+            geometry_confirms=laser.get("geometry_confirms"),
             slicing=json.loads(sl.sync.read_text())["slicing"]["source"],
             warnings=rec.get("warnings", []))
     chose = row["stopped"] is None and (row["overrides_laser"] or row["consistent_pair"] is not None)
