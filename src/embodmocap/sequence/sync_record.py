@@ -306,6 +306,11 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         if len(known) > 1:
             i = min(known, key=lambda k: costs[k])
             clear = all(costs[i] <= cfg.pair_cost_ratio * costs[k] for k in known if k != i)
+            if laser_rejected and any(pairs[i]["frames"][v] == best_pair["frames"][v] for v in views):
+                # The same-dot check put the best pair's two sightings apart: a frame of it is
+                # something else taken for the dot, and a pair that shares that frame is no better
+                # (an untrusted geometry must not bring it back).
+                clear = False
             if clear and pairs[i] is best_pair:
                 # The geometry confirms the best-scoring pair: the choice was not blind (no warning).
                 rec["sources"]["laser"]["geometry_confirms"] = best_pair["frames"]
