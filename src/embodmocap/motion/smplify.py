@@ -54,8 +54,8 @@ from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
 from embodmocap.motion import terms as TM
-from embodmocap.motion.floor import floor_term
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
+from embodmocap.motion.floor import floor_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
