@@ -20,6 +20,8 @@ computed (``residual=False``): penetration and contact do not depend on it.
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_sim_open.py \\
         --sessions /tmp/simcheck/hard_{101,110,100} --json /tmp/simcheck/bench_sim_open.json
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/bench_sim_open.py --time /tmp/simcheck/hard_101
+    # only our fits, the session-7 rule:
+    ... bench_sim_open.py --sessions S1 S2 ... --kinds fit --rules through_surface --json OUT.json
 """
 
 from __future__ import annotations
@@ -80,7 +82,8 @@ def interaction_params(session: Path, body, name: str):
                                transl=p.transl[idx]), [n for n, _, _ in moves]
 
 
-def rows_for(session: Path, interactions: tuple[str, ...]) -> list[dict]:
+def rows_for(session: Path, interactions: tuple[str, ...], kinds: tuple[str, ...] = ("truth", "fit"),
+             rules: tuple[str, ...] = ("through_surface", "old")) -> list[dict]:
     from embodmocap.sim.check import plausibility
     from embodmocap.sim.config import SimCheckConfig
     from embodmocap.sim.session import SimSequence
@@ -89,7 +92,8 @@ def rows_for(session: Path, interactions: tuple[str, ...]) -> list[dict]:
     truth = truth_params(session)
     cases = [("truth", SimSequence(session, "truth", truth, np.arange(len(truth)), fit.body_model, v, f), None),
              ("fit", fit, None)]
-    for name in interactions:
+    cases = [c for c in cases if c[0] in kinds]
+    for name in (interactions if "truth" in kinds else ()):
         got = interaction_params(session, fit.body_model, name)
         if got is not None:
             p, moves = got
@@ -97,6 +101,8 @@ def rows_for(session: Path, interactions: tuple[str, ...]) -> list[dict]:
     rows = []
     for kind, sq, moves in cases:
         for rule, cfg in (("through_surface", SimCheckConfig()), ("old", SimCheckConfig(through_surface=False))):
+            if rule not in rules:
+                continue
             s = plausibility(sq, cfg, residual=False)["summary"]
             rows.append({"session": session.name, "kind": kind, "rule": rule, "frames": s["frames"],
                          "segments": moves, "penetration_max_cm": s["penetration_max_cm"],
@@ -123,6 +129,9 @@ def main() -> None:
     ap.add_argument("--sessions", type=Path, nargs="+", default=[])
     ap.add_argument("--time", type=Path, help="only time the check on this session's fit tiled to 60 s")
     ap.add_argument("--interactions", nargs="*", default=list(INTERACTIONS), choices=INTERACTIONS)
+    ap.add_argument("--kinds", nargs="+", default=["truth", "fit"], choices=["truth", "fit"],
+                    help="rows: the truth (and its interactions) and/or our fit")
+    ap.add_argument("--rules", nargs="+", default=["through_surface", "old"], choices=["through_surface", "old"])
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
     if a.time:
@@ -132,7 +141,7 @@ def main() -> None:
         return
     res: dict = {"date": time.strftime("%Y-%m-%d"), "sessions": [str(s) for s in a.sessions], "rows": []}
     for s in a.sessions:
-        res["rows"] += rows_for(s, tuple(a.interactions))
+        res["rows"] += rows_for(s, tuple(a.interactions), tuple(a.kinds), tuple(a.rules))
         if a.json:
             a.json.write_text(json.dumps(res, indent=1))
     summary = {}

@@ -305,6 +305,30 @@ def test_the_laser_pair_the_geometry_agrees_with_wins_over_the_best_scoring_one(
                    FPS, {}, "s")
     assert blind["chosen"]["source"] == "laser" and blind["chosen"]["residual_s"] == 0.0
     assert any("score alike" in w for w in blind["warnings"])
+    # The geometry confirms the best-scoring pair (its rays meet far better there): no warning that
+    # the choice was blind, and the record says which pair the geometry confirmed.
+    sure = decide(_candidates_record(), _geo(0.2, confidence=0.1), GeoSyncConfig(), FPS, {}, "s")
+    assert sure["chosen"]["source"] == "laser" and sure["chosen"]["residual_s"] == 0.0
+    assert sure["sources"]["laser"]["geometry_confirms"] == {"v1": 40, "v2": 14}
+    assert "consistent_pair" not in sure["sources"]["laser"]
+    assert not any("score alike" in w for w in sure["warnings"])
+    assert "geometry_confirms" not in blind["sources"]["laser"]
+
+
+def test_a_pair_sharing_a_frame_with_a_pair_the_dot_check_rejected_is_not_revived():
+    """The best pair's sightings are 2.3 m apart (one view took something else for the dot): an
+    untrusted geometry that prefers another pair sharing one of its frames does not bring the
+    laser back (a clear error asks for sync_frame); a pair with other frames in both views can."""
+    from embodmocap.sequence.laser_check import DotCheck
+
+    apart = DotCheck(gap_m=2.32, method="depth", limit_m=0.15, same_dot=False)
+    weak = _geo(30.4, confidence=0.1)
+    with pytest.raises(InputError, match="apart"):
+        decide(_candidates_record(), weak, GeoSyncConfig(), FPS, {}, "s", dot_check=apart)
+    rec = _candidates_record()
+    rec["sources"]["laser"]["pairs"][1]["frames"] = {"v1": 10, "v2": 44}  # no frame shared
+    ok = decide(rec, weak, GeoSyncConfig(), FPS, {}, "s", dot_check=apart)
+    assert ok["chosen"]["source"] == "laser" and ok["sources"]["laser"]["consistent_pair"]["frames"] == {"v1": 10, "v2": 44}
 
 
 def test_a_confident_geometry_that_no_laser_pair_agrees_with_replaces_the_laser():

@@ -136,6 +136,7 @@ def test_solve_in_memory_gives_the_run_s_files(session, tmp_path):
     from embodmocap.io.stage_files import (read_cameras, read_keypoints2d, read_keypoints3d, read_smpl_valid,
                                            read_world_joints, sequence_fps)
     from embodmocap.motion import solve
+    from embodmocap.motion.floor import scene_floor_z
     from embodmocap.sequence.subframe import synced_views
 
     work = tmp_path / "s"
@@ -155,7 +156,8 @@ def test_solve_in_memory_gives_the_run_s_files(session, tmp_path):
         fps=sequence_fps(sl), synced_cameras=synced_cams, synced_keypoints=synced_kps,
         priors=body_priors_by_frame({v: sl.view(v).body_prior for v in VIEWS}, T, cfg.min_prior_fraction),
         layout=stage4.keypoint_layout(sl, entry.name), gender=manifest.gender,
-        contacts=[(c.frame, np.asarray(c.xyz)) for c in entry.contacts])
+        contacts=[(c.frame, np.asarray(c.xyz)) for c in entry.contacts],
+        floor_z=scene_floor_z(stage4.scene_mesh(cfg, lay, entry.scene), cfg.smplify.floor_max_tilt_deg))
     # What the run wrote, read before the session goes.
     k3, joints = read_keypoints3d(sl.keypoints3d), read_world_joints(sl.joints_world)
     fit, _ = read_smpl_npz(sl.smpl_fit)

@@ -128,6 +128,20 @@ def test_same_seed_same_files(session, tmp_path):
     assert _digest(again) == _digest(session)
 
 
+def test_another_take_shares_the_scene_capture(session, tmp_path):
+    """A take > 0 of a seed films a new performance in the same room: the scene capture (and the
+    scene's ground truth) is the same file for file, the views are not."""
+    other = tmp_path / "take1"
+    synthesize(SynthConfig(seed=3, take=1, **SMALL), other)
+    a, b = _digest(session), _digest(other)
+    scene = [k for k in a if k.startswith("captures/scene0/") or k.startswith("ground_truth/scene_")]
+    assert scene and all(b[k] == a[k] for k in scene)
+    views = [k for k in a if k.startswith("captures/seq0/")]
+    assert any(b.get(k) != a[k] for k in views)
+    gt_a, gt_b = (np.load(SessionLayout(r).ground_truth.sequence("seq0")) for r in (session, other))
+    assert not np.allclose(gt_a["v1_T_scene_cam"][0], gt_b["v1_T_scene_cam"][0])
+
+
 def test_spectacular_format_session_reads_back(tmp_path):
     out = tmp_path / "sai"
     synthesize(SynthConfig(seed=5, format="spectacular", **SMALL), out)

@@ -464,7 +464,8 @@ def _sync_decision(cfg: CheckConfig, entry, record: dict, geo, fps: float, res: 
     elif rec["agreement"] is not None and not rec["agreement"]["agree"]:
         res.warn(f"laser and geometric sync disagree by {abs(rec['agreement']['laser_minus_geometric_frames']):.1f} "
                  "frames; the laser offset will be used")
-    elif record["slicing"]["source"] == "candidates" and ch["source"] == "laser":
+    elif record["slicing"]["source"] == "candidates" and ch["source"] == "laser" \
+            and "geometry_confirms" not in rec["sources"]["laser"]:
         res.warn("a view has laser events that score alike and the geometric sync cannot tell them apart; "
                  "set sync_frame in session.toml")
     elif record["slicing"]["source"] == "manual" and rec["sources"]["manual"].get("geometric_minus_manual_frames") is not None \

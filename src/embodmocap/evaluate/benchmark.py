@@ -370,7 +370,12 @@ class _Context:
             T = min(len(kps[v]) for v in VIEWS)
             tri = s4.triangulate_views(mcfg, cams, kps, T, self.seq)
             priors = self._priors(mcfg.min_prior_fraction, T) if prior else {}
-        fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq)
+        from embodmocap.motion.floor import scene_floor_z
+        from embodmocap.motion.stage import scene_mesh
+
+        floor_z = scene_floor_z(scene_mesh(mcfg, self.lay, self.scene), mcfg.smplify.floor_max_tilt_deg, self.seq)
+        fitted = s4.fit_motion(mcfg, self.model, tri.file, cams, kps, T, fps, priors, layout, label=self.seq,
+                               floor_z=floor_z)
         return (fitted.params, fitted.valid, fitted.quality.suspect) if flagged else fitted.params
 
 

@@ -97,6 +97,13 @@ class SmplifyConfig:
     :data:`embodmocap.motion.terms.ANATOMICAL_RANGES`): the pose prior that ships with the package."""
     w_shape_prior: float = 0.01
     """Weight of the betas L2 prior (per unit of mean squared beta)."""
+    w_floor: float = 1000.0
+    """Weight of the floor term (per m^2 of a foot joint below its lowest height over Stage I's
+    floor, :mod:`embodmocap.motion.floor`): a leg that both views lose must not sink its foot
+    through the floor. 0 = off (the fit does not read the scene mesh)."""
+    floor_max_tilt_deg: float = 3.0
+    """Stage I's floor is used only when it is within this of horizontal (a tilted floor means
+    wrong gravity or a sloping ground, where one plane would push feet up wrongly)."""
     kp3d_kernel: str = "geman_mcclure"
     """Robust kernel of the 3D term: ``l2``, ``huber`` or ``geman_mcclure``."""
     kp3d_scale_m: float = 0.05

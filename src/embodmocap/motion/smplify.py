@@ -44,7 +44,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -56,6 +56,7 @@ from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
+from embodmocap.motion.floor import floor_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
@@ -231,11 +232,12 @@ class _Data:
     prior: torch.Tensor | None  # (T, 69)
     prior_conf: torch.Tensor | None  # (T,)
     edge: torch.Tensor | None = None  # (T, 24, 1 + V) or (T,) edge velocity weights (TM.edge_hold_weights)
+    floor: torch.Tensor | None = None  # () the scene's floor height (motion.floor), None = no floor term
 
     def slice(self, idx: slice | torch.Tensor) -> "_Data":
         cut = lambda x: None if x is None else x[idx]  # noqa: E731
         return _Data(cut(self.kp3d), cut(self.conf3d), self.K, cut(self.T_world_cam), cut(self.kp2d),
-                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge))
+                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge), self.floor)
 
 
 def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: SmplParams, prior, model_betas: int) -> int:
@@ -325,6 +327,8 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         if d.edge is not None:
             out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
+    if d.floor is not None and cfg.w_floor > 0:
+        out["floor"] = cfg.w_floor * floor_term(joints, d.floor)
     if phase <= 1.25:
         return out
     if phase == 1.5:  # torso and limbs stages: the pose moves, the 2D terms wait for phase 2
@@ -415,8 +419,8 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
 
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
-        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge)
-        dims = tuple(None if x is None or x is d.K else 0 for x in fields)
+        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor)
+        dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
         def total(phase):
             def one(go, pose, transl, *dd):
@@ -517,6 +521,7 @@ def fit_world_smpl(
     layout: str = "COCO17",
     prior_weight: NDArray | None = None,
     valid: NDArray | None = None,
+    floor_z: float | None = None,
 ) -> SmplifyResult:
     """Fit world-space SMPL motion to 3D and 2D keypoints with the cameras fixed.
 
@@ -534,6 +539,8 @@ def fit_world_smpl(
             with the triangulation); None = 1 wherever the prior has a row.
         valid: (T,) bool placeable frames: ``cfg.w_edge_vel`` also covers the frames next to
             unplaceable ones, not only the sequence's ends; None = every frame placeable.
+        floor_z: the scene's floor height, world metres (:mod:`embodmocap.motion.floor`: no foot
+            joint below it, ``cfg.w_floor``); None = no floor term.
 
     Returns:
         :class:`SmplifyResult`. Raises ValueError on inconsistent shapes or settings.
@@ -542,12 +549,14 @@ def fit_world_smpl(
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     try:
-        return _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid)
+        return _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid,
+                               floor_z)
     finally:
         torch.set_num_threads(threads)
 
 
-def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid) -> SmplifyResult:
+def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, layout, prior_weight, valid,
+                    floor_z=None) -> SmplifyResult:
     t_start = time.perf_counter()
     kp3d, kp3d_conf = np.asarray(kp3d, dtype=np.float64), np.asarray(kp3d_conf, dtype=np.float64)
     T = _check_inputs(kp3d, kp3d_conf, views, init, prior_body_pose, model.num_betas)
@@ -565,6 +574,8 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
         data = _Data(data.kp3d, data.conf3d, data.K, data.T_world_cam, data.kp2d, data.conf2d, data.prior,
                      data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device),
                      data.edge)
+    if floor_z is not None:
+        data = replace(data, floor=torch.as_tensor(float(floor_z), dtype=dtype, device=device))
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
     start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
 

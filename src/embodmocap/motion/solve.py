@@ -146,7 +146,8 @@ class Fitted:
 
 def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str, Mapping], kps: Mapping[str, NDArray],
                T: int, fps: float, priors: Mapping, layout: str = "COCO17", gender: str | None = None, *,
-               label: str = "", source: object = None, depth: Mapping | None = None) -> Fitted:
+               label: str = "", source: object = None, depth: Mapping | None = None,
+               floor_z: float | None = None) -> Fitted:
     """The world SMPLify on the 3D and both views' 2D keypoints.
 
     Args:
@@ -159,6 +160,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         depth: view -> ``(depth_mm, (width, height))``, the view's depth stack ((T', h, w) uint16
             millimetres, Stage II's ``depth.npy``) for the quality's free-space test (None or a view
             left out: not tested there).
+        floor_z: Stage I's floor height (:func:`embodmocap.motion.floor.scene_floor_z`; None: no
+            floor term).
 
     Raises:
         InputError: too few triangulated joints, or no starting body without a prior.
@@ -187,7 +190,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
                  report_of(reports, "prefer_keypoints").get("frames_from_keypoints", 0))
     init = with_fps(start.init, fps, gender)
     res = fit_world_smpl(model, points, conf3, views, init, start.prior_pose, cfg.smplify, layout=layout,
-                         prior_weight=start.prior_weight, valid=valid)
+                         prior_weight=start.prior_weight, valid=valid, floor_z=floor_z)
     # The per-frame quality figures and the suspect flag; with QualityConfig.repair_frames, limbs the
     # views contradict at the edges of placeable runs first take the first fine frame's pose.
     t_quality = time.perf_counter()
@@ -340,6 +343,7 @@ class MotionInputs:
         priors: view -> (body prior per frame, (T,) has-estimate); empty: no prior.
         layout: the detector's keypoint layout; gender: the session's.
         contacts: (sequence frame, (3,) world point) per contact marker.
+        floor_z: Stage I's floor height, world metres (None: no floor term).
         lift_depth: one-phone sequences: ``(depth_at, rgb_size)`` of the view, what
             :func:`lift_view` reads (:func:`embodmocap.motion.stage.view_depth`).
     """
@@ -356,6 +360,7 @@ class MotionInputs:
     gender: str | None = None
     contacts: list = field(default_factory=list)
     lift_depth: tuple | None = None
+    floor_z: float | None = None
 
 
 @dataclass(frozen=True)
@@ -380,7 +385,7 @@ def solve(cfg: MotionConfig, inputs: MotionInputs) -> MotionResult:
         tri = triangulate_views(cfg, cams, kps, T, inputs.sequence)
     priors = inputs.priors if cfg.use_body_prior else {}
     fit = fit_motion(cfg, inputs.model, tri.file, cams, kps, T, inputs.fps, priors, inputs.layout, inputs.gender,
-                     label=inputs.sequence)
+                     label=inputs.sequence, floor_z=inputs.floor_z)
     contacts = list(inputs.contacts) if cfg.align_contacts else []
     final = align_motion(cfg, inputs.model, fit.params, np.arange(len(fit.params), dtype=np.int64), fit.valid,
                          contacts, inputs.cameras, label=inputs.sequence)

@@ -47,6 +47,7 @@ from embodmocap.motion import solve
 from embodmocap.motion.config import MotionConfig  # noqa: F401 (re-exported: defined in config.py)
 from embodmocap.motion.solve import KEYPOINTS3D_VERSION, placeable_frames, prefer_keypoints  # noqa: F401 (re-exported)
 from embodmocap.motion.steps import STEPS
+from embodmocap.motion.floor import scene_floor_z
 from embodmocap.sequence.subframe import synced_views
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,15 @@ class MotionOutputs:
 
 
 @tracked_stage
+def scene_mesh(cfg: MotionConfig, lay: SessionLayout, scene: str) -> Path | None:
+    """Stage I's mesh whose floor the fit keeps the feet above (the simplified one when Stage I
+    wrote it, as ``sim check`` reads), or None with the floor term off or no mesh."""
+    if cfg.smplify.w_floor <= 0:
+        return None
+    sc = lay.scene(scene)
+    return next((p for p in (sc.mesh_simplified, sc.mesh_raw) if p.is_file()), None)
+
+
 def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> MotionOutputs:
     """Run Stage IV for sequence ``seq`` (the only one when None)."""
     from embodmocap.body.model import load_body_model
@@ -115,8 +125,9 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
     priors = body_priors_by_frame({v: out.view(v).body_prior for v in names}, T, cfg.min_prior_fraction,
                                   entry.name) if cfg.use_body_prior else {}
     layout = keypoint_layout(out, entry.name)
+    mesh = scene_mesh(cfg, lay, entry.scene)  # the floor under the feet (motion.floor)
     fp_fit = STEPS.fingerprint("fit", cfg, after={"triangulate": fp_tri}, context={"layout": layout, "gender": manifest.gender},
-                               reads={"<view>/body_prior.npz": {v: out.view(v).body_prior for v in priors},
+                               reads={"<view>/body_prior.npz": {v: out.view(v).body_prior for v in priors}, "scene mesh": mesh,
                                       # the model's content, not its absolute path: a moved session redoes nothing
                                       "body model": Path(manifest.body_model) if manifest.body_model else model.source,
                                       # the quality's free-space test reads each view's depth
@@ -126,7 +137,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
                                    manifest.gender, label=entry.name, source=out.keypoints3d,
-                                   depth=quality_depth(out, names) if cfg.quality.free_space_m > 0 else None)
+                                   depth=quality_depth(out, names) if cfg.quality.free_space_m > 0 else None,
+                                   floor_z=scene_floor_z(mesh, cfg.smplify.floor_max_tilt_deg, entry.name))
             write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays(),
                            one_view=entry.one_view)
             step.record([out.smpl_fit], fit.figures)

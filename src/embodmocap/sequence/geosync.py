@@ -42,7 +42,7 @@ from embodmocap.geometry.raycast import pixel_rays
 F = NDArray[np.floating]
 
 #: Version of the algorithm (in Stage III's fingerprint: a change redoes the step).
-GEOSYNC_VERSION = 4
+GEOSYNC_VERSION = 5
 
 
 @dataclass(frozen=True)

@@ -305,7 +305,16 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         known = [i for i, c in enumerate(costs) if math.isfinite(c)]
         if len(known) > 1:
             i = min(known, key=lambda k: costs[k])
-            if all(costs[i] <= cfg.pair_cost_ratio * costs[k] for k in known if k != i) and pairs[i] is not best_pair:
+            clear = all(costs[i] <= cfg.pair_cost_ratio * costs[k] for k in known if k != i)
+            if laser_rejected and any(pairs[i]["frames"][v] == best_pair["frames"][v] for v in views):
+                # The same-dot check put the best pair's two sightings apart: a frame of it is
+                # something else taken for the dot, and a pair that shares that frame is no better
+                # (an untrusted geometry must not bring it back).
+                clear = False
+            if clear and pairs[i] is best_pair:
+                # The geometry confirms the best-scoring pair: the choice was not blind (no warning).
+                rec["sources"]["laser"]["geometry_confirms"] = best_pair["frames"]
+            if clear and pairs[i] is not best_pair:
                 near = pairs[i]
                 f_new, f_old = near["frames"], best_pair["frames"]
                 rec["sources"]["laser"]["consistent_pair"] = near
@@ -330,7 +339,7 @@ def decide(record: dict, geo: GeoSyncResult | None, cfg: GeoSyncConfig, fps: flo
         reason = ("prefer = laser" if cfg.prefer == "laser" else
                   "geometric sync not confident enough" if geo_ok else
                   "geometric sync not run" if geo is None else f"geometric sync failed: {geo.message}")
-        if how == "candidates" and "consistent_pair" not in rec["sources"]["laser"]:
+        if how == "candidates" and not ({"consistent_pair", "geometry_confirms"} & set(rec["sources"]["laser"])):
             warnings.append(f"{seq}: laser events that score alike and no confident geometric sync to choose between "
                             f"them ({reason}): the best-scoring pair is used; check the contact sheets {names}")
     elif laser_offset is not None:

@@ -82,6 +82,11 @@ class SynthConfig:
 
     seed: int = 0
     """Random seed; the same seed gives identical files."""
+    take: int = 0
+    """Take of the performance in the seed's scene: 0 = the historic session; another take draws
+    its own performer, motion, operators' paths, laser look, clocks and detections while the room
+    and the scene capture stay those of ``seed`` (byte for byte), so several takes share one scan
+    and its Stage I."""
     preset: Literal["indoor", "outdoor"] = "indoor"
     """Scene kind: a furnished room or a fenced yard."""
     room: Literal["standard", "large", "high_ceiling", "low_texture", "repetitive"] = "standard"
@@ -148,6 +153,10 @@ class SynthConfig:
     edge_limb: Literal["mislabelled", "occluded"] = "mislabelled"
     """What view 1 does with the left arm over ``edge_limb_frames``: ``mislabelled`` (the two arms'
     labels exchanged) or ``occluded`` (not detected)."""
+    interactions: tuple[str, ...] | None = None
+    """The performer's interactions, as many as fit (names of
+    :data:`embodmocap.synth.motion_base.INTERACTIONS`, e.g. ``("lie",)`` to lie on the bed of a room
+    that has one); None = the motion script's default (chair, box, table, sofa)."""
     laser: LaserConfig = LaserConfig()
     """The laser dot of the sync event: easy (default), realistic range, or none."""
     cameras: Literal["standard", "hard"] = "standard"
@@ -178,6 +187,7 @@ class SynthConfig:
         from embodmocap.errors import InputError
 
         checks = [
+            (self.take >= 0, "take must be >= 0"),
             (self.seconds > 0 and self.scene_seconds > 0, "seconds and scene_seconds must be > 0"),
             (0 < self.fps <= 120, "fps must be in (0, 120]"),
             (16 <= self.width <= 1920 and 16 <= self.height <= 1440, "RGB size must be within 16x16..1920x1440"),

@@ -69,6 +69,13 @@ def _rng(seed: int, part: int) -> np.random.Generator:
     return np.random.default_rng([seed, part])
 
 
+def _take_rng(cfg: SynthConfig, part: int) -> np.random.Generator:
+    """A generator of the performance's part ``part`` (performer, motion, operators, laser look,
+    clocks, perception): take 0 draws the historic ones; another take draws its own while the room
+    and its scan (:func:`_rng` of the seed) stay the same."""
+    return _rng(cfg.seed, part) if cfg.take == 0 else np.random.default_rng([cfg.seed, part, cfg.take])
+
+
 def _capture_writer(cfg: SynthConfig, out: Path):
     if cfg.format == "strayscanner":
         from embodmocap.io.captures.strayscanner import StrayScannerWriter
@@ -95,17 +102,20 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     wall_look = str(cfg.laser.walls[int(lrng.integers(len(cfg.laser.walls)))])
     if cfg.laser.mode != "easy":
         built = laser_look.with_wall_look(built, wall_look, lrng)
+    if cfg.take:  # the walls are the scene's; the dot's look and the clothes are the take's
+        lrng = _take_rng(cfg, 70 if cfg.preset == "indoor" else 71)
 
     # 2. Performer: shape and motion (scene frame).
     write_test_model(lay.body_model)
     body = load_body_model(lay.body_model)
-    brng = _rng(cfg.seed, 2)
+    brng = _take_rng(cfg, 2)
     betas = np.zeros(body.num_betas)
     betas[:4] = brng.normal(0.0, [0.8, 0.6, 0.5, 0.5])
     # A false disappearance needs the view to see the dot before it, gone, and back before the event.
     lead_max_s = max(cfg.lead_min_s + 0.6, 1.0, cfg.laser.false_event_lead_s[1] + 0.4 if cfg.laser.false_event else 0.0)
     total_s = lead_max_s + cfg.seconds + 0.2
-    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _rng(cfg.seed, 3), MotionScriptConfig())
+    script = script_motion(built.spec, body, betas, total_s, cfg.fps, _take_rng(cfg, 3),
+                           MotionScriptConfig() if cfg.interactions is None else MotionScriptConfig(interactions=cfg.interactions))
     params = script.params
     M = len(params)
     out_body = body.from_params(params)
@@ -121,10 +131,10 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     # The sync event: inside the performer's initial idle, late enough for every view's lead.
     idle_end = next((end for name, start, end in script.segments if name == "idle"), int(lead_max_s * cfg.fps))
     event = int(min(round(lead_max_s * cfg.fps), max(idle_end - 3, round(cfg.lead_min_s * cfg.fps) + 1)))
-    trng = _rng(cfg.seed, 4)
+    trng = _take_rng(cfg, 4)
     false_off = None  # motion frames [a, b) in which the dot is out of the false-event view
     if cfg.laser.false_event:
-        frng = _rng(cfg.seed, 90)
+        frng = _take_rng(cfg, 90)
         a = event - int(round(frng.uniform(*cfg.laser.false_event_lead_s) * cfg.fps))
         false_off = (a, a + int(round(frng.uniform(*cfg.laser.false_event_gone_s) * cfg.fps)))
     starts, ends = {}, {}
@@ -142,7 +152,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     follow = trajectory.FollowConfig()
     if cfg.view_separation_deg is not None:
         follow = replace(follow, sep_deg=(cfg.view_separation_deg, cfg.view_separation_deg))
-    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _rng(cfg.seed, 10), follow)
+    T_v = trajectory.follow_views(built.spec, pelvis, cfg.fps, _take_rng(cfg, 10), follow)
     dot, normal = choose_dot(built, [T[event] for T in T_v], (verts[event], faces))
     built = with_dot(built, dot, normal)
     T_v = tuple(aim_at_dot(T, dot, event, cfg.fps) for T in T_v)
@@ -192,13 +202,13 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         t_motion = span + phase
         T_scene_cam = _at_times(T_v[k], t_motion)
         v_verts, v_coco = (_lerp_frames(a, t_motion) for a in (verts, kp_true))
-        T_scene_vio = trajectory.random_T_scene_vio(_rng(cfg.seed, 20 + k))
+        T_scene_vio = trajectory.random_T_scene_vio(_take_rng(cfg, 20 + k))
         T_vio_cam = trajectory.add_drift(
-            invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _rng(cfg.seed, 30 + k), trajectory.DriftConfig()
+            invert_T(T_scene_vio) @ T_scene_cam, cfg.fps, _take_rng(cfg, 30 + k), trajectory.DriftConfig()
         )
         # The hard camera preset: scale error and drift that grow with the path (own generator, so
         # the standard studio's draws are untouched).
-        T_vio_cam = add_path_errors(T_vio_cam, _rng(cfg.seed, 90 + k), cfg.vio_errors())
+        T_vio_cam = add_path_errors(T_vio_cam, _take_rng(cfg, 90 + k), cfg.vio_errors())
         # The laser goes off half-way between motion frames e-1 and e.
         laser_on = (t_motion < event - 0.5) & (cfg.laser.mode != "none")
         if false_off is not None and v == cfg.laser.false_event_view:
@@ -206,14 +216,14 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         log.info("view %s: %d frames, sync frame %d", v, len(span), event - starts[v])
         gt_px, vis, masks_dir = _write_capture(
             cfg, lay.view_capture(cfg.sequence_name, v), renderers[v], T_scene_cam, T_vio_cam, K, K_depth,
-            body_verts=v_verts, faces=faces, laser_on=laser_on, rng=_rng(cfg.seed, 40 + k),
-            clock_offset_s=float(_rng(cfg.seed, 50 + k).uniform(100, 1000)),
+            body_verts=v_verts, faces=faces, laser_on=laser_on, rng=_take_rng(cfg, 40 + k),
+            clock_offset_s=float(_take_rng(cfg, 50 + k).uniform(100, 1000)),
             coco_world=v_coco, perception_dir=lay.perception(cfg.sequence_name, v),
-            lighting=_lighting(_rng(cfg.seed, 80 + k)) if cfg.lighting_change else None,
+            lighting=_lighting(_take_rng(cfg, 80 + k)) if cfg.lighting_change else None,
             look=looks[v], dot=dot,
         )
         frames_rendered += len(span)
-        prng = _rng(cfg.seed, 60 + k)
+        prng = _take_rng(cfg, 60 + k)
         noise = perception.HARD_KEYPOINT_NOISE if cfg.perception == "hard" else perception.KeypointNoiseConfig()
         kps = perception.noisy_keypoints(gt_px, vis, prng, noise)
         detected[v] = kps  # the keypoint files are written once both views' detections exist
@@ -232,7 +242,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
 
     if cfg.edge_limb_frames > 0:  # the start of the sequence made hard for the left arm (issue 29)
         detected = perception.edge_limb_trouble(detected, sync_frames, cfg.edge_limb_frames, cfg.edge_limb,
-                                                _rng(cfg.seed, 90))
+                                                _take_rng(cfg, 90))
     for v in filmed:
         perc = lay.perception(cfg.sequence_name, v)
         for i, kp in enumerate(detected[v]):
