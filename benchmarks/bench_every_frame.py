@@ -129,6 +129,8 @@ def one_seed(out: Path, seed: int, seconds: float, scene_seconds: float, modes, 
                 row["manual_frames"] = manual_frames(auto, cfg.sequence_name)
             row["run_seconds"] = run_one(session, redo)
             ev = evaluate_session(session)["sequences"][cfg.sequence_name]
+            if "missing" in ev:  # a stage did not finish: a failed row, not a row of None figures
+                raise RuntimeError(ev["missing"])
             row.update({k: ev.get(k) for k in KEYS})
         except Exception as err:  # noqa: BLE001 - a failed run is a row of the table, not a crash
             row["error"] = f"{type(err).__name__}: {err}"
