@@ -465,3 +465,15 @@ def test_the_solve_scan_finds_each_kind_of_file_work(tmp_path):
         assert any(what in p for p in found), (what, found)
     assert not any("CameraFile" in p or p.endswith("VIEWS") for p in found), found
 
+
+
+def test_every_stage_run_records_how_it_ended():
+    """Each stage's ``run`` is wrapped by ``tracked_stage`` (its manifest says ``ok`` or ``failed``
+    when it returns): a merge once moved the decorator onto a helper, and Stage IV's manifests
+    stayed ``running`` so that ``evaluate`` refused every session."""
+    import importlib
+
+    for name in ("scene", "sequence", "calibrate", "motion", "mono", "skills", "robot"):
+        run = importlib.import_module(f"embodmocap.{name}.stage").run
+        assert getattr(run, "__wrapped__", None) is not None and run.__qualname__ == "run", \
+            f"embodmocap.{name}.stage.run is not decorated with @tracked_stage"

@@ -5,6 +5,7 @@ contact markers and rejects bad input."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -68,6 +69,8 @@ def test_fit_lands_on_the_truth_and_resumes(session):
     for v in VIEWS:
         np.testing.assert_array_equal(np.load(sl.view(v).cameras_final)["T_world_cam"],
                                       np.load(sl.view(v).cameras_world)["T_world_cam"])
+    # The run recorded that it finished: a downstream stage (evaluate, exports) refuses "running".
+    assert json.loads(sl.motion_manifest.read_text())["status"] == "ok"
     again = stage4.run(stage4.MotionConfig(), session)
     assert set(again.skipped) == {"triangulate", "fit", "align"}
 

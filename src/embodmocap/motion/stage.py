@@ -63,7 +63,6 @@ class MotionOutputs:
     skipped: tuple[str, ...]
 
 
-@tracked_stage
 def scene_mesh(cfg: MotionConfig, lay: SessionLayout, scene: str) -> Path | None:
     """Stage I's mesh whose floor the fit keeps the feet above (the simplified one when Stage I
     wrote it, as ``sim check`` reads), or None with the floor term off or no mesh."""
@@ -73,6 +72,7 @@ def scene_mesh(cfg: MotionConfig, lay: SessionLayout, scene: str) -> Path | None
     return next((p for p in (sc.mesh_simplified, sc.mesh_raw) if p.is_file()), None)
 
 
+@tracked_stage
 def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> MotionOutputs:
     """Run Stage IV for sequence ``seq`` (the only one when None)."""
     from embodmocap.body.model import load_body_model
