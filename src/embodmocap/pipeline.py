@@ -25,6 +25,7 @@ from embodmocap.device import Device, motion_on_device
 from embodmocap.errors import EmbodMocapError, interrupted, os_error_line
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
+from embodmocap.memory import map_large_blocks, release_freed_memory
 from embodmocap.motion.config import MotionConfig
 from embodmocap.scene.config import SceneConfig
 from embodmocap.sequence.config import SequenceConfig
@@ -91,6 +92,7 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
     motion_cfg = motion_on_device(cfg.motion, cfg.device)
     say = on_progress or log.info
     runs: list[StageRun] = []
+    map_large_blocks()  # one process runs every stage: keep its heap from holding a stage's peak (embodmocap.memory)
 
     def attempt(target: str, stage: str, fn: Callable[[], object]) -> bool:
         say(f"{target}: {stage} ...")
@@ -109,6 +111,10 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
             say(f"{target}: {stage} FAILED after {seconds:.0f} s: {msg}")
             runs.append(StageRun(target, stage, "failed", round(seconds, 2), msg))
             return False
+        finally:
+            # What the stage freed goes back to the system before the next one allocates next to
+            # it: otherwise one process's peak is the next stage's on top of Stage I's (embodmocap.memory).
+            release_freed_memory()
         seconds = time.perf_counter() - t0
         say(f"{target}: {stage} done in {seconds:.0f} s")
         runs.append(StageRun(target, stage, "ok", round(seconds, 2)))
