@@ -20,8 +20,8 @@ def _documents():
 def test_benchmarks_page_stays_one_page():
     lines = (ROOT / "BENCHMARKS.md").read_text().splitlines()
     assert len(lines) < 600, f"BENCHMARKS.md has {len(lines)} lines: move dated passes to benchmarks/history/"
-    # the page keeps the placeholder / section the coordinator folds each session's figures into
-    assert any(line.startswith("## Session 8") for line in lines)
+    # the page keeps a section of the latest session's figures (its number changes each session)
+    assert any(re.match(r"## Session \d+ \(", line) for line in lines)
 
 
 def _anchors(doc: Path) -> set[str]:
