@@ -41,6 +41,7 @@ from embodmocap.calibrate.scene_index import (  # noqa: F401 (the scene index's 
 from embodmocap.errors import InputError, require
 from embodmocap.geometry.transforms import invert_T
 from embodmocap.io.colmap import COLMAP_PIXEL_OFFSET, colmap_camera_params
+from embodmocap.parallel import library_threads
 from embodmocap.progress import progress
 from embodmocap.types import Intrinsics
 
@@ -241,7 +242,7 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
     # BLAS on one thread too (the matching's products): each pool thread running a multi-threaded
     # OpenBLAS product oversubscribes the cores, and OpenBLAS's waiting threads spin (measured:
     # matching products in a 2-thread pool cost 2.3x the CPU; same results).
-    with _opencv_threads(1), _blas_threads(1):
+    with _opencv_threads(1), library_threads(1, ("blas",)):
         if workers > 1:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -262,18 +263,6 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
             T, inl = res
             results.append((len(attempted) - 1, t, T, q_idx[inl], p_ids[inl], xy))
     return _collect(attempted, counts, cands, results, index, K, cfg, seconds)
-
-
-def _blas_threads(n: int):
-    """Context manager: the BLAS libraries numpy uses limited to ``n`` threads inside (through
-    ``threadpoolctl`` where it is installed; nothing changes without it)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: only the CPU time differs
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(n, user_api="blas")
 
 
 def _choose(index: SceneIndex, desc: NDArray, K: Intrinsics, cfg: RegisterConfig,
