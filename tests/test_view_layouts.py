@@ -163,8 +163,8 @@ def _assert_same_outputs(stray: stage.SequenceOutputs, got: stage.SequenceOutput
             np.testing.assert_allclose(db[both], da[both], atol=quantum + 1e-6)
             if has_conf:  # the same LiDAR confidence filter: the same pixels kept
                 np.testing.assert_array_equal(db > 0, da > 0)
-            else:  # no confidence map in the format: every valid depth kept
-                assert (db > 0)[da > 0].all() and (db > 0).sum() >= (da > 0).sum()
+            else:  # no confidence map in the format: depth edges dropped in its place (geometry.depth_edges)
+                assert ((db > 0) == (da > 0)).mean() >= 0.85  # mostly the pixels the confidence keeps (beyond 3.5-4.5 m it is range, not edges)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -54,6 +54,11 @@ class SequenceConfig:
 
     min_depth_confidence: int = 1
     """LiDAR depth pixels with lower confidence (0 low, 1 medium, 2 high) are set to 0 (invalid)."""
+    no_confidence_edge_spread: float = 0.1
+    """For a capture without a confidence map (a Spectacular AI recording): depth pixels whose 3x3
+    neighbourhood spans more than this fraction of their depth are set to 0, the depth edges the
+    LiDAR's confidence would have marked low (``geometry.depth_edges``); 0 keeps every pixel.
+    Captures with a confidence map use ``min_depth_confidence`` instead."""
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     """Linking detections into tracks so the performer keeps one identity."""
     long_gap_s: float = 2.0
@@ -71,6 +76,8 @@ class SequenceConfig:
             bad.append("batch_size must be >= 1")
         if self.min_depth_confidence not in (0, 1, 2):
             bad.append("min_depth_confidence must be 0, 1 or 2")
+        if not 0 <= self.no_confidence_edge_spread < 10:
+            bad.append("no_confidence_edge_spread must be in [0, 10) (0 = off)")
         if not 0 <= self.min_person_fraction <= 1:
             bad.append("min_person_fraction must be in [0, 1]")
         if bad:

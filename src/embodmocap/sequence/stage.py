@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from embodmocap.errors import InputError
+from embodmocap.geometry.depth_edges import drop_depth_edges
 from embodmocap.io.frame_stack import depth_mm, pack_mask, write_stack
 from embodmocap.io.body_prior import BodyPriorSeq, write_body_prior
 from embodmocap.io.captures import open_capture
@@ -288,9 +289,14 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
         c = cap.frames.confidence(i)
         if c is not None:
             d = np.where(c >= cfg.min_depth_confidence, d, 0.0)
+        elif cfg.min_depth_confidence > 0:  # no confidence map: drop what it would have marked low
+            return drop_depth_edges(d, cfg.no_confidence_edge_spread)
         return np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
 
     T = len(fm.raw_frames)
+    if src is None and cfg.min_depth_confidence > 0 and cap.frames.confidence(int(fm.raw_frames[0])) is None:
+        log.info("%s has no LiDAR confidence map: depth edges dropped instead (relative 3x3 spread > %g, "
+                 "sequence setting no_confidence_edge_spread)", cap.path.name, cfg.no_confidence_edge_spread)
     first = src.depth_maps(None, [int(fm.raw_frames[0])], None)[0] if cfg.depth == "precomputed" else lidar(int(fm.raw_frames[0]))
     if refiner is not None:
         shape = (cap.rgb_intrinsics.height, cap.rgb_intrinsics.width)

@@ -22,7 +22,7 @@ STEPS = StageSteps("sequence", SequenceConfig, (
          writes=(_DIR + "<view>/keypoints2d.npz",), doc="every person's keypoints, the performer chosen across views"),
     Step("masks", after=("keypoints",), reads=("mask folder",), settings=("masks", "masks_model"),
          writes=(_DIR + "<view>/masks.npy",), doc="person masks (per view: masks_<view>)"),
-    Step("depth", after=("slice",), reads=("depth folder",), settings=("depth", "depth_model", "min_depth_confidence"),
+    Step("depth", after=("slice",), reads=("depth folder",), settings=("depth", "depth_model", "min_depth_confidence", "no_confidence_edge_spread"),
          writes=(_DIR + "<view>/depth.npy",), doc="depth per sliced frame (per view: depth_<view>)"),
     Step("body_prior", after=("slice",), reads=("body prior file",), settings=("body_prior",),
          writes=(_DIR + "<view>/body_prior.npz",), doc="camera-space body prior (per view: body_prior_<view>)"),
