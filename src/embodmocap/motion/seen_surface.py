@@ -1,0 +1,116 @@
+"""Body surface a view measured at its detections that the fitted body leaves unexplained (issue 29, item 5).
+
+Where a view detects a joint with confidence, its depth map measured the person's surface around
+that pixel. A right fit has its mesh there (within the limb's thickness and the sensor's noise);
+a fit whose wrist or ankle lies 15-20 cm along the view's ray (the view alone sees it, so the
+keypoint figures cannot tell: the joint reprojects well) or beside it leaves that measured surface
+far from every one of its vertices. The test is label-free on purpose: it asks whether *any* part
+of the fitted body is where the view measured the person, so a detection the label tracker gave to
+the other side, or that the fit followed to the other leg, says nothing against a fit that has a
+limb there; and exchanged legs, which occupy the same space, pass (nothing in a view's depth
+separates them).
+
+Per frame, view and judged joint (:data:`SURFACE_JOINTS`, detected by the view's detector at
+``min_conf`` or more): the depth pixels in a ``window`` x ``window`` neighbourhood of the
+detection that the view's person mask covers (depth 0, unmeasured, never counts), lifted into the
+world with the view's camera; the figure is the ``quantile`` of their distances to the nearest
+fitted vertex (a low quantile, so that a window reaching over the limb's edge onto the mask's
+bleed or another surface does not count: most of the measured points must be unexplained).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: COCO-17 joints whose measured surface is judged: elbows, wrists, knees, ankles (the limb ends
+#: a single view can hold at the wrong depth; the shoulders and hips sit on the torso, which the
+#: fit places from both views).
+SURFACE_JOINTS: tuple[int, ...] = (7, 8, 9, 10, 13, 14, 15, 16)
+
+#: A detection with fewer measured person pixels in its window is not judged.
+MIN_POINTS = 3
+
+
+def surface_points(kp2d: NDArray, K: NDArray, T_world_cam: NDArray, rgb_size: tuple[int, int], depth_mm: NDArray,
+                   masks: NDArray, min_conf: float, window: int) -> tuple[NDArray, NDArray]:
+    """The person surface one view measured around its detections, in the world.
+
+    Args:
+        kp2d: (T, J, 3) the view's detections (pixels of the RGB image, confidence);
+        K: (3, 3) RGB intrinsics; T_world_cam: (T, 4, 4) the view's cameras (OpenCV);
+        rgb_size: (width, height) of the images ``K`` and the masks refer to (the depth map covers
+            the same field at its own size); depth_mm: (T, h, w) uint16 millimetres, 0 = unmeasured
+            (memory-mapped is fine); masks: (T, height, ceil(width / 8)) uint8, the person masks
+            packed along the width (Stage II's ``masks.npy``, :func:`numpy.packbits`);
+        min_conf: detections below it are not judged; window: the neighbourhood, depth pixels.
+
+    Returns:
+        ``(points, ok)``: (T, J, window**2, 3) world points and (T, J, window**2) bool, the
+        measured person pixels (``points`` is undefined where ``ok`` is False).
+    """
+    T = len(kp2d)
+    W, H = rgb_size
+    h, w = depth_mm.shape[1:]
+    r = window // 2
+    oy, ox = np.mgrid[-r:window - r, -r:window - r]
+    with np.errstate(invalid="ignore"):
+        xi = np.floor(np.nan_to_num(kp2d[..., 0], nan=-1e9) * (w / W))[..., None] + ox.ravel()  # (T, J, n)
+        yi = np.floor(np.nan_to_num(kp2d[..., 1], nan=-1e9) * (h / H))[..., None] + oy.ravel()
+    ok = (np.nan_to_num(kp2d[..., 2])[..., None] >= min_conf) & (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+    xi, yi = np.where(ok, xi, 0).astype(np.int64), np.where(ok, yi, 0).astype(np.int64)
+    ti = np.broadcast_to(np.arange(T)[:, None, None], xi.shape)
+    z = depth_mm[ti, yi, xi] / 1000.0  # a gather: a memory-mapped stack is read where needed
+    # The person mask at the depth pixel's centre (the mask is at the RGB image's size).
+    X = np.minimum(((xi + 0.5) * (W / w)).astype(np.int64), W - 1)
+    Y = np.minimum(((yi + 0.5) * (H / h)).astype(np.int64), H - 1)
+    person = (masks[ti, Y, X // 8] >> (7 - X % 8)) & 1
+    ok &= (z > 0) & (person > 0)
+    pix = np.stack([(xi + 0.5) * (W / w), (yi + 0.5) * (H / h), np.ones(xi.shape)], axis=-1)
+    cam = (pix @ np.linalg.inv(K).T) * z[..., None]
+    points = np.einsum("tab,tjnb->tjna", T_world_cam[:T, :3, :3], cam) + T_world_cam[:T, None, None, :3, 3]
+    return points, ok
+
+
+def unexplained_surface(vertices: NDArray, K: NDArray, T_world_cam: NDArray, rgb_sizes: Sequence[tuple[int, int]],
+                        depth_mm: Sequence[NDArray | None], masks: Sequence[NDArray | None], kp2d: NDArray,
+                        min_conf: float, window: int = 5, quantile: float = 0.25) -> NDArray:
+    """(T, V, J) how far (metres) the person surface each view measured around its detection of
+    each :data:`SURFACE_JOINTS` joint lies from the fitted body (the module docstring); NaN where
+    not judged (a detection under ``min_conf``, fewer than :data:`MIN_POINTS` measured person
+    pixels, a view without depth or masks).
+
+    Args:
+        vertices: (T, N, 3) the fitted body's vertices, world metres; K: (V, 3, 3);
+        T_world_cam: (T, V, 4, 4); rgb_sizes, depth_mm, masks: one per view (as
+        :func:`surface_points`; None: the view has none); kp2d: (T, V, 17, 3) the views' detections;
+        window: depth pixels; quantile: of the measured points' distances to the body.
+    """
+    from scipy.spatial import cKDTree
+
+    T, V = kp2d.shape[:2]
+    joints = list(SURFACE_JOINTS)
+    out = np.full((T, V, len(joints)), np.nan)
+    pts, oks = [], []
+    for v in range(V):
+        if depth_mm[v] is None or masks[v] is None:
+            pts.append(None), oks.append(None)
+            continue
+        n = min(T, len(depth_mm[v]), len(masks[v]))
+        p, ok = surface_points(kp2d[:n, v][:, joints], K[v], T_world_cam[:n, v], rgb_sizes[v], depth_mm[v], masks[v],
+                               min_conf, window)
+        pts.append(p), oks.append(ok)
+    for t in range(T):
+        sel = [(v, pts[v][t], oks[v][t]) for v in range(V) if pts[v] is not None and t < len(pts[v]) and oks[v][t].any()]
+        if not sel:
+            continue
+        tree = cKDTree(np.asarray(vertices[t], dtype=np.float64))
+        for v, p, ok in sel:
+            d = np.full(ok.shape, np.nan)
+            d[ok] = tree.query(p[ok])[0]
+            judged = ok.sum(-1) >= MIN_POINTS
+            if judged.any():
+                out[t, v, judged] = np.nanquantile(d[judged], quantile, axis=-1)
+    return out
