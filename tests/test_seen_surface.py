@@ -1,7 +1,8 @@
 """Issue 29, item 5: a wrist fitted 20 cm off along the ray of the one view that sees it (behind the
 surface that view measured, so the free-space test says nothing, and on its ray, so the keypoints say
 nothing) is flagged ``suspect`` because the person surface the view measured at its detection is far
-from the fitted body; a right fit is not, nor one whose detections carry exchanged labels."""
+from the fitted body (and, moved toward the view, because the joint lies in front of that surface);
+a right fit is not, nor one whose detections carry exchanged labels."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from embodmocap.motion.quality import QualityConfig, frame_quality
-from embodmocap.motion.seen_surface import SURFACE_JOINTS, unexplained_surface
+from embodmocap.motion.seen_surface import SURFACE_JOINTS, joint_in_front, unexplained_surface
 from test_free_space import DEPTH, K, RGB, _cameras, _depth_map, _keypoints, body  # noqa: F401 - fixture
 
 WALL_M = 5.0
@@ -69,6 +70,15 @@ def test_a_wrist_off_along_its_only_views_ray_is_suspect_a_right_fit_is_not(body
     # ... the measured surface can: the two wrong frames are suspect, the right one not.
     q = frame_quality(*args, surface=surface)
     assert q.suspect.tolist() == [True, True, False]
+    # A wrist moved toward the camera also lies in front of the surface view 1 measured around it;
+    # one moved away does not (it may be hidden: that says nothing).
+    front = joint_in_front(fitted_kp, Ks, Twc, [RGB, RGB], depth, masks, kp2, kp2, CFG.front_conf, CFG.front_window_px)
+    assert front.shape == (3, 2, len(SURFACE_JOINTS))
+    assert np.isnan(front[:, 1, wrist]).all()  # view 2 does not see it
+    assert (front[0, 0, wrist] > 0.15) == (metres < 0)
+    assert np.nanmax(front[2]) < 0.03 and np.nanmax(np.delete(front[0, 0], wrist)) < 0.03
+    q = frame_quality(*args, front=front)
+    assert q.suspect.tolist() == ([True, True, False] if metres < 0 else [False] * 3)
     # Off (surface_m 0) or in one frame alone: not suspect.
     from dataclasses import replace
 
@@ -98,3 +108,9 @@ def test_exchanged_labels_and_missing_inputs_say_nothing(body):
     assert np.isnan(unexplained_surface(v2, Ks, Twc, [RGB, RGB], depth, masks, low, 0.7)).all()
     zero = [np.zeros_like(d) for d in depth]
     assert np.isnan(unexplained_surface(v2, Ks, Twc, [RGB, RGB], zero, masks, kp2, 0.7)).all()
+    kp = np.stack([kp3] * 2)
+    assert np.isnan(joint_in_front(kp, Ks, Twc, [RGB, RGB], [depth[0], None], [None, masks[1]], kp2, kp2, 0.8)).all()
+    assert np.isnan(joint_in_front(kp, Ks, Twc, [RGB, RGB], zero, masks, kp2, kp2, 0.8)).all()
+    # The right fit with exchanged labels: the joints lie on no ray of their own label's detection
+    # (the wrists are far apart), so nothing is judged in front of anything.
+    assert np.nanmax(np.nan_to_num(joint_in_front(kp, Ks, Twc, [RGB, RGB], depth, masks, swapped, swapped, 0.8))) < 0.03

@@ -16,6 +16,13 @@ detection that the view's person mask covers (depth 0, unmeasured, never counts)
 world with the view's camera; the figure is the ``quantile`` of their distances to the nearest
 fitted vertex (a low quantile, so that a window reaching over the limb's edge onto the mask's
 bleed or another surface does not count: most of the measured points must be unexplained).
+
+The same measured surface also bounds a joint from the front (:func:`joint_in_front`): a fitted
+joint that a view detects on its ray lies inside the limb, behind the surface the view measured
+around it; one well in front of that surface is in space the view saw through. The free-space test
+(:mod:`embodmocap.motion.free_space`) asks this of the limbs' vertices and leaves the hands out
+(the detector does not fix their turn); the joint itself has no turn, so a wrist held 10-15 cm
+toward the one view that sees it is caught here.
 """
 
 from __future__ import annotations
@@ -33,6 +40,10 @@ SURFACE_JOINTS: tuple[int, ...] = (7, 8, 9, 10, 13, 14, 15, 16)
 #: A detection with fewer measured person pixels in its window is not judged.
 MIN_POINTS = 3
 
+#: :func:`joint_in_front` judges a view where the fitted joint lies within this (metres) of the
+#: view's ray through its detection (the view sees the joint where the fit has it, but for depth).
+ON_RAY_M = 0.08
+
 
 def surface_points(kp2d: NDArray, K: NDArray, T_world_cam: NDArray, rgb_size: tuple[int, int], depth_mm: NDArray,
                    masks: NDArray, min_conf: float, window: int) -> tuple[NDArray, NDArray]:
@@ -48,8 +59,9 @@ def surface_points(kp2d: NDArray, K: NDArray, T_world_cam: NDArray, rgb_size: tu
         min_conf: detections below it are not judged; window: the neighbourhood, depth pixels.
 
     Returns:
-        ``(points, ok)``: (T, J, window**2, 3) world points and (T, J, window**2) bool, the
-        measured person pixels (``points`` is undefined where ``ok`` is False).
+        ``(points, ok, z)``: (T, J, window**2, 3) world points, (T, J, window**2) bool, the
+        measured person pixels, and their depth along the camera's axis, metres (``points`` and
+        ``z`` are undefined where ``ok`` is False).
     """
     T = len(kp2d)
     W, H = rgb_size
@@ -71,7 +83,7 @@ def surface_points(kp2d: NDArray, K: NDArray, T_world_cam: NDArray, rgb_size: tu
     pix = np.stack([(xi + 0.5) * (W / w), (yi + 0.5) * (H / h), np.ones(xi.shape)], axis=-1)
     cam = (pix @ np.linalg.inv(K).T) * z[..., None]
     points = np.einsum("tab,tjnb->tjna", T_world_cam[:T, :3, :3], cam) + T_world_cam[:T, None, None, :3, 3]
-    return points, ok
+    return points, ok, z
 
 
 def unexplained_surface(vertices: NDArray, K: NDArray, T_world_cam: NDArray, rgb_sizes: Sequence[tuple[int, int]],
@@ -99,7 +111,7 @@ def unexplained_surface(vertices: NDArray, K: NDArray, T_world_cam: NDArray, rgb
             pts.append(None), oks.append(None)
             continue
         n = min(T, len(depth_mm[v]), len(masks[v]))
-        p, ok = surface_points(kp2d[:n, v][:, joints], K[v], T_world_cam[:n, v], rgb_sizes[v], depth_mm[v], masks[v],
+        p, ok, _ = surface_points(kp2d[:n, v][:, joints], K[v], T_world_cam[:n, v], rgb_sizes[v], depth_mm[v], masks[v],
                                min_conf, window)
         pts.append(p), oks.append(ok)
     for t in range(T):
@@ -113,4 +125,46 @@ def unexplained_surface(vertices: NDArray, K: NDArray, T_world_cam: NDArray, rgb
             judged = ok.sum(-1) >= MIN_POINTS
             if judged.any():
                 out[t, v, judged] = np.nanquantile(d[judged], quantile, axis=-1)
+    return out
+
+
+def joint_in_front(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, rgb_sizes: Sequence[tuple[int, int]],
+                   depth_mm: Sequence[NDArray | None], masks: Sequence[NDArray | None], used2d: NDArray,
+                   raw2d: NDArray, min_conf: float, window: int = 7) -> NDArray:
+    """(T, V, J) how far (metres) each :data:`SURFACE_JOINTS` joint of the fit lies in front of the
+    person surface each view measured around its pixel (the median depth of the person pixels in
+    a ``window`` x ``window`` depth neighbourhood, less the joint's depth; positive: nearer the
+    camera than anything the view measured there); NaN where not judged: the view detects the
+    joint (the detector's or the fit's label, ``raw2d`` / ``used2d`` (T, V, 17, 3)) at ``min_conf``
+    or more with the fitted joint within :data:`ON_RAY_M` of that detection's ray, and measured at
+    least :data:`MIN_POINTS` person pixels there. ``fitted_kp`` (T, 17, 3) world metres; the rest
+    as :func:`unexplained_surface`."""
+    from embodmocap.motion.quality import ray_distance
+
+    T, V = used2d.shape[:2]
+    joints = list(SURFACE_JOINTS)
+    out = np.full((T, V, len(joints)), np.nan)
+    X = np.broadcast_to(fitted_kp[:, None, joints], (T, V, len(joints), 3))
+    seen = np.zeros((T, V, len(joints)), dtype=bool)
+    for k in (raw2d, used2d):
+        k = k[:, :, joints]
+        r = ray_distance(X, K, T_world_cam, np.nan_to_num(k[..., :2]))
+        seen |= (np.nan_to_num(k[..., 2]) >= min_conf) & (r < ON_RAY_M)
+    Rt = np.swapaxes(T_world_cam[..., :3, :3], -1, -2)
+    cam = np.einsum("tvab,tvjb->tvja", Rt, X - T_world_cam[:, :, None, :3, 3])  # (T, V, J, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.einsum("vab,tvjb->tvja", K, cam)
+        uv = uv[..., :2] / uv[..., 2:]
+    for v in range(V):
+        if depth_mm[v] is None or masks[v] is None:
+            continue
+        n = min(T, len(depth_mm[v]), len(masks[v]))
+        pix = np.concatenate([uv[:n, v], np.where(seen[:n, v] & (cam[:n, v, :, 2] > 0), 1.0, 0.0)[..., None]], axis=-1)
+        _, ok, z = surface_points(pix, K[v], T_world_cam[:n, v], rgb_sizes[v], depth_mm[v], masks[v], 0.5, window)
+        judged = ok.sum(-1) >= MIN_POINTS
+        with np.errstate(invalid="ignore"):
+            med = np.nanmedian(np.where(ok, z, np.nan)[judged], axis=-1)
+        block = np.full((n, len(joints)), np.nan)
+        block[judged] = med - cam[:n, v][judged][:, 2]
+        out[:n, v] = block
     return out

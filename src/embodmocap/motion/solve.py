@@ -271,16 +271,22 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
                                 [depth[v][0] if v in depth else None for v in names],
                                 cfg.quality.free_space_m, cfg.quality.free_space_window_px)
     raw = np.stack([kps[v][:T] for v in names], axis=1)
-    surface = None
-    if depth and cfg.quality.surface_m > 0:
-        from embodmocap.motion.seen_surface import unexplained_surface
+    surface = front = None
+    if depth and (cfg.quality.surface_m > 0 or cfg.quality.front_m > 0):
+        from embodmocap.motion.seen_surface import joint_in_front, unexplained_surface
 
         got = [depth.get(v) for v in names]  # (depth, rgb size[, person masks]) per view
-        surface = unexplained_surface(out.vertices.numpy(), K, T_world_cam, [g[1] if g else (0, 0) for g in got],
-                                      [g[0] if g else None for g in got], [g[2] if g and len(g) > 2 else None for g in got],
-                                      raw, cfg.quality.surface_conf, cfg.quality.surface_window_px,
-                                      cfg.quality.surface_quantile)
-    return frame_quality(fitted, K, T_world_cam, kp2d, raw, k3["points"], filled, tuple(names), cfg.quality, free, surface)
+        sizes, stacks = [g[1] if g else (0, 0) for g in got], [g[0] if g else None for g in got]
+        masks = [g[2] if g and len(g) > 2 else None for g in got]
+        if cfg.quality.surface_m > 0:
+            surface = unexplained_surface(out.vertices.numpy(), K, T_world_cam, sizes, stacks, masks, raw,
+                                          cfg.quality.surface_conf, cfg.quality.surface_window_px,
+                                          cfg.quality.surface_quantile)
+        if cfg.quality.front_m > 0:
+            front = joint_in_front(fitted, K, T_world_cam, sizes, stacks, masks, kp2d, raw, cfg.quality.front_conf,
+                                   cfg.quality.front_window_px)
+    return frame_quality(fitted, K, T_world_cam, kp2d, raw, k3["points"], filled, tuple(names), cfg.quality, free,
+                         surface, front)
 
 
 @dataclass(frozen=True)
