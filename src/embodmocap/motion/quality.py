@@ -81,9 +81,9 @@ class QualityConfig:
     elbow, wrist, knee or ankle (depth pixels under the person mask) lies further than this
     (metres, at the ``surface_quantile``) from every vertex of the fitted body, in the frame and a
     neighbour (:mod:`embodmocap.motion.seen_surface`). 0 = no such test. Chosen on hard studio
-    seeds 0-4 and checked on 5-9 (6 s sessions): wrong frames no flag caught 2.1 % -> 1.1 % (0-4)
-    and 1.5 % -> 0.75 % (5-9), right frames flagged 4.2 % -> 4.4 % and 2.6 % -> 3.4 %
-    (benchmarks/history/2026-12-05-s10-flags.md)."""
+    seeds 0-4 and checked on 5-9 (6 s sessions): frames with a joint > 15 cm off that no flag
+    caught 2.8 % -> 1.1 % (0-4) and 1.5 % -> 0.75 % (5-9), right frames flagged 4.2 % -> 4.35 %
+    and 2.6 % -> 3.4 % (benchmarks/history/2026-12-05-s10-flags.md)."""
     surface_conf: float = 0.7
     """Detections below this confidence are not judged by the surface test (a hidden joint's
     guess points at whatever is in front of it)."""
@@ -98,8 +98,8 @@ class QualityConfig:
     (at ``front_conf`` or more) lies further than this (metres) in front of the person surface the
     view measured around it, in the frame and a neighbour
     (:func:`embodmocap.motion.seen_surface.joint_in_front`). 0 = no such test. Added after seeing
-    hard studio seed 5 (a wrist 12 cm toward its only view: 3 frames); on seeds 0-4 it flags no
-    frame the other tests do not."""
+    hard studio seed 5 (a wrist 12 cm toward its only view: 3 frames, now flagged); on seeds 0-4
+    and 6-9 it flags no frame the other tests do not."""
     front_conf: float = 0.8
     """Detections below this confidence do not put a joint on a view's ray for ``front_m``."""
     front_window_px: int = 7
