@@ -22,7 +22,13 @@ frame of the fitted motion:
   ``free_space_share`` in space a view's depth saw empty (more than ``free_space_m`` in front of
   the measured surface: :mod:`embodmocap.motion.free_space`), in the frame and a neighbour. This
   catches what the rays cannot: a limb on one view's ray at the wrong depth, or held by smoothness
-  where one view alone sees it.
+  where one view alone sees it; or, with the views' depth maps and person masks, a surface a view
+  measured around its detection of an elbow, wrist, knee or ankle that lies (for three quarters of
+  its pixels) more than ``surface_m`` from every vertex of the fitted body, in the frame and a
+  neighbour (:mod:`embodmocap.motion.seen_surface`): the converse of the free-space test, it
+  catches a wrist or ankle held 15-20 cm off along the ray of the one view that sees it; or such a
+  joint, seen by a view on its ray, more than ``front_m`` in front of the surface that view measured
+  around it, in the frame and a neighbour.
 
 Ray distances are metric where pixels are not (a limb 3 m from the camera is half as many pixels
 off as at 1.5 m), and a view says nothing about depth along its own ray, which is why a joint is
@@ -70,6 +76,35 @@ class QualityConfig:
     """The depth-pixel neighbourhood whose nearest depth a vertex is held against: a vertex a
     pixel or two off a thin limb's measured silhouette is not in empty space (7: the thighs of
     studio seed 4's swapped legs, 5-10 cm off, passed too)."""
+    surface_m: float = 0.09
+    """A frame is suspect when the person surface a view measured around its detection of an
+    elbow, wrist, knee or ankle (depth pixels under the person mask) lies further than this
+    (metres, at the ``surface_quantile``) from every vertex of the fitted body, in the frame and a
+    neighbour (:mod:`embodmocap.motion.seen_surface`). 0 = no such test. Chosen on hard studio
+    seeds 0-4 and checked on 5-9 (6 s sessions): frames with a joint > 15 cm off that no flag
+    caught 2.8 % -> 1.1 % (0-4) and 1.5 % -> 0.75 % (5-9), right frames flagged 4.2 % -> 4.35 %
+    and 2.6 % -> 3.4 % (benchmarks/history/2026-12-05-s10-flags.md)."""
+    surface_conf: float = 0.7
+    """Detections below this confidence are not judged by the surface test (a hidden joint's
+    guess points at whatever is in front of it)."""
+    surface_window_px: int = 5
+    """The depth-pixel neighbourhood around a detection whose measured person surface is judged."""
+    surface_quantile: float = 0.25
+    """The quantile of the measured points' distances to the fitted body that is held against
+    ``surface_m``: most of the points must be unexplained, so that a window reaching over a thin
+    limb's edge (mask bleed, mixed depth) does not count (the median flagged more right frames)."""
+    front_m: float = 0.10
+    """A frame is suspect when an elbow, wrist, knee or ankle that a view detects on its ray
+    (at ``front_conf`` or more) lies further than this (metres) in front of the person surface the
+    view measured around it, in the frame and a neighbour
+    (:func:`embodmocap.motion.seen_surface.joint_in_front`). 0 = no such test. Added after seeing
+    hard studio seed 5 (a wrist 12 cm toward its only view: 3 frames, now flagged); on seeds 0-4
+    and 6-9 it flags no frame the other tests do not."""
+    front_conf: float = 0.8
+    """Detections below this confidence do not put a joint on a view's ray for ``front_m``."""
+    front_window_px: int = 7
+    """The depth-pixel neighbourhood whose person pixels' median depth bounds a joint from the
+    front (5 flagged 4 right frames of studio seed 9 that 7 does not)."""
     repair_frames: int = 0
     """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
     views takes the local rotations of the first frame within this many where it is not, when
@@ -85,7 +120,11 @@ class FrameQuality:
     columns of ``reproj_px``; ``joint_off_m`` (T, 17) each joint's distance from the closest view
     that sees it (NaN: none does); ``free_space`` (T, P) the largest share over the views of each
     limb part in empty space (:func:`embodmocap.motion.free_space.free_space_limbs`; None: no depth
-    test); neither is written to the files."""
+    test); ``surface`` (T, V, J) how far each view's measured surface at its detections lies from
+    the body (:func:`embodmocap.motion.seen_surface.unexplained_surface`; None: no such test);
+    ``front`` (T, V, J) how far each joint a view sees lies in front of the surface it measured
+    (:func:`embodmocap.motion.seen_surface.joint_in_front`; None: no such test); none of them is
+    written to the files."""
 
     reproj_px: NDArray
     kp3d_err_m: NDArray
@@ -94,6 +133,8 @@ class FrameQuality:
     views: tuple[str, ...]
     joint_off_m: NDArray | None = None
     free_space: NDArray | None = None
+    surface: NDArray | None = None
+    front: NDArray | None = None
 
     def arrays(self) -> dict[str, NDArray]:
         """The keys written into ``smpl_fit.npz`` / ``smpl_world.npz`` (docs/formats.md)."""
@@ -122,7 +163,8 @@ def ray_distance(points: NDArray, K: NDArray, T_world_cam: NDArray, uv: NDArray)
 
 def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
                   points: NDArray, filled: NDArray | None, views: tuple[str, ...],
-                  cfg: QualityConfig = QualityConfig(), free_space: NDArray | None = None) -> FrameQuality:
+                  cfg: QualityConfig = QualityConfig(), free_space: NDArray | None = None,
+                  surface: NDArray | None = None, front: NDArray | None = None) -> FrameQuality:
     """The per-frame quality of a fit (module docstring).
 
     Args:
@@ -133,7 +175,11 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
         points: (T, 17, 3) triangulated keypoints (NaN = none); filled: (T, 17) bool gap-filled
             points (not measured; None = none filled); views: the view names;
         free_space: (T, P) each limb part's share of vertices in a view's empty space
-            (:func:`embodmocap.motion.free_space.free_space_limbs`; None: no depth test).
+            (:func:`embodmocap.motion.free_space.free_space_limbs`; None: no depth test);
+        surface: (T, V, J) the views' measured surface at their detections, its distance from the
+            body (:func:`embodmocap.motion.seen_surface.unexplained_surface`; None: no such test);
+        front: (T, V, J) the seen joints in front of the measured surface
+            (:func:`embodmocap.motion.seen_surface.joint_in_front`; None: no such test).
     """
     T, V = used2d.shape[:2]
     X = np.broadcast_to(fitted_kp[:, None], (T, V, 17, 3))
@@ -155,7 +201,11 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
     suspect = _lasting(off)
     if free_space is not None:
         suspect = suspect | _lasting(np.nan_to_num(free_space, nan=0.0) > cfg.free_space_share)
-    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint, free_space)
+    if surface is not None and cfg.surface_m > 0:
+        suspect = suspect | _lasting(np.nan_to_num(surface, nan=0.0).reshape(T, -1) > cfg.surface_m)
+    if front is not None and cfg.front_m > 0:
+        suspect = suspect | _lasting(np.nan_to_num(front, nan=0.0).reshape(T, -1) > cfg.front_m)
+    return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint, free_space, surface, front)
 
 
 def _lasting(off: NDArray) -> NDArray:

@@ -159,7 +159,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
         label: the sequence (messages); source: what an error names (``keypoints3d.npz``);
         depth: view -> ``(depth_mm, (width, height))``, the view's depth stack ((T', h, w) uint16
             millimetres, Stage II's ``depth.npy``) for the quality's free-space test (None or a view
-            left out: not tested there).
+            left out: not tested there); a third item, the view's packed person masks (Stage II's
+            ``masks.npy``, None: none), for the seen-surface test.
         floor_z: Stage I's floor height (:func:`embodmocap.motion.floor.scene_floor_z`; None: no
             floor term).
 
@@ -220,7 +221,8 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     if (quality.suspect & valid).any():
         bad = np.flatnonzero(quality.suspect & valid)
         log.warning("%s: %d placeable frames are suspect (a limb %.0f cm or more from every view that sees it, "
-                    "the worst %.0f cm at frame %d; or in space a view's depth saw empty): flagged `suspect` in "
+                    "the worst %.0f cm at frame %d; or in space a view's depth saw empty; or away from the person "
+                    "surface a view measured at a detection): flagged `suspect` in "
                     "smpl_world.npz", label, len(bad), 100 * cfg.quality.suspect_m,
                     100 * np.nanmax(np.nan_to_num(quality.limb_off_m[bad])),
                     int(bad[np.nanargmax(np.nan_to_num(quality.limb_off_m[bad]))]))
@@ -247,7 +249,8 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
     """The per-frame quality of fitted ``params`` (:func:`embodmocap.motion.quality.frame_quality`):
     against the 2D keypoints the fit used (``kp2d`` (T, V, 17, 3)), the detector's (``kps``), the
     triangulation ``k3``, with the cameras ``cams`` (all on view 1's instants), and the views'
-    ``depth`` (as :func:`fit_motion`; the free-space test, off with ``cfg.quality.free_space_m`` 0)."""
+    ``depth`` (as :func:`fit_motion`; the free-space test, off with ``cfg.quality.free_space_m`` 0;
+    the seen-surface test with the views' person masks, off with ``cfg.quality.surface_m`` 0)."""
     import torch
 
     from embodmocap.body.joints import smpl_to_coco17
@@ -267,8 +270,23 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
                                 [depth[v][1] if v in depth else (0, 0) for v in names],
                                 [depth[v][0] if v in depth else None for v in names],
                                 cfg.quality.free_space_m, cfg.quality.free_space_window_px)
-    return frame_quality(fitted, K, T_world_cam, kp2d, np.stack([kps[v][:T] for v in names], axis=1), k3["points"],
-                         filled, tuple(names), cfg.quality, free)
+    raw = np.stack([kps[v][:T] for v in names], axis=1)
+    surface = front = None
+    if depth and (cfg.quality.surface_m > 0 or cfg.quality.front_m > 0):
+        from embodmocap.motion.seen_surface import joint_in_front, unexplained_surface
+
+        got = [depth.get(v) for v in names]  # (depth, rgb size[, person masks]) per view
+        sizes, stacks = [g[1] if g else (0, 0) for g in got], [g[0] if g else None for g in got]
+        masks = [g[2] if g and len(g) > 2 else None for g in got]
+        if cfg.quality.surface_m > 0:
+            surface = unexplained_surface(out.vertices.numpy(), K, T_world_cam, sizes, stacks, masks, raw,
+                                          cfg.quality.surface_conf, cfg.quality.surface_window_px,
+                                          cfg.quality.surface_quantile)
+        if cfg.quality.front_m > 0:
+            front = joint_in_front(fitted, K, T_world_cam, sizes, stacks, masks, kp2d, raw, cfg.quality.front_conf,
+                                   cfg.quality.front_window_px)
+    return frame_quality(fitted, K, T_world_cam, kp2d, raw, k3["points"], filled, tuple(names), cfg.quality, free,
+                         surface, front)
 
 
 @dataclass(frozen=True)

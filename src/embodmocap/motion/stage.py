@@ -132,12 +132,15 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                                       "body model": Path(manifest.body_model) if manifest.body_model else model.source,
                                       # the quality's free-space test reads each view's depth
                                       "<view>/depth.npy": {v: out.view(v).depth for v in names if out.view(v).depth.is_file()}
-                                      if cfg.quality.free_space_m > 0 else None})
+                                      if _depth_tests(cfg) else None,
+                                      # and the seen-surface test its person masks
+                                      "<view>/masks.npy": {v: out.view(v).masks for v in names if out.view(v).masks.is_file()}
+                                      if cfg.quality.surface_m > 0 or cfg.quality.front_m > 0 else None})
     with sm.step("fit", fp_fit, force=force, label=label) as step:
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
                                    manifest.gender, label=entry.name, source=out.keypoints3d,
-                                   depth=quality_depth(out, names) if cfg.quality.free_space_m > 0 else None,
+                                   depth=quality_depth(out, names) if _depth_tests(cfg) else None,
                                    floor_z=scene_floor_z(mesh, cfg.smplify.floor_max_tilt_deg, entry.name))
             write_smpl_npz(out.smpl_fit, fit.params, valid=fit.valid, quality=fit.quality.arrays(),
                            one_view=entry.one_view)
@@ -177,17 +180,25 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
     return found[0]
 
 
+def _depth_tests(cfg: MotionConfig) -> bool:
+    """Whether the quality reads the views' depth (the free-space or a seen-surface test)."""
+    return cfg.quality.free_space_m > 0 or cfg.quality.surface_m > 0 or cfg.quality.front_m > 0
+
+
 def quality_depth(out: SequenceLayout, names) -> dict:
-    """view -> ``(depth_mm, (width, height))`` for the quality's free-space test
-    (:mod:`embodmocap.motion.free_space`): Stage II's depth stack, memory-mapped; views without
-    ``depth.npy`` are left out. View 2's frame ``t`` stands for view 1's instant ``t``: the
-    sub-frame offset (under one frame) moves a limb far less than the test's tolerance."""
+    """view -> ``(depth_mm, (width, height), masks)`` for the quality's free-space and
+    seen-surface tests (:mod:`embodmocap.motion.free_space`, :mod:`embodmocap.motion.seen_surface`):
+    Stage II's depth stack and packed person masks, memory-mapped (masks None when the view has
+    none); views without ``depth.npy`` are left out. View 2's frame ``t`` stands for view 1's
+    instant ``t``: the sub-frame offset (under one frame) moves a limb far less than the tests'
+    tolerances."""
     found = {}
     for v in names:
         vl = out.view(v)
         if vl.depth.is_file():
             cams = read_cameras(vl.cameras)
-            found[v] = (np.load(vl.depth, mmap_mode="r"), (int(cams["width"]), int(cams["height"])))
+            found[v] = (np.load(vl.depth, mmap_mode="r"), (int(cams["width"]), int(cams["height"])),
+                        np.load(vl.masks, mmap_mode="r") if vl.masks.is_file() else None)
     return found
 
 

@@ -15,7 +15,7 @@ STEPS = StageSteps("motion", MotionConfig, (
          reads=("<view>/keypoints2d.npz", "<view>/cameras_world.npz", "<view>/depth.npy", "<view>/masks.npy"),
          settings=("triangulation", "fix_swaps", "label_track", "temporal", "lift"),
          writes=(_DIR + "keypoints3d.npz",), doc="3D keypoints (one view: `lift`, from its depth)"),
-    Step("fit", after=("triangulate",), reads=("<view>/body_prior.npz", "body model", "<view>/depth.npy", "scene mesh"), context=("layout", "gender"),
+    Step("fit", after=("triangulate",), reads=("<view>/body_prior.npz", "body model", "<view>/depth.npy", "<view>/masks.npy", "scene mesh"), context=("layout", "gender"),
          settings=("smplify", "use_body_prior", "min_prior_fraction", "min_frame_joints", "max_poor_fraction",
                    "min_valid_joints", "prior_disagree_m", "prefer_keypoints", "prior_limb_disagree_m", "bone_tol", "torso_tol_m", "bone_anchor_torso",
                    "propagate_limbs", "turn_unplaced", "kp3d_conf", "init_median_frames", "quality"),
