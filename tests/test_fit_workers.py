@@ -52,3 +52,21 @@ def test_pieces_run_in_other_processes_and_a_failure_is_reported():
     assert run_pieces([_pid, _pid], workers=1) == [os.getpid()] * 2
     with pytest.raises(RuntimeError, match="no such window"):
         run_pieces([_pid, _fail], workers=2)
+
+
+def _pieces_in_a_daemon(conn) -> None:
+    conn.send((os.getpid(), run_pieces([_pid, _pid], workers=2)))
+
+
+def test_pieces_fork_from_a_daemonic_process_like_a_run_worker():
+    """``embodmocap run --workers`` runs stages in daemonic processes, where ``multiprocessing``
+    refuses children: the workers are forked all the same."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_pieces_in_a_daemon, args=(child,), daemon=True)
+    proc.start()
+    me, pids = parent.recv()
+    proc.join()
+    assert pids[0] == me and pids[1] not in (me, os.getpid())
