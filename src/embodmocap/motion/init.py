@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from embodmocap.body.model import BodyModel
 from embodmocap.geometry.transforms import R_ZUP_YUP, rot_z
+from embodmocap.motion.body_points import body_keypoints
 from embodmocap.motion.fill import fill_linear, fill_rotations
 from embodmocap.motion.ik import init_ik
 from embodmocap.types import COCO17_NAMES, SmplParams
@@ -125,14 +126,11 @@ def snap_to_keypoints(model: BodyModel, params: SmplParams, points: NDArray, con
         points: (T, 17, 3) triangulated COCO-17 keypoints, NaN where missing.
         conf: (T, 17) their confidence.
     """
-    import torch
-
     points = np.asarray(points, dtype=np.float64)
     if points.shape != (len(params), 17, 3) or np.shape(conf) != (len(params), 17):
         raise ValueError(f"points must be ({len(params)}, 17, 3) and conf ({len(params)}, 17), "
                          f"got {points.shape} and {np.shape(conf)}")
-    with torch.no_grad():
-        coco = model.from_params(params, dtype=torch.float64).coco17.numpy()
+    coco = body_keypoints(model, params)[1]
     seen = np.isfinite(points).all(axis=-1) & (np.asarray(conf) >= min_conf)
     diff = np.where(seen[..., None], points - coco, np.nan)
     ok = seen.sum(axis=1) >= min_joints
@@ -151,17 +149,12 @@ def prefer_keypoints(model, init, kp_init, points: NDArray, conf: NDArray, min_c
     """``init`` with the frames where it is more than ``margin_m`` further from the 3D keypoints
     than ``kp_init`` (median over the triangulated joints) taken from ``kp_init``; and those frames
     (T,) bool. Betas stay ``init``'s."""
-    import torch
     from dataclasses import replace
-
-    from embodmocap.body.joints import smpl_to_coco17
 
     seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
 
     def err(p):
-        with torch.no_grad():
-            out = model.from_params(p, dtype=torch.float64)
-            kp = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+        kp = body_keypoints(model, p, layout)[1]
         d = np.where(seen, np.linalg.norm(kp - np.nan_to_num(points), axis=-1), 0.0)
         n = seen.sum(1)
         # Median over the seen joints of each frame (frames with none: 0, nothing to disagree with).

@@ -24,6 +24,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from embodmocap.motion.body_points import body_keypoints
 from embodmocap.motion.edge_repair import LIMBS
 
 
@@ -40,17 +41,11 @@ def gate_prior_limbs(model, prior_pose: NDArray, init, kp_init, points: NDArray,
             min_conf: a keypoint below it is not evidence; margin_m: how much further the prior's
             limb must be, metres; layout: the keypoints' SMPL layout.
     """
-    import torch
-
-    from embodmocap.body.joints import smpl_to_coco17
-
     prior_pose = np.asarray(prior_pose, dtype=np.float64)
     seen = np.isfinite(points).all(-1) & (np.nan_to_num(conf) >= min_conf)
 
     def coco(p):
-        with torch.no_grad():
-            out = model.from_params(p, dtype=torch.float64)
-            return smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+        return body_keypoints(model, p, layout)[1]
 
     kp_same = replace(kp_init, betas=init.betas,
                       transl=np.asarray(kp_init.transl) + model.pelvis_offset(kp_init.betas) - model.pelvis_offset(init.betas))

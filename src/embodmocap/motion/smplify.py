@@ -33,6 +33,8 @@ must be shared, so with more than one window they are fitted first by both phase
 are not consecutive), then held fixed while each window runs both phases. Window results are
 blended linearly across overlaps (translations linearly, rotations by normalised quaternion
 blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
+The windows are fitted in ``cfg.workers`` contiguous batches, each by its own forked process
+(:mod:`embodmocap.motion.fit_workers`; the same answer as one process).
 
 Threads: the fit sets ``torch.set_num_threads(cfg.threads)`` while it runs and restores the
 previous count after (process-global: fits run in parallel threads of one process should share
@@ -56,6 +58,7 @@ from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
+from embodmocap.motion.fit_workers import run_pieces
 from embodmocap.motion.floor import floor_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.progress import progress
@@ -158,24 +161,29 @@ class KeypointBody:
         parents = np.asarray(model.parents, dtype=np.int64).copy()
         parents[0] = -1
         self.parents = torch.as_tensor(parents, device=device)
-        # Forward kinematics by pointer jumping: each joint's world transform is the product of its
-        # ancestors' local ones, composed for all joints at once in log2(depth) rounds (round k
-        # composes with the ancestor 2^k levels up) instead of one round per tree level: a few
-        # large tensor ops per step instead of many small ones (the fit's cost is per op, not per
-        # frame). Only the joints whose world rotation something needs take part (those with
-        # children, or that move the face vertices); a leaf's position follows from its parent.
+        # Forward kinematics level by level of the tree (one batched product per level, 7 below the root),
+        # over only the joints whose world rotation something needs (those with children, or that
+        # move the face vertices); a leaf's position follows from its parent. Session 9 composed
+        # them by pointer jumping (3 rounds over all 20 such joints: fewer ops, 3x the products),
+        # which paid for a 180-frame window (cost per op) but not for the batched windows of a
+        # long sequence (thousands of frames a step: cost per 3x3 product, issue 30).
         weighted = np.flatnonzero(np.abs(a["weights"][ids]).sum(0) > 0)
         self.face_joints = torch.as_tensor(weighted, device=device)  # joints that skin the face vertices
         self.f_weights = self.f_weights[:, weighted]  # (5, F)
-        inner = sorted(set(parents[1:].tolist()) | set(weighted.tolist()) | {0})
-        slot = {j: k for k, j in enumerate(inner)}  # joint -> row of the pointer-jumping tensors
-        self.inner = torch.as_tensor(inner, device=device)
-        anc = np.array([slot[parents[j]] if j else len(inner) for j in inner])  # the identity row for the root
-        anc = np.append(anc, len(inner))
-        self.jumps = []
-        while not np.all(anc == len(inner)):
-            self.jumps.append(torch.as_tensor(anc, device=device))
-            anc = anc[anc]
+        inner = set(parents[1:].tolist()) | set(weighted.tolist()) | {0}
+        depth = {0: 0}
+        for j in range(1, 24):  # SMPL lists every parent before its children
+            depth[j] = depth[parents[j]] + 1
+        order = sorted(inner, key=lambda j: (depth[j], j))  # level by level: row k of the world transforms
+        slot = {j: k for k, j in enumerate(order)}
+        self.inner = torch.as_tensor(order, device=device)
+        self.levels = []  # (first row, end row, parent rows within the level above) below the root
+        first = 0
+        for lv in range(1, max(depth[j] for j in order) + 1):
+            rows = [k for k, j in enumerate(order) if depth[j] == lv]
+            par = [slot[parents[order[k]]] - first for k in rows]  # every parent sits on the level above
+            self.levels.append((rows[0], rows[-1] + 1, torch.as_tensor(par, device=device)))
+            first = rows[0]
         self.parent_slot = torch.as_tensor([slot[parents[j]] for j in range(1, 24)], device=device)  # (23,)
         self.face_slot = torch.as_tensor([slot[j] for j in weighted.tolist()], device=device)
         self.dtype, self.device = dtype, torch.device(device)
@@ -190,15 +198,15 @@ class KeypointBody:
         R_local = axis_angle_to_matrix(torch.cat([global_orient, body_pose], -1).reshape(T, 24, 3))
         bone = J_rest[1:] - J_rest[self.parents[1:]]  # (23, 3) rest offset from the parent
         offset = torch.cat([J_rest[:1], bone], 0)[self.inner]  # (n, 3) local translation of each inner joint
-        # Rows: the inner joints' (rotation, translation), then the identity that the root's
-        # ancestors point to. Each round: G_j <- G_anc(j) o G_j.
-        R = torch.cat([R_local[:, self.inner], torch.eye(3, dtype=R_local.dtype, device=R_local.device).expand(T, 1, 3, 3)], 1)
-        t = torch.cat([offset, torch.zeros_like(offset[:1])], 0).expand(T, -1, -1)[..., None]  # (T, n + 1, 3, 1)
-        for anc in self.jumps:
-            Ra = R[:, anc]
-            t = Ra @ t + t[:, anc]
-            R = Ra @ R
-        t = t[..., 0]
+        # World rotation and position of each level's joints from their parents' (rows in level
+        # order: every parent's row comes before its children's).
+        R_in = R_local[:, self.inner]  # (T, n, 3, 3)
+        Rs, ts = [R_in[:, :1]], [offset[:1].expand(T, 1, 3)]
+        for lo, hi, par in self.levels:
+            Rp = Rs[-1][:, par]
+            Rs.append(Rp @ R_in[:, lo:hi])
+            ts.append((Rp @ offset[lo:hi, :, None])[..., 0] + ts[-1][:, par])
+        R, t = torch.cat(Rs, 1), torch.cat(ts, 1)
         # Every joint's position from its parent's world transform (the inner joints' equal ``t``).
         pos = torch.cat([t[:, :1], (R[:, self.parent_slot] @ bone[..., None])[..., 0] + t[:, self.parent_slot]], 1)
         # Face vertices: shape + pose blend shapes, then linear blend skinning by the joints that
@@ -501,11 +509,25 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
                             device=start.transl.device)
     # All windows have the same length (window_ranges): fitted together, one batch, then blended.
     idx = torch.as_tensor(np.stack([np.arange(s, e) for s, e in ranges]), device=start.go.device)  # (n, W)
-    w_init = _State(shape.betas, start.go[idx], start.pose[idx], start.transl[idx] + shift)
-    fitted = _fit_window(body, data.slice(idx), w_init, cfg, names, free_betas=False, smooth=True, timing=timing,
-                         batched=True)
-    states = [_State(fitted.betas, fitted.go[k], fitted.pose[k], fitted.transl[k]) for k in range(len(ranges))]
-    log.debug("smplify: %d windows of %d frames fitted in one batch", len(ranges), idx.shape[1])
+    transl0 = start.transl[idx] + shift
+    # Contiguous groups of windows, one batch per worker process (fit_workers: the same answer
+    # whatever the number of processes, the windows being independent).
+    workers = cfg.workers if start.go.device.type == "cpu" else 1
+    groups = np.array_split(np.arange(len(ranges)), max(min(workers, len(ranges)), 1))
+
+    def piece(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        if cfg.threads > 0:
+            torch.set_num_threads(cfg.threads)  # a forked worker: the parent's setting, to be sure
+        i = idx[torch.as_tensor(g, device=idx.device)]
+        w_init = _State(shape.betas, start.go[i], start.pose[i], transl0[g])
+        f = _fit_window(body, data.slice(i), w_init, cfg, names, free_betas=False, smooth=True, timing=timing,
+                        batched=True)
+        return tuple(x.cpu().numpy() for x in (f.go, f.pose, f.transl))
+
+    parts = run_pieces([lambda g=g: piece(g) for g in groups], workers)
+    go_w, pose_w, transl_w = (torch.as_tensor(np.concatenate(x)) for x in zip(*parts))
+    states = [_State(shape.betas, go_w[k], pose_w[k], transl_w[k]) for k in range(len(ranges))]
+    log.debug("smplify: %d windows of %d frames fitted in %d batch(es)", len(ranges), idx.shape[1], len(groups))
     go, pose, transl = _blend(ranges, states, T, cfg.overlap_frames)
     return go, pose, transl, b1
 

@@ -28,6 +28,7 @@ from embodmocap.errors import InputError
 from embodmocap.geometry.triangulation import projection_matrices, triangulate
 from embodmocap.io.layout import VIEWS
 from embodmocap.io.stage_files import CameraFile, Keypoints3DFile, WorldJointsFile
+from embodmocap.motion.body_points import body_keypoints
 from embodmocap.motion.config import MotionConfig
 from embodmocap.motion.contact import align_to_contacts, apply_alignment, apply_alignment_to_cameras
 from embodmocap.motion.init import prefer_keypoints, with_fps  # noqa: F401 (prefer_keypoints re-exported)
@@ -314,8 +315,6 @@ def align_motion(cfg: MotionConfig, model, params, frames: NDArray, valid: NDArr
             (3,) world point) per marker (empty: no alignment); cams: view -> its ``cameras_world``
             (each view's own frames); label: the sequence; source: what an error names (the manifest).
     """
-    import torch
-
     # Every contact figure is written on every run: the stage manifest merges figures, and a
     # stale message from an earlier run must not survive.
     T_align = np.eye(4)
@@ -336,9 +335,8 @@ def align_motion(cfg: MotionConfig, model, params, frames: NDArray, valid: NDArr
         else:
             T_align = al.T
             params = apply_alignment(model, params, T_align)
-    body = model.from_params(params, dtype=torch.float64)
-    joints = WorldJointsFile(version=np.int64(1), joints=body.joints.detach().numpy(),
-                             coco17=body.coco17.detach().numpy(), frames=frames)
+    joints24, coco17 = body_keypoints(model, params)
+    joints = WorldJointsFile(version=np.int64(1), joints=joints24, coco17=coco17, frames=frames)
     final = {v: CameraFile(version=np.int64(1), K=cams[v]["K"], width=cams[v]["width"], height=cams[v]["height"],
                            T_world_cam=apply_alignment_to_cameras(cams[v]["T_world_cam"], T_align),
                            raw_frames=cams[v]["raw_frames"]) for v in VIEWS if v in cams}

@@ -1,0 +1,71 @@
+"""Stage IV as the user runs it (`embodmocap motion S --force`), old code vs this tree, interleaved.
+
+Both codes run on hard-linked copies (``cp -al``) of one session whose Stages I-III are done (outputs
+are replaced atomically, so the copies never write into the original); round r runs old then new
+(r even) or new then old (r odd). CPU is user + system of the whole process tree (the forked fit
+workers of ``SmplifyConfig.workers`` included: ``RUSAGE_CHILDREN`` of the waited-for command;
+``time_stage4_interleaved.py`` counts its own process only). ``--evaluate`` then runs
+``embodmocap evaluate`` on each copy with its own code and prints W-/WA-/PA-MPJPE and RTE.
+
+    python benchmarks/time_stage4_cli.py --old-src /work/base-src/src --session /tmp/coord/b60/run_new \\
+        --work /tmp/s4cli --rounds 2 --evaluate
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+from pathlib import Path
+
+from _child import run_cli_usage
+
+FIGURES = ("w_mpjpe_mm", "wa_mpjpe_mm", "pa_mpjpe_mm", "w_mpjpe_mm_c100", "rte_pct")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--old-src", type=Path, required=True)
+    ap.add_argument("--session", type=Path, required=True, help="a session with Stages I-III done")
+    ap.add_argument("--work", type=Path, required=True, help="folder for the two copies")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--evaluate", action="store_true")
+    args = ap.parse_args()
+    codes = {"old": str(args.old_src.resolve()), "new": str(Path(__file__).resolve().parents[1] / "src")}
+    args.work.mkdir(parents=True, exist_ok=True)
+    sess = {c: args.work / c for c in codes}
+    for c, d in sess.items():
+        if not d.exists():
+            subprocess.run(["cp", "-al", str(args.session), str(d)], check=True)
+    print("| round | code | wall s | CPU s | peak RSS MB | load | steps (wall s) |\n|---|---|---|---|---|---|---|")
+    rows = []
+    for r in range(args.rounds):
+        for c in ("old", "new") if r % 2 == 0 else ("new", "old"):
+            load = os.getloadavg()[0]
+            wall, rss, cpu = run_cli_usage("motion", str(sess[c]), "--force", src=codes[c])
+            man = json.loads((sess[c] / "sequences/seq0/motion_manifest.json").read_text())
+            steps = ", ".join(f"{k} {v['seconds']:.1f}" for k, v in man["steps"].items())
+            print(f"| {r} | {c} | {wall:.1f} | {cpu:.1f} | {rss} | {load:.1f} | {steps} |", flush=True)
+            rows.append((c, wall, cpu))
+    for name, i in (("wall", 1), ("CPU", 2)):
+        old, new = (sum(x[i] for x in rows if x[0] == c) for c in ("old", "new"))
+        print(f"{name}: new / old {new / old:.3f} ({new:.1f} / {old:.1f} s)")
+    if args.evaluate:
+        for c in codes:
+            run_cli_usage("evaluate", str(sess[c]), src=codes[c])
+            seq = next(iter(json.loads((sess[c] / "evaluation.json").read_text())["sequences"].values()))
+            flat = {}
+
+            def walk(d, prefix=""):
+                for k, v in d.items():
+                    if isinstance(v, dict):
+                        walk(v, f"{prefix}{k}.")
+                    elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                        flat[f"{prefix}{k}"] = v
+            walk(seq)
+            print(c, {k: round(v, 3) for k, v in flat.items() if k.split(".")[-1] in FIGURES}, flush=True)
+
+
+if __name__ == "__main__":
+    main()
