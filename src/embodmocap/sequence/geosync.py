@@ -498,9 +498,12 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         s, f, std, n = s2, f2, std2, n2
     if not math.isfinite(std):
         f, std = 0.0, math.inf
-    # Precision on the scale of a laser sync's own error (a uniform frame quantisation: 1/sqrt(12)
-    # ~ 0.29 frame): a geometric offset about as precise as that is worth choosing.
-    precise = math.exp(-((std / 0.3) ** 2)) if math.isfinite(std) else 0.0
+    # Precision on the scale of a laser sync's own error (each view quantises the event to its own
+    # frame clock: the difference of two uniform quantisations, sqrt(2/12) ~ 0.41 frame): a
+    # geometric offset about as precise as that is worth choosing. (0.3 before the standard error
+    # was made honest, session 10: it is now 1.3-2 times larger, and 0.3 dropped a right
+    # geometric override of a false laser event below min_confidence.)
+    precise = math.exp(-((std / 0.41) ** 2)) if math.isfinite(std) else 0.0
     offset_frames = s + f
     # Seconds from the views' own clocks: the paired frames' time difference at the integer shift
     # (dropped frames and unequal rates included), plus the fraction of a frame.
