@@ -14,10 +14,12 @@ moved between the two instants and the rays miss each other by about the distanc
    biased: the average of two samples is less noisy than either, so any score prefers half
    frames. Instead the refinement uses the signed distance ``d`` of view 2's keypoint from the
    epipolar line of view 1's, the only direction that timing can change, in the frames around the
-   best shift (each with its own camera): a line through them, ``d(f) ~ a + b f``, is view 2's
-   keypoint interpolated in time, and ``f`` is the robust instrumental-variable zero of all pairs'
-   lines (unbiased by noise, see the function); if it leaves ``[-0.5, 0.5]`` the centre moves to
-   the neighbour and the fit is repeated.
+   best shift (each with its own camera): a parabola through them gives the value and slope at the
+   centre, ``d(f) ~ a + b f``, view 2's keypoint interpolated in time, and ``f`` is the robust
+   instrumental-variable zero of all pairs' lines (unbiased by noise, see the function); the same
+   is done with the views' roles swapped and the two are averaged (each way alone leans a little
+   towards its interpolated view's earlier frames); if it leaves ``[-0.5, 0.5]`` the centre moves
+   to the neighbour and the fit is repeated.
 3. **Confidence**: how distinct the minimum is (how many standard errors the best cost lies below
    its strongest rival: another local minimum ``distinct_s`` or more away, or the rim of the
    searched range) times how precise the sub-frame fit is (its standard error); a performer
@@ -105,6 +107,12 @@ class GeoSyncConfig:
     them); between ``agree_frames`` and this, a warning."""
     manual_error_confidence: float = 0.8
     """Confidence of the geometric sync above which it may call manual sync frames wrong."""
+    subframe_shrink: bool = True
+    """When the geometric offset agrees with laser or manual frames, apply the expected sub-frame
+    residual given both, not the geometric one alone: the frames put it within a frame (each view
+    quantises the event to its own frame clock: a triangular spread on (-1, 1) frame), the geometry
+    measures it with ``std_frames``; an imprecise measurement is shrunk towards the frames'
+    (:func:`embodmocap.sequence.sync_record.subframe_residual`). False = the geometric value as is."""
 
     def __post_init__(self) -> None:
         if self.prefer not in ("auto", "laser", "geometric"):
@@ -306,18 +314,48 @@ def _pair_sq_errors(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int, cfg:
 
 def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
                    cfg: GeoSyncConfig = GeoSyncConfig(), iterations: int = 8) -> tuple[float, float, int]:
-    """Fractional part of the offset around integer ``shift`` (module docstring, step 2).
+    """Fractional part of the offset around integer ``shift`` (module docstring, step 2), the mean
+    of both directions: view 2's keypoints interpolated against view 1's epipolar lines
+    (:func:`subframe_one_way`) and view 1's against view 2's (the offset's sign flipped).
+
+    One way alone leans towards the interpolated view's earlier frames by up to a tenth of a frame
+    with the studio's detector noise (its seed-to-seed mean on the same motion; the other way leans
+    as much towards its later frames), and it uses only the pairs whose window the interpolated
+    view sees whole. The two means cancel that lean to first order. The standard error is the
+    larger of the two ways' mean error (they share data, so no sqrt(2) gain is claimed) and half
+    their difference (a difference beyond their errors is an error the estimate carries).
+
+    Returns:
+        ``(f, std, pairs)`` as :func:`subframe_one_way`; one way alone where the other has no
+        estimate.
+    """
+    f1, s1, n1 = subframe_one_way(K1, T1, kp1, K2, T2, kp2, shift, cfg, iterations)
+    f2, s2, n2 = subframe_one_way(K2, T2, kp2, K1, T1, kp1, -shift, cfg, iterations)
+    if not math.isfinite(s2):
+        return f1, s1, n1
+    if not math.isfinite(s1):
+        return -f2, s2, n2
+    f = 0.5 * (f1 - f2)
+    return f, max(0.5 * (s1 + s2), 0.5 * abs(f1 + f2)), n1 + n2
+
+
+def subframe_one_way(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
+                     cfg: GeoSyncConfig = GeoSyncConfig(), iterations: int = 8) -> tuple[float, float, int]:
+    """Fractional part of the offset around integer ``shift`` from view 2's keypoints interpolated
+    in time against view 1's epipolar lines.
 
     For each pair (view 1 frame t, joint), ``d(k)`` is the signed epipolar distance of view 2's
-    keypoint in frame ``t + shift + k``. A straight line through ``d(-W..W)`` (``W`` =
+    keypoint in frame ``t + shift + k``. A parabola through ``d(-W..W)`` (``W`` =
     ``cfg.window_frames``) gives the value ``a`` and slope ``b`` at ``k = 0``: view 2's keypoint
-    interpolated in time, ``d(f) ~ a + b f``, with the noise of ``a`` cut by ``sqrt(2W + 1)``
-    (symmetric window: ``a`` and ``b`` have independent noise). Noise in ``b`` would shrink a plain
+    interpolated in time, ``d(f) ~ a + b f``, with the noise of ``a`` cut by ``sqrt(3)`` (W = 3)
+    and free of the curvature a straight line's value at ``k = 0`` carries (symmetric window:
+    ``a`` and ``b`` have independent noise). Noise in ``b`` would shrink a plain
     least-squares ``f`` towards 0 (badly when the performer moves a pixel a frame against pixels of
     detector noise), so the zero is an instrumental-variable fit with the slope ``z`` from the
     samples just outside the window (``W+1..2W+2`` frames away): its noise is independent of ``a``'s
     and ``b``'s, so ``f = -sum(z a) / sum(z b)`` is unbiased. View 1's noise is common to all the
-    samples of a pair and cancels in the slopes. Huber weights on ``a + f b`` and a screen on each
+    samples of a pair and cancels in the slopes, but it tilts the pair's epipolar line, so the
+    instrument's lines come from view 1's detections in the neighbouring frames. Huber weights on ``a + f b`` and a screen on each
     pair's line-fit residual keep outlier detections out.
 
     Returns:
@@ -330,10 +368,10 @@ def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
     T, Tv2 = len(kp1), len(kp2)
     t = np.arange(T)
     t2 = t + shift
-    ok = (t2 - R >= 0) & (t2 + R < Tv2)
+    ok = (t2 - R >= 0) & (t2 + R < Tv2) & (t >= 1) & (t + 1 < T)
     t, t2 = t[ok], t2[ok]
     c = cfg.min_keypoint_confidence
-    use = kp1[t, :, 2] >= c
+    use = (kp1[t, :, 2] >= c) & (kp1[t - 1, :, 2] >= c) & (kp1[t + 1, :, 2] >= c)
     for k in range(-R, R + 1):
         use &= kp2[t2 + k, :, 2] >= c
     if not use.any():
@@ -345,12 +383,27 @@ def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
                   for k in ks], axis=-1)
     inner = np.abs(ks) <= W
     kin = ks[inner].astype(float)
-    a = D[:, inner].mean(axis=1)
+    # The value at k = 0 of a parabola through the window, not of a line: a line's value there is
+    # the window's mean, d(0) + d''(0) * mean(k^2) / 2, which a limb that speeds up or slows down
+    # moves by pixels, and the weighted sum over pairs does not cancel it (measured: -0.06 to -0.25
+    # frame with 4 px detector noise and W = 3..5; the parabola's value: within +-0.02). The
+    # slope of a symmetric window is the same for a line and a parabola.
+    k2 = kin * kin
+    n_in, s2, s4 = len(kin), float(k2.sum()), float((k2 * k2).sum())
+    a = (s4 * D[:, inner].sum(axis=1) - s2 * (D[:, inner] @ k2)) / (n_in * s4 - s2 * s2)
     b = D[:, inner] @ kin / np.sum(kin * kin)
     outer = ks[ks > W].astype(float)
-    pos, neg = D[:, ks > W], D[:, ks < -W][:, ::-1]  # neg column j is -outer[j]
+    # The instrument's epipolar lines come from view 1's neighbouring detections (frames t -+ 1),
+    # not from frame t's: the noise of x1 tilts its line, which moves a and a slope taken against
+    # the same line together (a second-order bias, about -0.1 frame with 4 px of noise in view 1
+    # alone); with independent noise in the instrument's lines it averages out.
+    xz = 0.5 * (kp1[t - 1, :, :2] + kp1[t + 1, :, :2])
+    Dz = np.stack([epipolar_distance(K1, T1[t][:, None], xz, K2, T2[t2 + k][:, None], kp2[t2 + k, :, :2])[use]
+                   for k in ks[np.abs(ks) > W]], axis=-1)
+    far = ks[np.abs(ks) > W]
+    pos, neg = Dz[:, far > 0], Dz[:, far < 0][:, ::-1]  # neg column j is -outer[j]
     z = (pos - neg) @ outer / (2.0 * np.sum(outer * outer))
-    fit_rms = np.sqrt(np.mean((D[:, inner] - a[:, None] - b[:, None] * kin) ** 2, axis=1))
+    fit_rms = np.sqrt(np.mean((D[:, inner] - D[:, inner].mean(axis=1, keepdims=True) - b[:, None] * kin) ** 2, axis=1))
     good = np.isfinite(a) & np.isfinite(b) & np.isfinite(z) & np.isfinite(fit_rms)
     a, b, z, fit_rms = a[good], b[good], z[good], fit_rms[good]
     if len(a) < cfg.min_pairs:
@@ -445,9 +498,12 @@ def geometric_sync(K1: F, T1: F, kp1: F, times1_s: F, K2: F, T2: F, kp2: F, time
         s, f, std, n = s2, f2, std2, n2
     if not math.isfinite(std):
         f, std = 0.0, math.inf
-    # Precision on the scale of a laser sync's own error (a uniform frame quantisation: 1/sqrt(12)
-    # ~ 0.29 frame): a geometric offset about as precise as that is worth choosing.
-    precise = math.exp(-((std / 0.3) ** 2)) if math.isfinite(std) else 0.0
+    # Precision on the scale of a laser sync's own error (each view quantises the event to its own
+    # frame clock: the difference of two uniform quantisations, sqrt(2/12) ~ 0.41 frame): a
+    # geometric offset about as precise as that is worth choosing. (0.3 before the standard error
+    # was made honest, session 10: it is now 1.3-2 times larger, and 0.3 dropped a right
+    # geometric override of a false laser event below min_confidence.)
+    precise = math.exp(-((std / 0.41) ** 2)) if math.isfinite(std) else 0.0
     offset_frames = s + f
     # Seconds from the views' own clocks: the paired frames' time difference at the integer shift
     # (dropped frames and unequal rates included), plus the fraction of a frame.

@@ -132,6 +132,12 @@ class SynthConfig:
     """Sub-frame clock offset of the second phone: view 2's frames are exposed this fraction of a
     frame later than view 1's (negative: earlier), in (-0.5, 0.5). Real phones' frame clocks are
     never aligned; 0 = the studio's historic exact alignment. The laser sync frame is unchanged."""
+    phone_phase: Literal["auto", "fixed", "random"] = "auto"
+    """Where view 2's sub-frame phase comes from: ``fixed`` = ``phone_offset_frames``; ``random`` = a
+    draw uniform in (-0.5, 0.5) per session and take (its own generator: no other draw moves), as
+    two real phones' frame clocks are; ``auto`` = ``random`` for ``perception = "hard"`` with
+    ``phone_offset_frames`` left at 0, else ``fixed``. The phase used is in the ground truth
+    (``view_time_offset_frames``); a hard session in phase needs ``fixed``."""
     view_separation_deg: float | None = None
     """Fixed azimuth separation of the two operators about the performer, degrees; None = the
     normal 75-105 degrees. A "built to fail" session uses 20 (views nearly parallel)."""
@@ -220,6 +226,15 @@ class SynthConfig:
         if self.vio.active or self.cameras == "standard":
             return self.vio
         return HARD_VIO
+
+    def phone_phase_frames(self) -> float:
+        """View 2's sub-frame phase, frames (:attr:`phone_phase`)."""
+        random = self.phone_phase == "random" or (
+            self.phone_phase == "auto" and self.perception == "hard" and self.phone_offset_frames == 0.0)
+        if not random:
+            return float(self.phone_offset_frames)
+        rng = np.random.default_rng([self.seed, 97] if self.take == 0 else [self.seed, 97, self.take])
+        return float(np.clip(np.round(rng.uniform(-0.5, 0.5), 3), -0.499, 0.499))
 
     def layout(self) -> str:
         """The keypoint layout the perception files are written in."""

@@ -198,7 +198,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
     for k, v in enumerate(filmed):
         span = np.arange(starts[v], ends[v])
         # Each frame's instant in motion frames: view 2 may run a fraction of a frame off view 1.
-        phase = cfg.phone_offset_frames if v == "v2" else 0.0
+        phase = cfg.phone_phase_frames() if v == "v2" else 0.0
         t_motion = span + phase
         T_scene_cam = _at_times(T_v[k], t_motion)
         v_verts, v_coco = (_lerp_frames(a, t_motion) for a in (verts, kp_true))
@@ -265,7 +265,7 @@ def synthesize(cfg: SynthConfig, out: str | Path) -> SynthResult:
         "sync_frames": sync_frames, "motion_frames": M, "event_motion_frame": event,
         "view_motion_start": starts, "view_motion_end": ends, "laser_dot": dot, "laser_normal": normal,
         # Raw frame j of view v is the motion's instant start_v + j + offset_v (motion frames).
-        "view_time_offset_frames": {v: (cfg.phone_offset_frames if v == "v2" else 0.0) for v in filmed},
+        "view_time_offset_frames": {v: (cfg.phone_phase_frames() if v == "v2" else 0.0) for v in filmed},
         # The false disappearance: its view and the raw frames of that view without the dot.
         "false_event": None if false_off is None else {
             "view": cfg.laser.false_event_view,
