@@ -110,9 +110,9 @@ def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> ND
 
 def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDArray | None:
     """(T, J, 2) points minus the torso centre, over the torso's size (NaN where the centre is
-    unknown); None when no frame has the whole torso. ``partial``: a frame that sees two or three
-    of the torso's points takes its centre from them (:func:`_partial_centres`) instead of the
-    neighbours' (interpolated, or held beyond the first or last whole torso)."""
+    unknown); None when no frame has the whole torso. ``partial``: a frame before the first whole
+    torso (after the last) that sees two or three of its points takes its centre from them
+    (:func:`_partial_centres`) instead of holding the first (last) whole torso's."""
     T = len(kp)
     torso = kp[:, list(TORSO)]
     full = (torso[..., 2] >= min_conf).all(-1)
@@ -141,18 +141,22 @@ def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDAr
 
 
 def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float) -> NDArray:
-    """(T, 2) ``c`` with each frame that sees two or three torso points (``torso`` (T, 4, 3))
-    centred on them: their mean plus the offset from those points' mean to the centre in the
-    nearest frame with the whole torso. Where a person enters the view, the centre held from the
+    """(T, 2) ``c`` with each frame before the first whole torso or after the last that sees two
+    or three torso points (``torso`` (T, 4, 3)) centred on them: their mean plus the offset from
+    those points' mean to the centre in the nearest frame with the whole torso. Where a person enters the view, the centre held from the
     first whole torso is a frame or more of image motion off (issue 29, hard outdoor studio seed
     1: the person enters view 1 at frame 32 with the hips seen and the shoulders not; measured
     against frame 33's centre, the legs' step 32 -> 33 cost about as much under either label
     state, so view 1's legs, exchanged in 33-36, stayed exchanged)."""
     seen = torso[..., 2] >= min_conf
-    part = ~full & (seen.sum(-1) >= 2)
+    whole = np.flatnonzero(full)
+    # Only before the first whole torso and after the last, where the centre is held (between
+    # two whole torsos the interpolated one was better on the hard studio seeds: frames seeing a
+    # shoulder and a hip, often one a guess, centred on them turned seed 3's arms and seed 5's).
+    outside = (np.arange(len(torso)) < whole[0]) | (np.arange(len(torso)) > whole[-1])
+    part = outside & (seen.sum(-1) >= 2)
     if not part.any():
         return c
-    whole = np.flatnonzero(full)
     out = c.copy()
     for t in np.flatnonzero(part):
         f = whole[np.argmin(np.abs(whole - t))]
