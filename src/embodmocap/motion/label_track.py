@@ -90,8 +90,8 @@ class LabelTrackConfig:
     worse, which the two-frame alignment magnifies); with the arms judged too, outdoor seed 5
     went from 108.7 to 454.6 mm."""
     partial_torso: bool = True
-    """A frame before the view's first whole torso (or after its last) that sees part of it (two
-    or three of the shoulders and hips) is centred on those points (with the offset to the whole torso's centre of the nearest frame
+    """A frame before the view's first whole torso (or after its last) that sees part of it (both
+    shoulders or both hips) is centred on them (with the offset to the whole torso's centre of the nearest frame
     that sees it all) instead of on the neighbours' centre: the trajectories of a person
     entering the view are measured against where their torso is
     (:func:`embodmocap.motion.temporal._partial_centres`). False: the centre interpolated, or held

@@ -111,7 +111,7 @@ def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> ND
 def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDArray | None:
     """(T, J, 2) points minus the torso centre, over the torso's size (NaN where the centre is
     unknown); None when no frame has the whole torso. ``partial``: a frame before the first whole
-    torso (after the last) that sees two or three of its points takes its centre from them
+    torso (after the last) that sees both shoulders or both hips takes its centre from them
     (:func:`_partial_centres`) instead of holding the first (last) whole torso's."""
     T = len(kp)
     torso = kp[:, list(TORSO)]
@@ -141,9 +141,9 @@ def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDAr
 
 
 def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float) -> NDArray:
-    """(T, 2) ``c`` with each frame before the first whole torso or after the last that sees two
-    or three torso points (``torso`` (T, 4, 3)) centred on them: their mean plus the offset from
-    those points' mean to the centre in the nearest frame with the whole torso. Where a person enters the view, the centre held from the
+    """(T, 2) ``c`` with each frame before the first whole torso or after the last that sees both
+    shoulders or both hips (``torso`` (T, 4, 3): shoulders, hips) centred on them: their middle
+    plus the offset from that middle to the centre in the nearest frame with the whole torso. Where a person enters the view, the centre held from the
     first whole torso is a frame or more of image motion off (issue 29, hard outdoor studio seed
     1: the person enters view 1 at frame 32 with the hips seen and the shoulders not; measured
     against frame 33's centre, the legs' step 32 -> 33 cost about as much under either label
@@ -154,15 +154,18 @@ def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float)
     # two whole torsos the interpolated one was better on the hard studio seeds: frames seeing a
     # shoulder and a hip, often one a guess, centred on them turned seed 3's arms and seed 5's).
     outside = (np.arange(len(torso)) < whole[0]) | (np.arange(len(torso)) > whole[-1])
-    part = outside & (seen.sum(-1) >= 2)
+    # A left-right pair (both shoulders or both hips): its middle stays on the body's midline
+    # as the person turns; one side's shoulder and hip do not (seed 5's end, view 2 seeing the
+    # left side only: centred on it, that view's correct legs were exchanged in nine frames).
+    pairs = np.stack([seen[:, :2].all(-1), seen[:, 2:].all(-1)], -1)  # (T, 2): shoulders, hips
+    part = outside & pairs.any(-1)
     if not part.any():
         return c
     out = c.copy()
     for t in np.flatnonzero(part):
         f = whole[np.argmin(np.abs(whole - t))]
-        m = seen[t]
-        offset = torso[f, :, :2].mean(0) - torso[f, m, :2].mean(0)
-        out[t] = torso[t, m, :2].mean(0) + offset
+        m = slice(0, 2) if pairs[t, 0] else slice(2, 4)
+        out[t] = torso[t, m, :2].mean(0) + torso[f, :, :2].mean(0) - torso[f, m, :2].mean(0)
     return out
 
 
