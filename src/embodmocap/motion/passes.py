@@ -205,10 +205,14 @@ def leg_sides(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     from embodmocap.geometry.triangulation import projection_matrices, triangulate
     from embodmocap.motion.leg_sides import relabel_legs
 
-    # The starting body as the start passes will make it (prior snapped, or the keypoint start):
-    # only its pelvis is read here, and the labels it judges do not move the pelvis.
+    # The starting body as the start passes will make it (the prior snapped onto the 3D points, or
+    # without a prior the keypoint start): only its hip axis is read, which the leg labels it
+    # judges hardly move.
     try:
-        probe, _ = run_passes("start", ev, ctx, tuple(p for p in PASSES if p.name in _PELVIS_PASSES))
+        if ctx.cfg.use_body_prior and ctx.priors:
+            probe, _ = prior_start(replace(ev, start=Start(init=None)), ctx)
+        else:
+            probe, _ = keypoint_start(ev, ctx)
     except InputError:  # no start at all: the start passes say so themselves
         return ev, {"legs_relabelled": {}}
     if probe.start is None or probe.start.init is None:
@@ -223,9 +227,6 @@ def leg_sides(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     tri = triangulate(P, kp[..., :2], kp[..., 2], ctx.cfg.triangulation)
     return replace(ev, keypoints2d=kp, points=tri.points, conf=tri.conf, filled=tri.filled), report
 
-
-#: The start passes whose body :func:`leg_sides` reads.
-_PELVIS_PASSES = ("keypoint_start", "prior_start", "prefer_keypoints")
 
 
 def weakest_view_conf(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
