@@ -18,9 +18,9 @@ axis from everything triangulated. Per frame, each of the two views' four joint 
 (:func:`embodmocap.motion.label_track.track_labels`) triangulates the legs somewhere; points that
 lie on the wrong side of that pelvis cost their distance past the midline. The label chain is run
 again on the views' keypoints (as the keypoint passes left them) with that cost added
-(:attr:`LegSidesConfig.side_m`) and without it, and the labels are changed where the two runs
-differ: only where a run of frames insists against the views' own trajectories; there the legs
-are re-triangulated for the fit.
+(:attr:`LegSidesConfig.side_m`) and without it, and the labels are exchanged where the run with
+it exchanges them and the run without does not: only where a run of frames insists against the
+views' own trajectories; there the legs are re-triangulated for the fit.
 """
 
 from __future__ import annotations
@@ -125,9 +125,10 @@ def relabel_legs(kp2d: NDArray, P: NDArray, hip_left: NDArray, hip_right: NDArra
     # The chain run again on its own output (after the swap check and the guessed-run drop) is not
     # its own fixed point where the evidence ties: on the hard indoor studio seed 6 it alone
     # exchanged view 2's correct legs over frames 10-25, where no side cost spoke. So only what
-    # the side cost changes is applied: the states of the run with it against the run without.
+    # the side cost changes is applied: what the run with it exchanges and the run without does not
+    # (where the run without exchanges and the run with it does not, the input's labels stand).
     _, plain = track_labels(kp2d, label_cfg, {"legs": legs}, P=P)
-    changed = judged[..., 0] != plain[..., 0]  # (T, 2)
+    changed = judged[..., 0] & ~plain[..., 0]  # (T, 2)
     kp = kp2d.copy()
     for v in range(kp.shape[1]):
         for a, b in legs:
