@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from embodmocap.geometry.triangulation import TriangulationConfig
 from embodmocap.motion.label_track import LabelTrackConfig
+from embodmocap.motion.leg_sides import LegSidesConfig
 from embodmocap.motion.lift import LiftConfig
 from embodmocap.motion.quality import QualityConfig
 from embodmocap.motion.temporal import TemporalConfig
@@ -226,6 +227,9 @@ class MotionConfig:
     label_track: LabelTrackConfig = field(default_factory=LabelTrackConfig)
     """Each view's left/right arm and leg labels tracked through time (with both views' agreement)
     before the geometric swap check (:mod:`embodmocap.motion.label_track`)."""
+    leg_sides: LegSidesConfig = field(default_factory=LegSidesConfig)
+    """Two views: the leg labels re-tracked at the start of the fit with the side of the starting
+    body's pelvis each triangulated knee and ankle lies on (:mod:`embodmocap.motion.leg_sides`)."""
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     """Runs of a view's 2D limb keypoints that jump off their own trajectory (relative to the
     torso) and back are dropped before triangulating and fitting (:mod:`embodmocap.motion.temporal`)."""

@@ -89,6 +89,13 @@ class LabelTrackConfig:
     WA 28.9 -> 23.8 mm) but outdoor seed 1's from 28.3 to 42.1 mm (its frames 33-36 1-2 mm
     worse, which the two-frame alignment magnifies); with the arms judged too, outdoor seed 5
     went from 108.7 to 454.6 mm."""
+    partial_torso: bool = True
+    """A frame before the view's first whole torso (or after its last) that sees part of it (both
+    shoulders or both hips) is centred on them (with the offset to the whole torso's centre of the nearest frame
+    that sees it all) instead of on the neighbours' centre: the trajectories of a person
+    entering the view are measured against where their torso is
+    (:func:`embodmocap.motion.temporal._partial_centres`). False: the centre interpolated, or held
+    from the first whole torso."""
     anatomy_cap_m: float = 0.2
     """The most a frame's wrong-side vote counts, metres (one wild triangulated point must not
     decide)."""
@@ -110,8 +117,8 @@ class LabelTrackConfig:
 
 
 def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
-                 groups: dict[str, tuple[tuple[int, int], ...]] = TRACKED_GROUPS, P: NDArray | None = None
-                 ) -> tuple[NDArray, NDArray[np.bool_]]:
+                 groups: dict[str, tuple[tuple[int, int], ...]] = TRACKED_GROUPS, P: NDArray | None = None,
+                 extra: dict[str, NDArray] | None = None) -> tuple[NDArray, NDArray[np.bool_]]:
     """Exchange each view's limb labels where its own trajectories (and, with ``P`` and two
     views, the two views' agreement) say they are the wrong way round.
 
@@ -123,6 +130,8 @@ def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
             views' states at once, and a frame whose two views' labels disagree (their rays do not
             meet, :attr:`LabelTrackConfig.geometry_px`) costs its reprojection error; None = each
             view on its own.
+        extra: group name -> (T, 4) more cost of the two views' joint states (with ``P`` and two
+            views only; e.g. :func:`embodmocap.motion.leg_sides.side_costs`).
 
     Returns:
         (keypoints (a new array), exchanged (T, V, G) bool per group in ``groups`` order).
@@ -134,13 +143,15 @@ def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
     flipped = np.zeros((T, V, len(groups)), dtype=bool)
     if not cfg.enabled or T < 2:
         return kp, flipped
-    rels = [_torso_relative(kp[:, v], cfg.min_conf) for v in range(V)]
+    rels = [_torso_relative(kp[:, v], cfg.min_conf, cfg.partial_torso) for v in range(V)]
     for g, pairs in enumerate(groups.values()):
         # Per view: (T-1... key frames) transition costs [prev state, this state] between frames.
         trans = [_transitions(rels[v], kp[:, v, :, 2] >= cfg.min_conf, pairs, cfg) if rels[v] is not None
                  else np.zeros((T, 2, 2)) for v in range(V)]
         if P is not None and V == 2:
             geo, anat = _disagreement(P, kp, pairs, cfg, list(groups)[g])  # (T, 2), (T, 4)
+            if extra and list(groups)[g] in extra:
+                anat = anat + extra[list(groups)[g]]
             states = _viterbi_pair(trans, geo, cfg, anat)
         else:
             states = np.stack([_viterbi(trans[v], cfg) for v in range(V)], -1)

@@ -196,6 +196,39 @@ def drop_guessed(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
 
 # -- start: the 3D keypoints and the fit's starting body ----------------------------------------------
 
+def leg_sides(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
+    """The two views' leg labels re-tracked with the side of the starting body's pelvis each
+    triangulated knee and ankle lies on; the legs re-triangulated where they changed
+    (:mod:`embodmocap.motion.leg_sides`)."""
+    import torch
+
+    from embodmocap.geometry.triangulation import projection_matrices, triangulate
+    from embodmocap.motion.leg_sides import relabel_legs
+
+    # The starting body as the start passes will make it (the prior snapped onto the 3D points, or
+    # without a prior the keypoint start): only its hip axis is read, which the leg labels it
+    # judges hardly move.
+    try:
+        if ctx.cfg.use_body_prior and ctx.priors:
+            probe, _ = prior_start(replace(ev, start=Start(init=None)), ctx)
+        else:
+            probe, _ = keypoint_start(ev, ctx)
+    except InputError:  # no start at all: the start passes say so themselves
+        return ev, {"legs_relabelled": {}}
+    if probe.start is None or probe.start.init is None:
+        return ev, {"legs_relabelled": {}}
+    with torch.no_grad():
+        joints = ctx.model.from_params(probe.start.init, dtype=torch.float64).joints.numpy()
+    P = projection_matrices(ctx.K, ctx.T_world_cam)
+    kp, changed = relabel_legs(ev.keypoints2d, P, joints[:, 1], joints[:, 2], ctx.cfg.label_track, ctx.cfg.leg_sides)
+    report = {"legs_relabelled": {v: int(changed[:, i].sum()) for i, v in enumerate(ctx.names)}}
+    if not changed.any():
+        return ev, report
+    tri = triangulate(P, kp[..., :2], kp[..., 2], ctx.cfg.triangulation)
+    return replace(ev, keypoints2d=kp, points=tri.points, conf=tri.conf, filled=tri.filled), report
+
+
+
 def weakest_view_conf(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     """Each 3D keypoint's confidence lowered to its weakest used view's (``kp3d_conf = "min"``)."""
     # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
@@ -372,6 +405,9 @@ PASSES: tuple[Pass, ...] = (
          "left/right swaps the two views' geometry exposes undone (two views)"),
     Pass("temporal", "keypoints", "temporal.enabled", lambda c: c.temporal.enabled, _always, drop_guessed,
          "guessed runs of limb keypoints (off their own trajectory and back) dropped"),
+    Pass("leg_sides", "start", "leg_sides.side_m", lambda c: c.leg_sides.side_m > 0,
+         lambda ev, ctx: len(ctx.names) == 2 and ctx.model is not None, leg_sides,
+         "both views' leg labels re-tracked with the starting body's pelvis side (two views)"),
     Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min", _always, weakest_view_conf,
          "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`)"),
     Pass("bone_gate", "start", "bone_tol", lambda c: c.bone_tol > 0, _always, bone_gate,

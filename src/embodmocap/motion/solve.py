@@ -178,14 +178,19 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
              for i, v in enumerate(names)]
     filled = k3["filled"] if "filled" in k3.files else None
     K, T_wc = np.stack([cams[v]["K"] for v in names]), np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1)
+    used = {"kp2d": kp2d, "k3": k3}  # what the fit uses (a start pass may re-label: leg_sides)
     ctx = PassContext(cfg, tuple(names), K, T_wc, label=label, source=source, model=model, layout=layout, fps=fps,
                       gender=gender, priors=priors, cameras=cams,
-                      quality_of=lambda p: fit_quality(cfg, model, p, layout, cams, kps, kp2d, k3, T, depth))
+                      quality_of=lambda p: fit_quality(cfg, model, p, layout, cams, kps, used["kp2d"], used["k3"], T,
+                                                       depth))
     # The start passes (confidences, bone-length gate, keypoint and prior starts, limbs carried,
     # unplaceable frames turned: motion.passes), then the fit from their start.
     ev = Evidence(kp2d, k3["swapped"] if "swapped" in k3.files else None, k3["points"], k3["conf"], filled, valid)
     ev, reports = run_passes("start", ev, ctx)
     start, points, conf3 = ev.start, ev.points, ev.conf
+    if ev.keypoints2d is not kp2d:  # labels changed at the start: the fit and its quality see them
+        used.update(kp2d=ev.keypoints2d, k3=replace(k3, keypoints2d=ev.keypoints2d, points=ev.points, filled=ev.filled))
+        views = [replace(o, keypoints=ev.keypoints2d[:, i]) for i, o in enumerate(views)]
     if start.prior_view:
         log.info("%s: initialised from the %s body prior (%.0f%% of frames; %d frames from the keypoints)", label,
                  start.prior_view, 100 * priors[start.prior_view][1].mean(),
