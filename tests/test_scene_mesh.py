@@ -149,3 +149,36 @@ def test_simplify_outvotes_single_turned_over_faces():
     vs, fs, _ = simplify_mesh(v, f, voxel_m=0.05)
     assert _down_share(v, f) > 0.04
     assert _down_share(vs, fs) < 0.002
+
+
+def test_fast_helpers_give_numpys_arrays_bit_for_bit():
+    # The clean-up and the simplification use sort-free / bincount versions of np.unique(axis=0),
+    # np.add.at and np.minimum.at; the mesh files must not change, so the arrays must be identical.
+    from embodmocap.scene.mesh import _component_bounds, _sum_at, _unique_rows, face_components
+
+    rng = np.random.default_rng(3)
+    rows = rng.integers(0, 7, size=(5000, 3))
+    for r in (rows, rows * 10**7):  # a small box (one int64 key) and one too large for a key
+        got, want = _unique_rows(r), np.unique(r, axis=0, return_inverse=True, return_counts=True)
+        assert all(np.array_equal(a, b.reshape(a.shape)) for a, b in zip(got, want))
+    idx = rng.integers(0, 50, size=20000)
+    vals = rng.normal(size=(20000, 3)) * 10.0 ** rng.integers(-8, 8, size=(20000, 1))
+    want = np.zeros((50, 3))
+    np.add.at(want, idx, vals)
+    assert np.array_equal(_sum_at(idx, vals, 50), want)
+    # Three separate grids (three components) with noisy vertices and unused vertices in between.
+    parts, off = [], 0
+    vs_all, fs_all = [], []
+    for k in range(3):
+        v, f = grid(10 + 5 * k, 1.0 + k)
+        v = v + rng.normal(scale=0.01, size=v.shape) + [3.0 * k, 0.0, k]
+        vs_all += [v, rng.normal(size=(4, 3)) * 100]
+        fs_all.append(f + off)
+        off += len(v) + 4
+    v, f = np.concatenate(vs_all), np.concatenate(fs_all)
+    comp, n = face_components(v, f)
+    assert n == 3
+    lo, hi = _component_bounds(v, f, comp, n)
+    for k in range(n):
+        corners = v[f[comp == k]].reshape(-1, 3)
+        assert np.array_equal(lo[k], corners.min(axis=0)) and np.array_equal(hi[k], corners.max(axis=0))

@@ -48,13 +48,22 @@ class FloorPlane:
 def face_geometry(vertices: NDArray, faces: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """(unit normals (F, 3) flipped to z >= 0, areas (F,), centroids (F, 3), corners (F, 3, 3))
     of a triangle mesh."""
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    n, area = _unit_normals(v, f)
+    tri = v[f]
+    return n, area, tri.mean(axis=1), tri
+
+
+def _unit_normals(v: NDArray[np.float64], f: NDArray[np.int64]) -> tuple[NDArray, NDArray]:
+    """(unit normals (F, 3) flipped to z >= 0, areas (F,)) as :func:`face_geometry` computes them,
+    without its (F, 3, 3) corners."""
+    a = v[f[:, 0]]
+    n = np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a)
     length = np.linalg.norm(n, axis=1)
     ok = length > 1e-15
     n = np.where(ok[:, None], n / np.where(ok, length, 1.0)[:, None], 0.0)
     n = np.where(n[:, 2:3] < 0, -n, n)
-    return n, 0.5 * length, tri.mean(axis=1), tri
+    return n, 0.5 * length
 
 
 def find_floor(vertices: NDArray, faces: NDArray, *, max_tilt_deg: float = 30.0, band_deg: float = 10.0,
@@ -74,18 +83,25 @@ def find_floor(vertices: NDArray, faces: NDArray, *, max_tilt_deg: float = 30.0,
     """
     if len(faces) == 0:
         return None
-    n, area, cen, tri = face_geometry(vertices, faces)
-    cand = (n[:, 2] > np.cos(np.deg2rad(max_tilt_deg))) & (area > 0)
-    if area[cand].sum() < min_area_m2:
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n, area = _unit_normals(v, f)
+    # Only the candidates are used from here on: their corners and centroids alone, not the
+    # (F, 3, 3) corners of a scan's millions of walls and ceiling faces too.
+    keep = np.flatnonzero((n[:, 2] > np.cos(np.deg2rad(max_tilt_deg))) & (area > 0))
+    n, area = n[keep], area[keep]
+    if area.sum() < min_area_m2:
         return None
-    u = _mean_direction(n[cand], area[cand])
+    tri = v[f[keep]]
+    cen = tri.mean(axis=1)
+    u = _mean_direction(n, area)
     cos_band = np.cos(np.deg2rad(band_deg))
     for _ in range(2):
-        near = cand & (n @ u > cos_band)
+        near = n @ u > cos_band
         if not near.any():
             return None
         u = _mean_direction(n[near], area[near])
-    near = cand & (n @ u > cos_band)
+    near = n @ u > cos_band
     h = cen[near] @ u
     lo = h.min()
     bins = np.floor((h - lo) / bin_m).astype(np.int64)
@@ -103,7 +119,7 @@ def find_floor(vertices: NDArray, faces: NDArray, *, max_tilt_deg: float = 30.0,
         if normal[2] < 0:
             normal, d = -normal, -d
         dist = np.abs(cen @ normal - d)
-        inl = np.nonzero(cand & (dist <= inlier_m) & (n @ normal > cos_band))[0]
+        inl = np.nonzero((dist <= inlier_m) & (n @ normal > cos_band))[0]
     if area[inl].sum() < min_area_m2:
         return None
     tilt = float(np.degrees(np.arccos(np.clip(normal[2], -1.0, 1.0))))

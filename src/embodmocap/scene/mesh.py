@@ -66,9 +66,12 @@ def face_components(vertices, faces) -> tuple[NDArray[np.int64], int]:
     graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(len(v), len(v)))
     n, labels = connected_components(graph, directed=False)
     comp = labels[f[:, 0]]
-    # Relabel to 0..k-1 over components that own faces (isolated vertices are not components).
-    uniq, comp = np.unique(comp, return_inverse=True)
-    return comp.reshape(-1).astype(np.int64), len(uniq)
+    # Relabel to 0..k-1 over components that own faces (isolated vertices are not components), in
+    # the order of the old labels (as np.unique's inverse, without its sort of F labels).
+    owns = np.zeros(n, dtype=bool)
+    owns[comp] = True
+    new_label = np.cumsum(owns) - 1
+    return new_label[comp].astype(np.int64), int(owns.sum())
 
 
 def clean_mesh(vertices, faces, colours=None, cfg: SceneConfig = SceneConfig()) -> tuple[NDArray, NDArray, NDArray]:
@@ -89,11 +92,7 @@ def clean_mesh(vertices, faces, colours=None, cfg: SceneConfig = SceneConfig()) 
     if n == 0:
         return remove_unreferenced(v, f, c)
     size = np.bincount(comp, minlength=n)
-    tri_v = v[f]  # (F, 3, 3)
-    lo = np.full((n, 3), np.inf)
-    hi = np.full((n, 3), -np.inf)
-    np.minimum.at(lo, comp, tri_v.min(axis=1))
-    np.maximum.at(hi, comp, tri_v.max(axis=1))
+    lo, hi = _component_bounds(v, f, comp, n)
     extent = np.linalg.norm(hi - lo, axis=1)
     min_faces = max(cfg.min_component_triangles, cfg.min_component_fraction * size.max())
     keep_comp = (size >= min_faces) & (extent >= cfg.floater_max_extent_m)
@@ -107,6 +106,48 @@ def clean_mesh(vertices, faces, colours=None, cfg: SceneConfig = SceneConfig()) 
     log.info("mesh clean-up: kept %d of %d components (%d of %d faces)",
              int(keep_comp.sum()), n, int(keep.sum()), len(f))
     return remove_unreferenced(v, f[keep], c)
+
+
+def _component_bounds(v: NDArray, f: NDArray, comp: NDArray, n: int) -> tuple[NDArray, NDArray]:
+    """Bounding boxes ``(lo (n, 3), hi (n, 3))`` of the ``n`` face components ``comp`` (F,).
+
+    Every vertex a face uses belongs to that face's component, so a component's box is the box of
+    its vertices: one stable sort of the V vertex labels and a segmented min / max, instead of
+    ``np.minimum.at`` over the F x 3 corners (about 10x the time on a 5 M-face scan).
+    """
+    label = np.full(len(v), n, dtype=np.int64)  # n: used by no face (sorts last, never read)
+    for k in range(3):
+        label[f[:, k]] = comp
+    order = np.argsort(label, kind="stable")
+    start = np.searchsorted(label[order], np.arange(n + 1))  # every component has >= 3 vertices
+    vs = v[order[: start[-1]]]  # without the unused vertices: the last segment ends with its component
+    start = start[:-1]
+    return np.minimum.reduceat(vs, start, axis=0), np.maximum.reduceat(vs, start, axis=0)
+
+
+def _unique_rows(rows: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
+    """``np.unique(rows, axis=0, return_inverse=True, return_counts=True)`` for (N, 3) integer rows
+    >= 0: the same arrays (rows in lexicographic order), through one int64 key per row when the
+    rows' box fits one (much faster than unique's sort of whole rows), else unique itself."""
+    if len(rows) == 0 or rows.min() < 0:
+        uniq, inverse, count = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+        return uniq, inverse.reshape(-1), count
+    dims = rows.max(axis=0).astype(np.int64) + 1
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
+        uniq, inverse, count = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+        return uniq, inverse.reshape(-1), count
+    key = (rows[:, 0] * dims[1] + rows[:, 1]) * dims[2] + rows[:, 2]  # increasing in (x, y, z) order
+    ukey, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+    uniq = np.stack([ukey // (dims[1] * dims[2]), (ukey // dims[2]) % dims[1], ukey % dims[2]], axis=1)
+    return uniq.astype(rows.dtype), inverse.reshape(-1), count
+
+
+def _sum_at(index: NDArray, values: NDArray, n: int) -> NDArray[np.float64]:
+    """``out = zeros((n,) + values.shape[1:]); np.add.at(out, index, values)``, bit for bit (both add
+    in index order), through ``np.bincount`` per column (several times faster)."""
+    if values.ndim == 1:
+        return np.bincount(index, weights=values, minlength=n)
+    return np.stack([np.bincount(index, weights=values[:, k], minlength=n) for k in range(values.shape[1])], axis=1)
 
 
 def simplify_mesh(vertices, faces, colours=None, voxel_m: float = 0.05) -> tuple[NDArray, NDArray, NDArray]:
@@ -134,15 +175,12 @@ def simplify_mesh(vertices, faces, colours=None, voxel_m: float = 0.05) -> tuple
         return v, f, c
     voxel = float(voxel_m)
     cell = np.floor((v - v.min(axis=0)) / voxel).astype(np.int64)  # (V, 3)
-    _, cluster, count = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-    cluster = cluster.reshape(-1)
+    _, cluster, count = _unique_rows(cell)
     nv = len(count)
-    cv = np.zeros((nv, 3))
-    np.add.at(cv, cluster, v)
+    cv = _sum_at(cluster, v, nv)
     cv /= count[:, None]
     if len(c):
-        cc = np.zeros((nv, 3))
-        np.add.at(cc, cluster, c)
+        cc = _sum_at(cluster, c, nv)
         cc /= count[:, None]
     else:
         cc = c
@@ -153,16 +191,13 @@ def simplify_mesh(vertices, faces, colours=None, voxel_m: float = 0.05) -> tuple
     cf = cf[ok]
     tri = v[f[ok]]
     n_in = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (F', 3), |.| = 2 x area
-    out, which = np.unique(np.sort(cf, axis=1), axis=0, return_inverse=True)
-    which = which.reshape(-1)
+    out, which, _ = _unique_rows(np.sort(cf, axis=1))
     n_out = np.cross(cv[out[:, 1]] - cv[out[:, 0]], cv[out[:, 2]] - cv[out[:, 0]])  # (G, 3)
     nonzero = np.linalg.norm(n_out, axis=1) > 1e-12 * voxel * voxel
-    vote = np.zeros(len(out))
-    np.add.at(vote, which, np.einsum("fc,fc->f", n_in, n_out[which]))
+    vote = _sum_at(which, np.einsum("fc,fc->f", n_in, n_out[which]), len(out))
     n_all = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # every input face, 2 x area
-    n_cell = np.zeros((nv, 3))
-    for k in range(3):  # a face counts a third in each cell it touches
-        np.add.at(n_cell, cluster[f[:, k]], n_all / 3.0)
+    # A face counts a third in each cell it touches (corner 0 of every face, then corner 1, then 2).
+    n_cell = _sum_at(cluster[f.T.reshape(-1)], np.tile(n_all / 3.0, (3, 1)), nv)
     vote += np.einsum("gc,gc->g", n_cell[out].sum(axis=1), n_out)
     flip = vote < 0
     out[flip] = out[flip][:, [0, 2, 1]]

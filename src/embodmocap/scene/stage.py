@@ -102,7 +102,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
             images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg)
             # The mesh step after this one needs Open3D, whose import is seconds of CPU: done on the
             # other core while COLMAP (native, GIL released) builds the model on this one.
-            import_in_background("open3d")
+            import_in_background("embodmocap.io.open3d_core")
             with library_threads(1, ("blas",)):  # the drift adjustment's small solves (see parallel.py)
                 model = build_sparse_model(images, capture.rgb_intrinsics, poses, out.sfm_dir, cfg.sfm, times_s=times)
             step.record([out.sfm_dir], {

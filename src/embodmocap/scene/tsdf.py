@@ -55,8 +55,7 @@ def fuse_open3d(frames: Iterable[FusionFrame], voxel_m: float, sdf_trunc_m: floa
         ``(vertices (V, 3), faces (F, 3), colours (V, 3) in [0, 1])`` in the poses' world frame;
         empty arrays if nothing was observed.
     """
-    import open3d as o3d
-
+    from embodmocap.io.open3d_core import open3d as o3d
     from embodmocap.parallel import library_threads
 
     with library_threads(threads, ("openmp",)) if threads > 0 else contextlib.nullcontext():
