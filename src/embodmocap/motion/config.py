@@ -55,6 +55,12 @@ class SmplifyConfig:
     """Weight of the translation velocity term (per m^2)."""
     w_transl_acc: float = 30.0
     """Weight of the translation acceleration term (per m^2)."""
+    w_orient_acc: float = 0.0
+    """Weight of the trunk orientation term (per rad^2 of angular acceleration per frame^2 of the
+    world rotations of the pelvis and the spine segments, :mod:`embodmocap.motion.orientation`):
+    the heading the hip and shoulder keypoints give wobbles by several degrees from frame to frame
+    with their jitter, which the joint acceleration term (weighing a turn by the squared lever of
+    the joints it moves) barely resists. 0 = off."""
     w_edge_vel: float = 100.0
     """Weight of the edge velocity term (per m^2 of frame-to-frame displacement of the joints
     relative to the pelvis, mean over joints and over all of the sequence's frame differences,
