@@ -32,24 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-#: SMPL joints of the torso frame.
-PELVIS, L_HIP, R_HIP, NECK, L_SHOULDER, R_SHOULDER = 0, 1, 2, 12, 16, 17
-
-
 def torso_frames(joints: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) torso rotations (columns: left, up, forward in the world) from SMPL joints
-    (T, 24, 3): left = mean of the hips' and the shoulders' right -> left vectors, up = pelvis ->
-    neck made orthogonal to left, forward = left x up."""
-    j = np.asarray(joints, dtype=np.float64)
-    left = (j[:, L_HIP] - j[:, R_HIP]) / np.linalg.norm(j[:, L_HIP] - j[:, R_HIP], axis=-1, keepdims=True)
-    left = left + (j[:, L_SHOULDER] - j[:, R_SHOULDER]) / np.linalg.norm(j[:, L_SHOULDER] - j[:, R_SHOULDER], axis=-1,
-                                                                        keepdims=True)
-    left /= np.linalg.norm(left, axis=-1, keepdims=True)
-    up = j[:, NECK] - j[:, PELVIS]
-    up = up - (up * left).sum(-1, keepdims=True) * left
-    up /= np.linalg.norm(up, axis=-1, keepdims=True)
-    fwd = np.cross(left, up)
-    return np.stack([left, up, fwd], axis=-1)
+    """(T, 3, 3) torso rotations (columns: left, up, forward in the world) of SMPL joints (T, 24, 3):
+    the frame Stage IV's orientation term smooths (:func:`embodmocap.motion.orientation.torso_frames`)."""
+    import torch
+
+    from embodmocap.motion.orientation import torso_frames as frames
+
+    return frames(torch.as_tensor(np.asarray(joints, dtype=np.float64))).numpy()
 
 
 def yaw_tilt_deg(R: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
