@@ -60,6 +60,7 @@ from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.fit_workers import run_pieces
 from embodmocap.motion.floor import floor_term
+from embodmocap.motion.orientation import torso_acc_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
@@ -332,6 +333,8 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
+        if cfg.w_orient_acc > 0:  # the torso's heading held smooth (motion.orientation)
+            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints)
         if d.edge is not None:
             out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
