@@ -66,6 +66,13 @@ def os_error_line(err: OSError) -> str:
     return f"{where}{what} ({fix})"
 
 
+def failure_message(err: BaseException) -> str:
+    """How ``embodmocap run`` reports a stage's expected failure: an EmbodMocapError's own line, an
+    OSError's file and cause, else the error's type and message."""
+    return (str(err) if isinstance(err, EmbodMocapError) else os_error_line(err) if isinstance(err, OSError)
+            else f"{type(err).__name__}: {err}")
+
+
 # Ctrl-C. The default handler raises KeyboardInterrupt wherever Python is; inside the import of a
 # compiled extension (torch, open3d, cv2 load on first use) that surfaces as "ImportError:
 # initialization failed" instead. The CLI records that SIGINT arrived, so such an error still counts
