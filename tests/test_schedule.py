@@ -37,6 +37,7 @@ def _steps(path: Path) -> dict:
 
 @pytest.mark.slow
 def test_two_workers_resume_isolate_failures_and_match_one(tmp_path):
+    from _child import _tree
     from compare_sessions import compare
     from test_pipeline import SYNTH, _two_sequence_session
 
@@ -54,11 +55,13 @@ def test_two_workers_resume_isolate_failures_and_match_one(tmp_path):
         assert proc.poll() is None and time.time() < deadline, proc.stdout.read() if proc.poll() is not None else "timeout"
         time.sleep(0.5)
     time.sleep(2.0)  # the registration starts beside the mesh
+    workers = [p for p in _tree(proc.pid) if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    assert len(workers) == 2, workers
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=180)
     assert proc.returncode == 130, out
     assert json.loads(scene.manifest.read_text())["status"] == "interrupted", out
-    assert not [p for p in proc_children(proc.pid)], "a worker outlived the run"
+    assert not [p for p in workers if Path(f"/proc/{p}").exists()], "a worker outlived the run"
     before = _steps(scene.manifest)
 
     proc = _cli("run", str(a), "--workers", "2")
@@ -76,20 +79,6 @@ def test_two_workers_resume_isolate_failures_and_match_one(tmp_path):
     assert [r.target for r in res.failed()] == ["sequence broken"]
     same, diffs = compare(a, b)
     assert same > 100 and not diffs, diffs
-
-
-def proc_children(pid: int) -> list[int]:
-    """Processes whose parent is ``pid`` (Linux)."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                stat = (d / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
-                out.append(int(d.name))
-    return out
 
 
 def test_partial_stage_is_not_accepted_downstream_but_its_steps_are(tmp_path):

@@ -101,6 +101,27 @@ def watch_interrupts():
     return signal.signal(signal.SIGINT, _on_sigint)
 
 
+def interrupt_once() -> None:
+    """In a worker process (main thread): SIGINT watched as :func:`watch_interrupts` does, and only
+    the first one interrupts: the terminal's Ctrl-C and the one the parent forwards must not cut
+    the stage's own record of ``interrupted`` short."""
+    import signal
+
+    watch_interrupts()
+    inner = signal.getsignal(signal.SIGINT)
+    fired = [False]
+
+    def once(signum, frame):
+        if not fired[0]:
+            fired[0] = True
+            if callable(inner):
+                inner(signum, frame)
+            else:
+                raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, once)
+
+
 def stop_watching_interrupts(previous) -> None:
     """Put back the handler :func:`watch_interrupts` replaced."""
     import signal

@@ -165,18 +165,7 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     map_large_blocks()  # as the sequential run does (embodmocap.memory)
     current = [""]
     stage_manifest.STEP_LISTENERS.append(lambda stage, step: send(("step", current[0], stage, step)))
-    # The terminal's Ctrl-C and the one the scheduler forwards: the first interrupts the stage, the
-    # second must not cut its record of ``interrupted`` short.
-    errors.watch_interrupts()
-    inner = signal.getsignal(signal.SIGINT)
-    fired = [False]
-
-    def once(signum, frame):
-        if not fired[0]:
-            fired[0] = True
-            inner(signum, frame) if callable(inner) else signal.default_int_handler(signum, frame)
-
-    signal.signal(signal.SIGINT, once)
+    errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
     while True:
         try:
             msg = conn.recv()
