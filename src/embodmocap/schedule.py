@@ -141,6 +141,15 @@ class _LogToPipe(logging.Handler):
         return "".join(traceback.format_exception(*record.exc_info))
 
 
+def _received(conn: Connection):
+    """The jobs the scheduler sends, until it sends None or goes away (or Ctrl-C while idle)."""
+    try:
+        for msg in iter(conn.recv, None):
+            yield msg
+    except (EOFError, KeyboardInterrupt):
+        return
+
+
 def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     """A worker's loop: receive ``(job, cfg, session, force)``, run it, send back what happened:
     ``("step", key, stage, step)`` as steps finish, ``("log", record)``, and at the end
@@ -166,14 +175,7 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     current = [""]
     stage_manifest.STEP_LISTENERS.append(lambda stage, step: send(("step", current[0], stage, step)))
     errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
-    while True:
-        try:
-            msg = conn.recv()
-        except (EOFError, KeyboardInterrupt):
-            return
-        if msg is None:
-            return
-        job, cfg, session, force = msg
+    for job, cfg, session, force in _received(conn):
         current[0] = job.key
         t0 = time.perf_counter()
         status, text = "ok", ""
