@@ -5,20 +5,23 @@ What each job needs (``pipeline.py`` runs the same stages one after the other wi
     job            what it runs                                   starts once
     scene/S        Stage I of scene S                             -
     sequence/Q     Stage II of sequence Q                         - (Stage II reads nothing of Stage I)
-    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``sfm``
-                   (``calibrate.stage.run(only_register=True)``)  step is (the mesh may be fusing)
+    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``mesh``
+                   (``calibrate.stage.run(only_register=True)``)  step is (it reads only the ``sfm``
+                                                                  step's model; the wait is for
+                                                                  memory: REGISTER_AFTER)
     calibrate/Q    Stage III (its registration already current)   scene/S and register/Q are done
     motion/Q       Stage IV                                       calibrate/Q is done
 
 At most ``workers`` jobs run at once; a free worker takes the ready job that comes first in
 :data:`PRIORITY`: Stage I, then Stage III and IV (the chain after Stage I is the run's critical
 path), then the registration and Stage II, which fit beside Stage I. On the 60 s session the second
-core runs Stage II while Stage I builds its sparse model and the registration while it fuses the
-mesh, so the run's wall time is about Stage I + the rest of Stage III + Stage IV.
+core runs Stage II while Stage I builds its sparse model, and the registration beside Stage I's last
+steps (:data:`REGISTER_AFTER`: not beside the mesh, whose memory peak it would add to), so the
+run's wall time is about Stage I + the rest of Stage III + Stage IV.
 
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
-copied half-initialised through ``fork``), kept between jobs so a worker imports Open3D or torch
-once. A worker tells the scheduler which steps it finished (through
+copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
+(its imports are paid once), else it is stopped, so no idle process holds memory next to a peak. A worker tells the scheduler which steps it finished (through
 :data:`embodmocap.io.stage_manifest.STEP_LISTENERS`), forwards its log records to this process's
 handlers, and returns the memory a job freed to the system before the next one.
 
@@ -50,6 +53,11 @@ PRIORITY = ("scene", "calibrate", "motion", "register", "sequence")
 #: The stage each job kind runs, as progress lines and :class:`~embodmocap.pipeline.StageRun` name it.
 STAGE_OF = {"scene": "scene", "sequence": "sequence", "register": "register", "calibrate": "calibrate",
             "motion": "motion"}
+#: The step of Stage I after which the registration starts. It needs only ``sfm``, but Stage I's
+#: memory peaks in ``mesh`` (~3.1 GB on a 15 s scan): a registration beside it (~0.6-0.9 GB on
+#: 60 s views) put the processes' sum above one sequential process's peak. After ``mesh`` it runs
+#: beside ``floor`` and ``simplify`` instead, ~10 s later on the run's critical path.
+REGISTER_AFTER = "mesh"
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -92,7 +100,7 @@ def plan_jobs(scenes, sequences) -> list[Job]:
     jobs = [Job("scene", s) for s in scenes]
     for q, s in sequences:
         jobs += [Job("sequence", q, scene=s),
-                 Job("register", q, (f"sequence/{q}", f"scene/{s}#sfm"), s),
+                 Job("register", q, (f"sequence/{q}", f"scene/{s}#{REGISTER_AFTER}"), s),
                  Job("calibrate", q, (f"scene/{s}", f"register/{q}"), s),
                  Job("motion", q, (f"calibrate/{q}",), s)]
     return jobs
@@ -281,10 +289,11 @@ class WorkerPool:
             except KeyboardInterrupt:  # a second Ctrl-C: stop waiting
                 break
 
-    def keep(self, n: int) -> None:
-        """Stop idle workers beyond ``n`` (the jobs still to run): an idle worker's imports are
-        hundreds of MB next to the stage that runs alone at the end (Stage IV's peak)."""
-        for w in [w for w in self.workers if w.job is None][:max(0, len(self.workers) - n)]:
+    def stop_idle(self) -> None:
+        """Stop the idle workers (called when no job is ready for them): an idle worker's imports
+        and heap are hundreds of MB next to a running stage's peak (Stage I's mesh, Stage IV's
+        fit); a fresh worker starts when a job is ready (seconds of imports)."""
+        for w in [w for w in self.workers if w.job is None]:
             try:
                 w.conn.send(None)
             except (OSError, BrokenPipeError):
@@ -387,7 +396,7 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
                         pool.start(j)
             if not any(s == "running" for s in state.values()):
                 break
-            pool.keep(sum(s in ("pending", "running") for s in state.values()))
+            pool.stop_idle()
             for msg in pool.messages(0.5):
                 handle(msg)
             if any(s == "interrupted" for s in state.values()):
