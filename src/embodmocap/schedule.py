@@ -221,6 +221,7 @@ class WorkerPool:
         self.size, self.cfg, self.session, self.force = size, cfg, session, force
         self._ctx = mp.get_context("spawn")
         self.workers: list[_Worker] = []
+        self.stopping: list[mp.process.BaseProcess] = []  # told to stop, not reaped yet
 
     def idle(self) -> int:
         return self.size - sum(1 for w in self.workers if w.job is not None)
@@ -298,9 +299,11 @@ class WorkerPool:
                 w.conn.send(None)
             except (OSError, BrokenPipeError):
                 w.proc.kill()
-            w.proc.join(5.0)
             w.conn.close()
             self.workers.remove(w)
+            self.stopping.append(w.proc)
+        # Reaped without waiting: a loaded machine may take seconds to end a process.
+        self.stopping = [p for p in self.stopping if p.exitcode is None]
 
     def close(self) -> None:
         """Stop every worker (idle ones exit at once, busy ones are killed)."""
@@ -316,7 +319,13 @@ class WorkerPool:
                 w.proc.kill()
                 w.proc.join(1.0)
             w.conn.close()
+        for p in self.stopping:
+            p.join(5.0)
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
         self.workers.clear()
+        self.stopping.clear()
 
 
 def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say: Callable[[str], None],
