@@ -27,8 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 def _cli(*args: str) -> subprocess.Popen:
+    # Ctrl-C as a terminal gives it, even where pytest runs as a background job (SIGINT ignored).
     return subprocess.Popen([sys.executable, "-m", "embodmocap.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _steps(path: Path) -> dict:
