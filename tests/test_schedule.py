@@ -81,8 +81,12 @@ def test_two_workers_resume_isolate_failures_and_match_one(tmp_path):
 
     res = run_session(PipelineConfig(), b, workers=1)
     assert [r.target for r in res.failed()] == ["sequence broken"]
+    # The broken sequence's failure names its file, under each copy's own folder.
+    broken = [json.loads((s / "sequences/broken/manifest.json").read_text()) for s in (a, b)]
+    assert broken[0]["status"] == broken[1]["status"] == "failed"
+    assert broken[0]["error"].replace(str(a), str(b)) == broken[1]["error"]
     same, diffs = compare(a, b)
-    assert same > 100 and not diffs, diffs
+    assert same > 100 and diffs in ([], ["sequences/broken/manifest.json: JSON content differs"]), diffs
 
 
 def test_partial_stage_is_not_accepted_downstream_but_its_steps_are(tmp_path):
