@@ -11,8 +11,10 @@ the fallback where ``/proc`` is missing.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import threading
 import time
 
 _CODE = ("import resource, sys; from embodmocap.cli import main; rc = main(sys.argv[1:]); sys.stdout.flush()\n"
@@ -47,3 +49,74 @@ def run_cli_usage(*args: str, src: str | None = None) -> tuple[float, int, float
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, int(proc.stdout.strip().splitlines()[-1]) // 1024, cpu
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and every process below it (Linux ``/proc``)."""
+    parent: dict[int, int] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+                parent[int(d)] = int(stat[stat.rindex(")") + 2:].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += [c for c, pp in parent.items() if pp == p]
+    return out
+
+
+def _kb(path: str, key: str) -> int:
+    try:
+        for line in open(path):
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def run_cli_tree(*args: str, src: str | None = None, every_s: float = 0.2) -> dict:
+    """:func:`run_cli_usage` for a command that may start worker processes (``embodmocap run``
+    with ``--workers``): besides the child's own peak, the peak over time of the sum of the resident
+    memory (VmRSS; and of the proportional set size, Pss, which counts a page two processes share
+    once) of the child and every process below it, sampled every ``every_s`` seconds. For one
+    process the RSS sum's peak is its VmHWM up to what falls between two samples.
+
+    Returns ``wall_s``, ``cpu_s`` (the child and its waited-for workers), ``peak_mb`` (the child's
+    own VmHWM), ``tree_rss_mb``, ``tree_pss_mb`` and ``processes`` (the most alive at one sample).
+    """
+    import resource
+
+    env = None if src is None else dict(os.environ, PYTHONPATH=src)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-c", _CODE, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+    peak = {"rss": 0, "pss": 0, "n": 0}
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            pids = _tree(proc.pid)
+            rss = sum(_kb(f"/proc/{p}/status", "VmRSS") for p in pids)
+            pss = sum(_kb(f"/proc/{p}/smaps_rollup", "Pss") for p in pids)
+            peak["rss"], peak["pss"] = max(peak["rss"], rss), max(peak["pss"], pss)
+            peak["n"] = max(peak["n"], len(pids))
+            done.wait(every_s)
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    done.set()
+    th.join()
+    if proc.returncode != 0:
+        raise RuntimeError(f"embodmocap {' '.join(args)} failed ({proc.returncode}):\n{out[-2000:]}{err[-4000:]}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return {"wall_s": wall, "cpu_s": cpu, "peak_mb": int(out.strip().splitlines()[-1]) // 1024,
+            "tree_rss_mb": peak["rss"] // 1024, "tree_pss_mb": peak["pss"] // 1024, "processes": peak["n"]}

@@ -17,7 +17,14 @@ stage's), and the summary gives the ratio of that run's wall time, CPU and peak 
 figure; ``--no-whole-run`` skips it), the ratios of each stage, and the accuracy figures of both
 codes side by side (W-, WA-, PA-MPJPE, W-MPJPE over 100-frame chunks, RTE, camera errors).
 ``--stages scene`` (or any subset, in pipeline order) times only those stages (each needs its
-predecessors' outputs: ``scene`` alone needs nothing). When the session has ground truth, the scene
+predecessors' outputs: ``scene`` alone needs nothing); ``--stages run`` only the whole run.
+
+The whole run's memory is the sum over the processes alive at one moment (``embodmocap run`` with
+``--workers 2`` runs stages in worker processes): its rows give the run process's own peak and the
+peak of the sum of the resident memory (RSS; and Pss, shared pages counted once) of the process
+and every process below it, sampled every 0.2 s (``_child.run_cli_tree``). ``--new-workers 2 1``
+times the new code's run once per value (``--workers N``) after the old code's, the order reversed
+on each of ``--repeat`` rounds; the ratio rows use the means. When the session has ground truth, the scene
 stage's mesh accuracy and completeness of each code are printed too (one evaluator, this checkout's).
 
 Targets: Stage III on a 60 s two-view sequence <= 3 min (issue 5, split between feature work =
@@ -37,7 +44,7 @@ import os
 import shutil
 from pathlib import Path
 
-from _child import run_cli_usage
+from _child import run_cli_tree, run_cli_usage
 
 STAGES = (("scene", "scenes/scene0/manifest.json"), ("sequence", "sequences/seq0/manifest.json"),
           ("calibrate", "sequences/seq0/calibrate_manifest.json"), ("motion", "sequences/seq0/motion_manifest.json"),
@@ -97,6 +104,31 @@ def _copy_session(src: Path, dst: Path) -> Path:
     return dst
 
 
+def _whole_runs(codes, session: Path, args, rows: dict, first_new: bool) -> None:
+    """``embodmocap run`` end to end on fresh copies: the old code and the new one with each
+    ``--new-workers`` value, interleaved, ``--repeat`` times; ``rows["run", code]`` gets the mean
+    (wall, CPU, peak of the process tree's RSS sum) of each."""
+    print("\n| `embodmocap run` | code | wall s | CPU s | own peak RSS MB | tree peak RSS MB | tree peak Pss MB | processes |")
+    print("|---|---|---|---|---|---|---|---|")
+    news = [("new" if i == 0 else f"new w{n}", ["--workers", str(n)] if n else []) for i, n in enumerate(args.new_workers)]
+    runs = [("old", codes[0][1], [])] + [(c, codes[1][1], extra) for c, extra in news]
+    if first_new:
+        runs = runs[::-1]
+    got: dict[str, list] = {}
+    for k in range(args.repeat):
+        for code, src, extra in (runs if k % 2 == 0 else runs[::-1]):
+            run_copy = _copy_session(session, args.out / f"whole_{code.replace(' ', '_')}")
+            if args.device and code.startswith("new"):
+                extra = extra + ["--device", args.device]
+            r = run_cli_tree("run", str(run_copy), *extra, src=src)
+            got.setdefault(code, []).append(r)
+            label = code if code == "old" else f"{code.split()[0]} (--workers {extra[1] if extra else 'default'})"
+            print(f"| run | {label} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_mb']} | {r['tree_rss_mb']} | "
+                  f"{r['tree_pss_mb']} | {r['processes']} |", flush=True)
+    for code, rs in got.items():
+        rows["run", code] = tuple(sum(r[k] for r in rs) / len(rs) for k in ("wall_s", "cpu_s", "tree_rss_mb"))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -104,8 +136,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench_out/pipeline"))
     ap.add_argument("--old-src", type=Path, default=None, help="src folder of the code to compare with (interleaved)")
     ap.add_argument("--device", default=None, help="--device of the new code's Stage IV (auto, cpu, cuda)")
-    ap.add_argument("--stages", nargs="+", default=[s for s, _ in STAGES], choices=[s for s, _ in STAGES],
-                    help="the stages to time (default all, in pipeline order)")
+    ap.add_argument("--stages", nargs="+", default=[s for s, _ in STAGES], choices=[s for s, _ in STAGES] + ["run"],
+                    help="the stages to time (default all, in pipeline order); `run`: only the whole run")
+    ap.add_argument("--new-workers", nargs="+", type=int, default=[0],
+                    help="--workers of the new code's whole run, one run per value (0: its default)")
+    ap.add_argument("--repeat", type=int, default=1, help="whole runs of each code and --new-workers value")
     ap.add_argument("--no-whole-run", action="store_true",
                     help="with --old-src: skip the timing of `embodmocap run` on two more fresh copies")
     args = ap.parse_args()
@@ -127,6 +162,8 @@ def main() -> None:
     print("| stage | code | wall s | CPU s | peak RSS MB | frames/s | steps (wall s) |")
     print("|---|---|---|---|---|---|---|")
     stages = [(s, m) for s, m in STAGES if s in args.stages]
+    if "run" in args.stages and args.old_src is None:
+        ap.error("--stages run needs --old-src")
     for i, (stage, manifest) in enumerate(stages):
         order = codes if i % 2 == 0 else codes[::-1]
         for code, src, sess in order:
@@ -148,23 +185,18 @@ def main() -> None:
     if args.old_src is None:
         return
     four = [s for s, _ in STAGES[:4] if s in args.stages]
-    if len(four) == 4 and not args.no_whole_run:
-        # The user's command, end to end in one process per code (order opposite to the last stage's).
-        print("\n| `embodmocap run` | code | wall s | CPU s | peak RSS MB |")
-        print("|---|---|---|---|---|")
-        last = codes if len(stages) % 2 == 1 else codes[::-1]
-        for code, src, sess in last[::-1]:
-            run_copy = _copy_session(session, args.out / f"whole_{code}")
-            extra = ["--device", args.device] if args.device and code == "new" else []
-            wall, rss, cpu = run_cli_usage("run", str(run_copy), *extra, src=src)
-            rows["run", code] = (wall, cpu, rss)
-            print(f"| run | {code} | {wall:.1f} | {cpu:.1f} | {rss} |", flush=True)
+    if (len(four) == 4 and not args.no_whole_run) or "run" in args.stages:
+        _whole_runs(codes, session, args, rows, first_new=len(stages) % 2 == 0)
     print(f"\nload average now: {os.getloadavg()}")
     print("\n| ratio row | wall new / old | CPU new / old | peak RSS new / old | wall old / new s |")
     print("|---|---|---|---|---|")
     if ("run", "old") in rows:
         (wo, co, ro), (wn, cn, rn) = rows["run", "old"], rows["run", "new"]
         print(f"| whole run (`embodmocap run`) | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} | {wo:.1f} / {wn:.1f} |")
+    for n in args.new_workers:
+        if ("run", f"new w{n}") in rows and n != args.new_workers[0]:
+            (wo, co, ro), (wn, cn, rn) = rows["run", "old"], rows["run", f"new w{n}"]
+            print(f"| whole run, new `--workers {n}` | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} | {wo:.1f} / {wn:.1f} |")
     for stage in [s for s, _ in stages]:
         (wo, co, ro), (wn, cn, rn) = rows[stage, "old"], rows[stage, "new"]
         print(f"| {ROMAN[stage]} | {wn / wo:.3f} | {cn / co:.3f} | {rn / ro:.3f} | {wo:.1f} / {wn:.1f} |")

@@ -148,6 +148,10 @@ class Run:
     """Session folder (holds session.toml)."""
     force: bool = False
     """Redo every step even when its outputs are up to date."""
+    workers: int = 0
+    """Stages run at once, each in a worker process (Stage II beside Stage I, Stage III's registration
+    beside Stage I's last steps); 0 = the usable cores, at most 2; 1 = one after the other in this process.
+    The outputs are the same; the memory in use is the sum of the processes."""
     config: Annotated[PipelineConfig, tyro.conf.arg(name="")] = PipelineConfig()
     """Settings of every stage."""
 
@@ -156,7 +160,7 @@ class Run:
         from embodmocap.progress import is_quiet
 
         quiet = is_quiet()  # -q: nothing on stdout; a failure's lines still on stderr
-        res = run_session(self.config, self.session, force=self.force,
+        res = run_session(self.config, self.session, force=self.force, workers=self.workers,
                           on_progress=None if quiet else lambda m: print(m, flush=True))
         if not quiet:
             print()

@@ -66,6 +66,13 @@ def os_error_line(err: OSError) -> str:
     return f"{where}{what} ({fix})"
 
 
+def failure_message(err: BaseException) -> str:
+    """How ``embodmocap run`` reports a stage's expected failure: an EmbodMocapError's own line, an
+    OSError's file and cause, else the error's type and message."""
+    return (str(err) if isinstance(err, EmbodMocapError) else os_error_line(err) if isinstance(err, OSError)
+            else f"{type(err).__name__}: {err}")
+
+
 # Ctrl-C. The default handler raises KeyboardInterrupt wherever Python is; inside the import of a
 # compiled extension (torch, open3d, cv2 load on first use) that surfaces as "ImportError:
 # initialization failed" instead. The CLI records that SIGINT arrived, so such an error still counts
@@ -92,6 +99,27 @@ def watch_interrupts():
     if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
         return None
     return signal.signal(signal.SIGINT, _on_sigint)
+
+
+def interrupt_once() -> None:
+    """In a worker process (main thread): SIGINT watched as :func:`watch_interrupts` does, and only
+    the first one interrupts: the terminal's Ctrl-C and the one the parent forwards must not cut
+    the stage's own record of ``interrupted`` short."""
+    import signal
+
+    watch_interrupts()
+    inner = signal.getsignal(signal.SIGINT)
+    fired = [False]
+
+    def once(signum, frame):
+        if not fired[0]:
+            fired[0] = True
+            if callable(inner):
+                inner(signum, frame)
+            else:
+                raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, once)
 
 
 def stop_watching_interrupts(previous) -> None:

@@ -5,6 +5,10 @@
                         Stage III (both views in the scene's world)
                         Stage IV  (world SMPL motion, contact alignment)
 
+With ``workers`` >= 2 (the default on two cores) the same stages run as jobs on worker processes,
+each as soon as what it reads exists (Stage II beside Stage I, ...: :mod:`embodmocap.schedule`);
+with 1, one after the other in this process as below. The outputs are the same.
+
 Every stage is resumable (its steps are fingerprinted), so running the same command again after an
 interruption or a fix redoes only what is missing or out of date. A sequence that fails is reported
 with its cause and does not stop the others; the sequences of a scene that failed are not run and
@@ -16,13 +20,13 @@ from __future__ import annotations
 import logging
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 from embodmocap.calibrate.config import CalibrateConfig
 from embodmocap.device import Device, motion_on_device
-from embodmocap.errors import EmbodMocapError, interrupted, os_error_line
+from embodmocap.errors import EmbodMocapError, failure_message, interrupted
 from embodmocap.io.layout import SessionLayout
 from embodmocap.io.manifest import load_manifest
 from embodmocap.memory import map_large_blocks, release_freed_memory
@@ -80,18 +84,35 @@ class PipelineResult:
 
 
 def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False,
-                on_progress: Callable[[str], None] | None = None) -> PipelineResult:
-    """Run every stage for every scene and sequence of ``session`` (see the module docstring)."""
+                on_progress: Callable[[str], None] | None = None, workers: int = 0) -> PipelineResult:
+    """Run every stage for every scene and sequence of ``session`` (see the module docstring).
+
+    ``workers``: stages run at once, each in a worker process (:mod:`embodmocap.schedule`); 0 = the
+    usable cores, at most 2; 1 = one after the other in this process (the outputs are the same).
+    """
     from embodmocap.calibrate import stage as stage3
     from embodmocap.motion import stage as stage4
     from embodmocap.scene import stage as stage1
     from embodmocap.sequence import stage as stage2
+    from embodmocap.schedule import default_workers, plan_jobs, run_jobs
 
     lay = SessionLayout(Path(session))
     manifest = load_manifest(lay.manifest)
     motion_cfg = motion_on_device(cfg.motion, cfg.device)
     say = on_progress or log.info
     runs: list[StageRun] = []
+    workers = workers if workers > 0 else default_workers()
+    if workers > 1:
+        todo = []
+        for name, entry in manifest.sequences.items():
+            if entry.failed and not cfg.include_failed:
+                say(f"sequence {name}: marked failed in the manifest; skipped")
+                runs.append(StageRun(f"sequence {name}", "all", "skipped", 0.0, "marked failed in the manifest"))
+            else:
+                todo.append((name, entry.scene))
+        run_jobs(replace(cfg, motion=motion_cfg, device=None), lay.root, plan_jobs(manifest.scenes, todo), workers,
+                 force, say, lambda *r: runs.append(StageRun(*r)))
+        return PipelineResult(lay.root, tuple(runs))
     map_large_blocks()  # one process runs every stage: keep its heap from holding a stage's peak (embodmocap.memory)
 
     def attempt(target: str, stage: str, fn: Callable[[], object]) -> bool:
@@ -105,8 +126,7 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
             if interrupted(err):  # Ctrl-C cut an import short: stop the whole run, as Ctrl-C does
                 raise
             seconds = time.perf_counter() - t0
-            msg = (str(err) if isinstance(err, EmbodMocapError) else os_error_line(err) if isinstance(err, OSError)
-                   else f"{type(err).__name__}: {err}")
+            msg = failure_message(err)
             log.debug("%s %s failed:\n%s", target, stage, traceback.format_exc())
             say(f"{target}: {stage} FAILED after {seconds:.0f} s: {msg}")
             runs.append(StageRun(target, stage, "failed", round(seconds, 2), msg))

@@ -32,19 +32,7 @@ def _worker_main(conn: Connection) -> None:
     from embodmocap import errors
     from embodmocap.batch.task import run_task
 
-    errors.watch_interrupts()
-    inner = signal.getsignal(signal.SIGINT)
-    fired = [False]
-
-    def once(signum, frame):  # the first Ctrl-C interrupts the task; the rest must not interrupt its clean-up
-        if not fired[0]:
-            fired[0] = True
-            if callable(inner):
-                inner(signum, frame)
-            else:
-                raise KeyboardInterrupt
-
-    signal.signal(signal.SIGINT, once)
+    errors.interrupt_once()  # the first Ctrl-C interrupts the task; the rest must not interrupt its clean-up
     while True:
         try:
             msg = conn.recv()

@@ -54,7 +54,7 @@ from embodmocap.io.stage_files import (
     SYNC_RECORD_VERSION, read_calibration, read_cameras, read_keypoints2d, read_registration, read_sync, sequence_fps,
     write_calibration, write_cameras, write_registration, write_sync,
 )
-from embodmocap.io.stage_manifest import StageManifest, Upstream, tracked_stage
+from embodmocap.io.stage_manifest import StageManifest, Upstream, require_step, tracked_stage
 
 log = logging.getLogger(__name__)
 
@@ -70,23 +70,34 @@ class CalibrateOutputs:
 
 
 @tracked_stage
-def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, force: bool = False) -> CalibrateOutputs:
-    """Run Stage III for sequence ``seq`` (the only one when None)."""
+def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, force: bool = False,
+        only_register: bool = False) -> CalibrateOutputs | None:
+    """Run Stage III for sequence ``seq`` (the only one when None).
+
+    ``only_register``: step 1 only, for ``embodmocap run`` on several cores (:mod:`embodmocap.schedule`),
+    which starts it while Stage I still fuses the mesh: of Stage I it needs only the finished
+    ``sfm`` step; a view that must be placed through the performer (which needs the mesh) is left
+    to the whole stage. The manifest then ends ``partial`` and nothing is returned.
+    """
     lay = SessionLayout(Path(session))
     entry = load_manifest(lay.manifest).sequence(seq)
     scene = lay.scene(entry.scene)
     out = lay.sequence(entry.name)
     names = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
-    if not scene.sfm_model.is_dir() or not scene.mesh_raw.is_file():
+    scene_up = Upstream(scene.manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}")
+    if only_register:
+        require_step(scene_up, "sfm")
+    if not scene.sfm_model.is_dir() or not (only_register or scene.mesh_raw.is_file()):
         raise InputError(scene.root, "Stage I outputs are missing", f"run `embodmocap scene {lay.root} --scene {entry.scene}` first")
     for v in names:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
             raise InputError(out.view(v).root, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
     sm = StageManifest(out.calibrate_manifest, "calibrate", cfg, root=lay.root, upstream=[
-        Upstream(scene.manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}"),
+        *([] if only_register else [scene_up]),
         Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")],
         inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in names
                                                   for k in ("cameras", "keypoints", "masks", "depth")]])
+    sm.partial = only_register
     label = f"sequence {entry.name}"
     upstream = {"scenes/<scene>/sfm/sparse": scene.sfm_model, "scenes/<scene>/mesh_raw.ply": scene.mesh_raw,
                 "<view>/cameras.npz": {v: out.view(v).cameras for v in names}}
@@ -106,8 +117,13 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
     for v in names:
         vl = out.view(v)
-        fp_reg[v] = STEPS.fingerprint("register", cfg, reads={**upstream, "<view>/masks.npy": vl.masks if vl.masks.is_file()
-                                                              else None})
+        # A registration reads no mesh; a view placed through the performer did (its check on the
+        # mesh), so its record holds the fingerprint with the mesh, which a rerun recognises.
+        reg_reads = {**upstream, "<view>/masks.npy": vl.masks if vl.masks.is_file() else None}
+        fp_reg[v] = STEPS.fingerprint("register", cfg, reads={**reg_reads, "scenes/<scene>/mesh_raw.ply": None})
+        fp_placed = STEPS.fingerprint("register", cfg, reads=reg_reads) if scene.mesh_raw.is_file() else None
+        if fp_placed is not None and not force and sm.is_current(f"register_{v}", fp_placed):
+            fp_reg[v] = fp_placed
         with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
             if step.run:
                 # One index per scene, cached next to the scene's outputs and reused by every sequence.
@@ -118,10 +134,14 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                     if not cfg.place_by_performer:
                         raise rv.disagreement
                     pending[v] = (rv, step.postpone())
+                    if not only_register:
+                        step.fp = fp_reg[v] = fp_placed  # recorded below, once the mesh has checked the placement
                     continue
                 write_registration(vl.registration, solve.registration_file(rv.reg, rv.check, rv.off_chain))
                 step.record([vl.registration], solve.register_figures(v, rv))
         regs[v] = _load_registration(vl.registration)
+    if only_register:
+        return None
     slicing = _sync_record(out, entry.name)["slicing"]["source"]
     for v, (rv, step) in pending.items():
         # raises the view's error when the performer does not place it either

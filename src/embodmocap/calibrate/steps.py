@@ -15,6 +15,8 @@ STEPS = StageSteps("calibrate", CalibrateConfig, (
     # The registration's own VIO check uses the yaw offset's settings, and a view placed through
     # the performer uses the cross-view track and the mesh sampled for the Chamfer term: those
     # settings are the registration's, and the refinement, which comes after it, sees them too.
+    # A registration reads the sparse model, not the mesh (so `embodmocap run` can start it while
+    # Stage I fuses the mesh): the mesh is a read of a view placed through the performer only.
     Step("register", reads=(*_UPSTREAM, "<view>/masks.npy"), version=REGISTER_VERSION,
          settings=("register", "offset", "vio_max_disagreement_m", "vio_max_disagreement_deg", "retry_below_fraction",
                    "retry_candidates_factor", "min_registered_fraction", "min_consistent_fraction",

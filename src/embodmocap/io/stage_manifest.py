@@ -155,6 +155,10 @@ def _abspath(p: str | Path) -> str:
     return os.path.abspath(p)
 
 
+#: Called with (stage, step) each time a step is recorded or found up to date, in the process that
+#: runs it: ``embodmocap run``'s workers tell the scheduler so (:mod:`embodmocap.schedule`).
+STEP_LISTENERS: list[Callable[[str, str], None]] = []
+
 # The manifests opened by the stage call in progress (see :func:`tracked_stage`).
 _ACTIVE: contextvars.ContextVar[list | None] = contextvars.ContextVar("embodmocap_stage_manifests", default=None)
 
@@ -192,6 +196,9 @@ class StageManifest:
         self.inputs = [Path(p) for p in inputs if p is not None]
         #: Steps found up to date by :meth:`step` in this run, in order.
         self.skipped: list[str] = []
+        #: This run does only some of the stage's steps by design (e.g. Stage III's registration
+        #: while Stage I is unfinished): it ends ``partial``, which no downstream stage accepts.
+        self.partial = False
         self.data: dict[str, Any] = {
             "version": MANIFEST_VERSION, "stage": stage, "package_version": __version__,
             "config": json.loads(json.dumps(config, default=_plain)), "status": "running",
@@ -271,13 +278,17 @@ class StageManifest:
         return StepRun(self, name, fp, force, label or self.stage)
 
     def finish(self, status: str, error: BaseException | str | None = None) -> None:
-        """Record how the stage's run ended: ``ok`` (with its inputs' fingerprints), ``failed`` or
-        ``interrupted`` (with the error's first line)."""
+        """Record how the stage's run ended: ``ok`` (with its inputs' fingerprints), ``partial`` (the
+        steps it was asked for done, see :attr:`partial`), ``failed`` or ``interrupted`` (with the
+        error's first line)."""
         self.data["status"] = status
         self.data["ended"] = time.strftime("%Y-%m-%dT%H:%M:%S")
         if status == "ok":
             self.data.pop("error", None)
             self.data["inputs"] = {self._store(p): fingerprint(path_fingerprint(p)) for p in self.inputs}
+        elif status == "partial":
+            self.data.pop("error", None)
+            self.data["inputs"] = {}
         else:
             msg = str(error) if error is not None else ""
             self.data["error"] = (msg.splitlines() or [type(error).__name__ if error else ""])[0][:300]
@@ -307,6 +318,7 @@ class StepRun:
         self.manifest.record(self.name, self.fp, outputs, seconds, figures)
         self.recorded = True
         log.info("%s: %s done in %.1f s%s", self.label, self.name, seconds, _brief(figures))
+        _tell_listeners(self.manifest.stage, self.name)
 
     def postpone(self) -> "StepRun":
         """Leave the ``with`` without recording: the step is finished later (its outputs depend on
@@ -318,9 +330,16 @@ class StepRun:
     def __exit__(self, exc_type, exc, tb) -> bool:
         if not self.run:
             self.manifest.skipped.append(self.name)
+            if exc_type is None:
+                _tell_listeners(self.manifest.stage, self.name)
         elif exc_type is None and not self.recorded and not self.postponed:
             raise RuntimeError(f"step {self.name} of {self.manifest.stage} ran but recorded nothing")
         return False
+
+
+def _tell_listeners(stage: str, step: str) -> None:
+    for fn in STEP_LISTENERS:
+        fn(stage, step)
 
 
 def _brief(figures: dict[str, Any] | None, limit: int = 6) -> str:
@@ -409,10 +428,24 @@ def tracked_stage(fn: F) -> F:
         finally:
             _ACTIVE.reset(token)
         for sm in opened:
-            sm.finish("ok")
+            sm.finish("partial" if sm.partial else "ok")
         return result
 
     return wrapper  # type: ignore[return-value]
+
+
+def require_step(up: Upstream, step: str) -> None:
+    """Refuse to go on unless ``step`` of the upstream stage is recorded with its outputs as written
+    (the stage itself may still be running: the caller knows that step was done in this run, as
+    ``embodmocap run``'s scheduler does). Raises :class:`InputError` naming the manifest."""
+    path = Path(up.manifest)
+    try:
+        rec = (json.loads(path.read_text()).get("steps") or {}).get(step)
+    except (OSError, ValueError, AttributeError, RecursionError):
+        rec = None
+    bad = _changed_outputs(path, rec) if isinstance(rec, dict) else [f"its {step} step is not done"]
+    if bad:
+        raise InputError(path, f"the {up.stage} stage: {bad[0]}", f"run `{up.command}` first")
 
 
 def require_sequence_stages(lay: Any, entry: Any) -> None:
