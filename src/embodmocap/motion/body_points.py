@@ -25,7 +25,7 @@ def body_keypoints(model, params: SmplParams, layout: str = "COCO17") -> tuple[N
     from embodmocap.motion.smplify import KeypointBody
 
     body = KeypointBody(model, torch.float64, "cpu", layout)
-    t = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64))  # noqa: E731
+    t = lambda x: torch.from_numpy(np.array(x, dtype=np.float64))  # noqa: E731  (a copy: inputs may be read-only memory maps)
     with torch.no_grad():
         if not body.has_face or len(params) == 0:
             from embodmocap.body.joints import smpl_to_coco17
