@@ -183,12 +183,14 @@ class SmplifyConfig:
     setting. One by default: the fit's tensors are small (a step is hundreds of ops on a few
     thousand numbers), so a second thread buys little on a quiet machine and, on a loaded one,
     its synchronisation at every op multiplied the fit's CPU time by up to 15 (issue 30)."""
-    workers: int = 2
+    workers: int = 1
     """Processes that fit the windows of a long sequence (more than ``window_frames``), each its
     share of the windows as one batch with ``threads`` torch threads (forked from this one; on a
-    platform that cannot fork, or on a CUDA device, the fit stays in this process). Two by
-    default: Stage IV runs alone at the end of ``embodmocap run``, so the second core is free.
-    The answer does not depend on it (the windows are independent). 1 = this process only."""
+    platform that cannot fork, or on a CUDA device, the fit stays in this process). The answer
+    does not depend on it (the windows are independent). One by default (this process only):
+    a fork copies the locks of every thread the process holds, and a forked worker deadlocked in
+    the test suite on a PyAV decoder's slice-thread lock left by an earlier video read (session
+    10). Set 2 in a process that has read no video (e.g. ``embodmocap motion`` alone)."""
 
 
 @dataclass(frozen=True)
