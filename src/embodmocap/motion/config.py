@@ -50,17 +50,20 @@ class SmplifyConfig:
     """Weight of the joint velocity term (per m^2 of frame-to-frame joint displacement). Off by
     default: it biases every real movement towards standing still; acceleration smooths without
     that bias."""
-    w_joint_acc: float = 45.0
-    """Weight of the joint acceleration term (per m^2 of second difference per frame^2). 30 -> 45
-    with ``w_orient_acc`` 10 (issue 29): the fitted joints carried the detector's frame-to-frame
-    jitter (a Gaussian filter of one frame on the output lowered WA-MPJPE by 2 mm on all ten hard
-    studio seeds); see ``w_orient_acc`` for the figures."""
+    w_joint_acc: float = 30.0
+    """Weight of the joint acceleration term (per m^2 of second difference per frame^2). 45 with
+    ``w_orient_acc`` 10 lowered WA/PA by about 1 mm on the ten hard studio seeds but made a plain
+    noisy-keypoint fit (tests/test_motion_ik.py, 150 phase-2 steps) 66 % worse: kept at 30
+    (see ``w_orient_acc``)."""
     w_transl_vel: float = 0.0
     """Weight of the translation velocity term (per m^2)."""
     w_transl_acc: float = 30.0
     """Weight of the translation acceleration term (per m^2)."""
-    w_orient_acc: float = 10.0
-    """Weight of the torso orientation term (per rad^2 of angular acceleration per frame^2 of the
+    w_orient_acc: float = 0.0
+    """Off by default (session 10): with 10 (and ``w_joint_acc`` 45) a fit of 4 s of scripted motion
+    from keypoints with 2.5 cm noise and 3 % outliers (tests/test_motion_ik.py, 150 phase-2 steps)
+    ended 32.1 mm from the truth against 19.3 mm with both off (the smoothing slows convergence).
+    Weight of the torso orientation term (per rad^2 of angular acceleration per frame^2 of the
     torso frame of the hips, shoulders, pelvis and neck, :mod:`embodmocap.motion.orientation`):
     the heading the hip and shoulder keypoints give wobbles by several degrees from frame to frame
     with their jitter, which the joint acceleration term (weighing a turn by the squared lever of
