@@ -120,3 +120,22 @@ def run_cli_tree(*args: str, src: str | None = None, every_s: float = 0.2) -> di
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return {"wall_s": wall, "cpu_s": cpu, "peak_mb": int(out.strip().splitlines()[-1]) // 1024,
             "tree_rss_mb": peak["rss"] // 1024, "tree_pss_mb": peak["pss"] // 1024, "processes": peak["n"]}
+
+
+def sequence_figures(session, names) -> dict[str, float]:
+    """The numeric figures of the first sequence in ``session/evaluation.json`` whose last key part
+    is in ``names`` (nested keys joined with dots)."""
+    import json
+    from pathlib import Path
+
+    ev = json.loads((Path(session) / "evaluation.json").read_text())
+    flat: dict[str, float] = {}
+
+    def walk(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                flat[f"{prefix}{k}"] = v
+    walk(next(iter(ev["sequences"].values())))
+    return {k: v for k, v in flat.items() if k.split(".")[-1] in names}

@@ -44,7 +44,7 @@ import os
 import shutil
 from pathlib import Path
 
-from _child import run_cli_tree, run_cli_usage
+from _child import run_cli_tree, run_cli_usage, sequence_figures
 
 STAGES = (("scene", "scenes/scene0/manifest.json"), ("sequence", "sequences/seq0/manifest.json"),
           ("calibrate", "sequences/seq0/calibrate_manifest.json"), ("motion", "sequences/seq0/motion_manifest.json"),
@@ -65,18 +65,7 @@ def _steps(session: Path, manifest: str | None) -> dict[str, float]:
 
 
 def _accuracy(session: Path) -> dict[str, float]:
-    ev = json.loads((session / "evaluation.json").read_text())
-    seq = next(iter(ev["sequences"].values()))
-    flat: dict[str, float] = {}
-
-    def walk(d, prefix=""):
-        for k, v in d.items():
-            if isinstance(v, dict):
-                walk(v, f"{prefix}{k}.")
-            elif isinstance(v, (int, float)) and not isinstance(v, bool):
-                flat[f"{prefix}{k}"] = v
-    walk(seq)
-    return {k: v for k, v in flat.items() if k.split(".")[-1] in ACCURACY}
+    return sequence_figures(session, ACCURACY)
 
 
 def _scene_accuracy(codes) -> None:

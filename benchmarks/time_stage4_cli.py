@@ -19,7 +19,7 @@ import os
 import subprocess
 from pathlib import Path
 
-from _child import run_cli_usage
+from _child import run_cli_usage, sequence_figures
 
 FIGURES = ("w_mpjpe_mm", "wa_mpjpe_mm", "pa_mpjpe_mm", "w_mpjpe_mm_c100", "rte_pct")
 
@@ -54,16 +54,7 @@ def main() -> None:
     if args.evaluate:
         for c in codes:
             run_cli_usage("evaluate", str(sess[c]), src=codes[c])
-            seq = next(iter(json.loads((sess[c] / "evaluation.json").read_text())["sequences"].values()))
-            flat = {}
-
-            def walk(d, prefix=""):
-                for k, v in d.items():
-                    if isinstance(v, dict):
-                        walk(v, f"{prefix}{k}.")
-                    elif isinstance(v, (int, float)) and not isinstance(v, bool):
-                        flat[f"{prefix}{k}"] = v
-            walk(seq)
+            flat = sequence_figures(sess[c], FIGURES)
             print(c, {k: round(v, 3) for k, v in flat.items() if k.split(".")[-1] in FIGURES}, flush=True)
 
 
