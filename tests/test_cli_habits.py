@@ -69,19 +69,19 @@ def test_config_file_fills_settings_and_the_command_line_wins(tmp_path):
 
 def test_config_file_maps_onto_stage_settings(tmp_path):
     settings = tmp_path / "settings.toml"
-    settings.write_text("include_failed = true\n[scene]\nvoxel_m_indoor = 0.02\n"
+    settings.write_text("include_failed = true\n[scene]\nvoxel_m_indoor = 0.03\n"
                         "[motion.smplify]\nphase1_iterations = 7\n[calibrate]\n")
     run = _parse(["run", "S"], settings)
-    assert run.config.scene.voxel_m_indoor == 0.02 and run.config.include_failed
+    assert run.config.scene.voxel_m_indoor == 0.03 and run.config.include_failed
     assert run.config.motion.smplify.phase1_iterations == 7
     assert run.session == Path("S")
     wins = _parse(["run", "S", "--scene.voxel-m-indoor", "0.05"], settings)
     assert wins.config.scene.voxel_m_indoor == 0.05 and wins.config.motion.smplify.phase1_iterations == 7
     # The same file serves the stage commands: each reads its own table.
-    assert _parse(["scene", "S"], settings).config.voxel_m_indoor == 0.02
+    assert _parse(["scene", "S"], settings).config.voxel_m_indoor == 0.03
     assert _parse(["motion", "S"], settings).config.smplify.phase1_iterations == 7
     # The defaults are untouched without a file.
-    assert _parse(["run", "S"], None).config.scene.voxel_m_indoor != 0.02
+    assert _parse(["run", "S"], None).config.scene.voxel_m_indoor != 0.03
 
 
 def test_example_settings_file_is_valid_for_run_and_every_stage():
