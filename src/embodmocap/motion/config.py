@@ -186,14 +186,15 @@ class SmplifyConfig:
     setting. One by default: the fit's tensors are small (a step is hundreds of ops on a few
     thousand numbers), so a second thread buys little on a quiet machine and, on a loaded one,
     its synchronisation at every op multiplied the fit's CPU time by up to 15 (issue 30)."""
-    workers: int = 1
-    """Processes that fit the windows of a long sequence (more than ``window_frames``), each its
-    share of the windows as one batch with ``threads`` torch threads (forked from this one; on a
-    platform that cannot fork, or on a CUDA device, the fit stays in this process). The answer
-    does not depend on it (the windows are independent). One by default (this process only):
-    a fork copies the locks of every thread the process holds, and a forked worker deadlocked in
-    the test suite on a PyAV decoder's slice-thread lock left by an earlier video read (session
-    10). Set 2 in a process that has read no video (e.g. ``embodmocap motion`` alone)."""
+    workers: int = 2
+    """Processes that fit the windows of a long sequence (more than ``window_frames``), this one
+    included, each its share of the windows as one batch with ``threads`` torch threads; 1 = this
+    process only (always so on a CUDA device). The others are fresh Python interpreters started
+    when the shape fit begins (:mod:`embodmocap.motion.fit_workers`), never forks of this one
+    (session 10's forked workers deadlocked on a PyAV slice-thread lock an earlier video read had
+    left). The answer does not depend on it (the windows are independent: bit-identical). Two by
+    default: Stage IV runs alone at the end of ``embodmocap run``, so the second core is free; a
+    worker costs about 2 CPU s of imports, hidden behind the shape fit."""
 
 
 @dataclass(frozen=True)
