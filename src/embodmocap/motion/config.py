@@ -189,7 +189,7 @@ class SmplifyConfig:
     workers: int = 2
     """Processes that fit the windows of a long sequence (more than ``window_frames``), this one
     included, each its share of the windows as one batch with ``threads`` torch threads; 1 = this
-    process only (always so on a CUDA device). The others are fresh Python interpreters started
+    process only (always so on a CUDA device); never more than the usable cores. The others are fresh Python interpreters started
     when the shape fit begins (:mod:`embodmocap.motion.fit_workers`), never forks of this one
     (session 10's forked workers deadlocked on a PyAV slice-thread lock an earlier video read had
     left). The answer does not depend on it (the windows are independent: bit-identical). Two by

@@ -62,6 +62,7 @@ from embodmocap.motion.fit_workers import run_pieces, start_workers
 from embodmocap.motion.floor import floor_term
 from embodmocap.motion.orientation import torso_acc_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
+from embodmocap.parallel import usable_cores
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
@@ -503,7 +504,8 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
     # The other processes start now and import the fit while this one fits the shape (fit_workers:
     # fresh interpreters, never forks). Contiguous groups of windows, one batch per process: the same
     # answer whatever the number of processes, the windows being independent.
-    n_proc = max(min(cfg.workers if start.go.device.type == "cpu" else 1, len(ranges)), 1)
+    # At most one process per usable core: on one core a second process only adds its imports.
+    n_proc = max(min(cfg.workers if start.go.device.type == "cpu" else 1, len(ranges), usable_cores()), 1)
     with start_workers(n_proc - 1, (__name__,), cfg.threads) as pool:
         sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
         sub = torch.as_tensor(sub, device=start.go.device)
