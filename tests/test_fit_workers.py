@@ -45,6 +45,8 @@ def test_pieces_run_in_other_processes_and_a_failure_is_reported():
         assert run_pieces(os.getpid, [(), (), ()], pool).count(os.getpid()) == 2
     with pytest.raises(RuntimeError, match="no such window"):
         run_pieces(int, [("1",), ("no such window",)], workers=2)
+    with pytest.raises(RuntimeError, match="without a result"):  # a worker that dies mid-job
+        run_pieces(eval, [("1",), ("__import__('os')._exit(3)",)], workers=2)
 
 
 def test_a_worker_is_a_fresh_interpreter_not_a_fork():

@@ -62,9 +62,8 @@ class Workers:
             if p.poll() is None:
                 p.kill()
             p.wait()
-            for f in (p.stdin, p.stderr):
-                if f is not None:
-                    f.close()
+            if p.stdin is not None:
+                p.stdin.close()
         self.procs = []
         self.folder.cleanup()
 
@@ -85,9 +84,11 @@ def start_workers(n: int, preload: Sequence[str] = (), threads: int = 1) -> Work
     folder = tempfile.TemporaryDirectory(prefix="embodmocap-fit-")
     procs = []
     try:
-        for _ in range(max(int(n), 0)):
-            procs.append(subprocess.Popen([sys.executable, "-c", _BOOT, *preload], stdin=subprocess.PIPE,
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, close_fds=True))
+        for k in range(max(int(n), 0)):
+            # stderr to a file, not a pipe: a worker that warns a lot must not block on a full pipe.
+            with open(os.path.join(folder.name, f"worker{k}.err"), "wb") as err:
+                procs.append(subprocess.Popen([sys.executable, "-c", _BOOT, *preload], stdin=subprocess.PIPE,
+                                              stdout=subprocess.DEVNULL, stderr=err, env=env, close_fds=True))
     except BaseException:
         Workers(procs, folder).close()
         raise
@@ -127,10 +128,11 @@ def run_pieces(fn: Callable[..., Any], args: Sequence[tuple], workers: int | Wor
         out: list = [None] * len(args)
         for i in here:
             out[i] = fn(*args[i])
-        for i, p, dst in sent:
-            err = p.stderr.read().decode(errors="replace")
+        for k, (i, p, dst) in enumerate(sent):
             status = p.wait()
             if not os.path.exists(dst):
+                with open(os.path.join(pool.folder.name, f"worker{k}.err"), "rb") as f:
+                    err = f.read().decode(errors="replace")
                 raise RuntimeError(f"Stage IV fit worker {i} ended without a result (exit status {status}: "
                                    f"killed, or out of memory?){': ' + err[-2000:] if err else ''}")
             with open(dst, "rb") as f:
