@@ -33,8 +33,8 @@ must be shared, so with more than one window they are fitted first by both phase
 are not consecutive), then held fixed while each window runs both phases. Window results are
 blended linearly across overlaps (translations linearly, rotations by normalised quaternion
 blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
-The windows are fitted in ``cfg.workers`` contiguous batches, each by its own forked process
-(:mod:`embodmocap.motion.fit_workers`; the same answer as one process).
+The windows are fitted in ``cfg.workers`` contiguous batches, this process's and one per worker process (fresh
+interpreters, never forks: :mod:`embodmocap.motion.fit_workers`; the same answer as one process).
 
 Threads: the fit sets ``torch.set_num_threads(cfg.threads)`` while it runs and restores the
 previous count after (process-global: fits run in parallel threads of one process should share
