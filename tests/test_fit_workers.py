@@ -1,5 +1,6 @@
-"""Stage IV's windows fitted by two forked worker processes give exactly the answer of one
-process, near the studio truth (issue 30); a failing worker is one clear error."""
+"""Stage IV's windows fitted by two worker processes give exactly the answer of one process, near
+the studio truth (issue 30); a worker is a fresh interpreter, not a fork; a failing worker is one
+clear error."""
 
 from __future__ import annotations
 
@@ -12,13 +13,10 @@ import pytest
 import torch
 
 from embodmocap.motion import smplify as S
-from embodmocap.motion.fit_workers import can_fork, run_pieces
+from embodmocap.motion.fit_workers import run_pieces, start_workers
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_smplify_batch import _noisy_problem  # noqa: E402
-
-pytestmark = pytest.mark.skipif(not can_fork(), reason="worker processes are forked")
-
 
 def test_two_worker_processes_fit_the_windows_as_one_process_does():
     body, _, coco, init, views, kp3d = _noisy_problem(4.0, 2)
@@ -38,32 +36,37 @@ def test_two_worker_processes_fit_the_windows_as_one_process_does():
     assert err < 0.04 and err < 0.5 * err0, (err, err0)
 
 
-def _pid() -> int:
-    return os.getpid()
-
-
-def _fail() -> None:
-    raise ValueError("no such window")
-
-
 def test_pieces_run_in_other_processes_and_a_failure_is_reported():
-    pids = run_pieces([_pid, _pid, _pid], workers=2)
-    assert pids[0] == os.getpid() and pids[1] != os.getpid() and pids[2] != os.getpid()
-    assert run_pieces([_pid, _pid], workers=1) == [os.getpid()] * 2
+    # Module-level functions travel by name: os.getpid and int (which fails on this text).
+    pids = run_pieces(os.getpid, [(), (), ()], workers=3)
+    assert pids[0] == os.getpid() and len({*pids}) == 3
+    assert run_pieces(os.getpid, [(), ()], workers=1) == [os.getpid()] * 2
+    with start_workers(1) as pool:  # fewer workers than pieces: the rest run here
+        assert run_pieces(os.getpid, [(), (), ()], pool).count(os.getpid()) == 2
     with pytest.raises(RuntimeError, match="no such window"):
-        run_pieces([_pid, _fail], workers=2)
+        run_pieces(int, [("1",), ("no such window",)], workers=2)
+    with pytest.raises(RuntimeError, match="without a result"):  # a worker that dies mid-job
+        run_pieces(eval, [("1",), ("__import__('os')._exit(3)",)], workers=2)
+
+
+def test_a_worker_is_a_fresh_interpreter_not_a_fork():
+    """Session 10's forked workers deadlocked on a PyAV slice-thread lock held by the parent: a
+    worker must not inherit this process's modules (their locks and threads) at all."""
+    pytest.importorskip("av")  # loaded here (with its threads' locks once it decodes), absent there
+    probe = "'av' in __import__('sys').modules"
+    assert run_pieces(eval, [(probe,), (probe,)], workers=2) == [True, False]
 
 
 def _pieces_in_a_daemon(conn) -> None:
-    conn.send((os.getpid(), run_pieces([_pid, _pid], workers=2)))
+    conn.send((os.getpid(), run_pieces(os.getpid, [(), ()], workers=2)))
 
 
-def test_pieces_fork_from_a_daemonic_process_like_a_run_worker():
+def test_pieces_run_from_a_daemonic_process_like_a_run_worker():
     """``embodmocap run --workers`` runs stages in daemonic processes, where ``multiprocessing``
-    refuses children: the workers are forked all the same."""
+    refuses children: the workers start all the same."""
     import multiprocessing as mp
 
-    ctx = mp.get_context("fork")
+    ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
     proc = ctx.Process(target=_pieces_in_a_daemon, args=(child,), daemon=True)
     proc.start()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import logging
+import os
 import threading
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,14 @@ def library_threads(n: int, apis: tuple[str, ...] = ("blas", "openmp")):
     for api in apis:
         stack.enter_context(threadpool_limits(int(n), user_api=api))
     return stack
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity; the machine's count where that is unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 def import_in_background(name: str) -> threading.Thread:

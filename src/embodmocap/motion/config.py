@@ -187,13 +187,18 @@ class SmplifyConfig:
     thousand numbers), so a second thread buys little on a quiet machine and, on a loaded one,
     its synchronisation at every op multiplied the fit's CPU time by up to 15 (issue 30)."""
     workers: int = 1
-    """Processes that fit the windows of a long sequence (more than ``window_frames``), each its
-    share of the windows as one batch with ``threads`` torch threads (forked from this one; on a
-    platform that cannot fork, or on a CUDA device, the fit stays in this process). The answer
-    does not depend on it (the windows are independent). One by default (this process only):
-    a fork copies the locks of every thread the process holds, and a forked worker deadlocked in
-    the test suite on a PyAV decoder's slice-thread lock left by an earlier video read (session
-    10). Set 2 in a process that has read no video (e.g. ``embodmocap motion`` alone)."""
+    """Processes that fit the windows of a long sequence (more than ``window_frames``), this one
+    included, each its share of the windows as one batch with ``threads`` torch threads; 1 = this
+    process only (always so on a CUDA device); never more than the usable cores. The others are
+    fresh Python interpreters started when the shape fit begins (:mod:`embodmocap.motion.fit_workers`),
+    never forks of this one (session 10's forked workers deadlocked on a PyAV slice-thread lock an
+    earlier video read had left). The answer does not depend on it (the windows are independent:
+    bit-identical). One by default (session 11): with 2, the fit's own process did 15 of its 28
+    CPU s on a 60 s studio problem (the rest beside it, in the worker), so on two otherwise idle cores the
+    windows' wall time nearly halves, but a worker costs about 20 % more CPU in all (its imports,
+    each batch's per-step overhead), and on the shared, loaded benchmark machine Stage IV's wall
+    time was not lower (the scheduler gives one session's processes one share). Set 2 where Stage IV
+    has the second core to itself (``embodmocap motion`` on a quiet machine)."""
 
 
 @dataclass(frozen=True)

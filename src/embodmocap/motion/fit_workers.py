@@ -1,103 +1,171 @@
-"""Independent pieces of Stage IV's fit in forked worker processes (issue 30).
+"""Independent pieces of Stage IV's fit in worker processes on the second core (issue 30).
 
 The windows of a long sequence are independent once the shape is fitted (each window's loss and
 Adam state are its own), and Stage IV runs alone at the end of ``embodmocap run``: a second
-process on the second core halves the wall time of the windows' fit. Workers are forked (``os.fork``:
-they inherit the model, the data and the settings; nothing is pickled on the way in; it works from
-``embodmocap run``'s own daemonic worker processes, where ``multiprocessing`` may not start
-children) and send back a pickle of numpy arrays through a pipe. A worker logs nothing (its parent's
-log handlers may write to a pipe of their own) and dies on Ctrl-C; the parent reaps every worker
-before it returns or raises. Where the platform cannot fork (Windows), or on a CUDA device (the
-caller's choice), the pieces run one after another in this process. The answer does
-not depend on the number of processes: a window's arithmetic is the same whether it is fitted
-alone or in a batch with others (``tests/test_fit_workers.py``).
+process on the second core cuts the wall time of the windows' fit.
+
+A worker is a fresh Python interpreter (``subprocess``: fork and exec at once, nothing of this
+process's state survives), never a fork of this one. A fork copies every lock of every thread the
+process holds in the state it had: session 10's forked workers deadlocked in the test suite on a
+PyAV decoder's slice-thread lock left by an earlier video read, and torch's OpenMP pool is not
+fork-safe either. It works from ``embodmocap run``'s daemonic stage processes (where
+``multiprocessing`` may not start children) and on every platform.
+
+A worker is started early (:func:`start_workers`: it imports torch and the fit while this process
+still fits the shape, so the import costs the idle core's time) and then waits for one job: a
+module-level function and its arguments, pickled to a file in a private temporary folder; the result
+(or the worker's traceback) comes back the same way. A worker logs nothing; the parent kills and
+reaps every worker before it returns or raises, and a worker whose parent died before sending a job
+leaves (end of file on its stdin). The answer does not depend on the number of processes: a
+window's arithmetic is the same whether it is fitted alone or in a batch with others
+(``tests/test_fit_workers.py``).
 """
 
 from __future__ import annotations
 
-import logging
+import importlib
 import os
 import pickle
-import signal
+import subprocess
 import sys
+import tempfile
 import traceback
-from typing import Callable, Sequence, TypeVar
+from pathlib import Path
+from typing import Any, Callable, Sequence
 
-R = TypeVar("R")
-
-
-def can_fork() -> bool:
-    """Whether worker processes can be forked here."""
-    return hasattr(os, "fork")
+#: Started in a fresh interpreter: import the modules named on the command line (the fit's, while
+#: the parent is busy), then serve one job whose file paths come on stdin.
+_BOOT = "from embodmocap.motion.fit_workers import _serve; _serve()"
 
 
-def run_pieces(pieces: Sequence[Callable[[], R]], workers: int) -> list[R]:
-    """``[piece() for piece in pieces]``, the first in this process and each other one in a forked
-    child when ``workers`` > 1 (at most ``workers`` processes at a time, this one included).
+class Workers:
+    """Worker processes started by :func:`start_workers`, each waiting for one job.
 
-    The pieces' results must be picklable (send numpy arrays, not tensors). A child that fails
-    raises :class:`RuntimeError` here with its traceback.
-    """
-    if workers <= 1 or len(pieces) <= 1 or not can_fork():
-        return [p() for p in pieces]
-    out: list = [None] * len(pieces)
-    todo = list(range(1, len(pieces)))
-    running: list[tuple[int, int, int]] = []  # (piece, pid, read end of its pipe)
+    Use as a context manager (or call :meth:`close`): workers that got no job, or whose job is
+    still running when the parent fails, are killed and reaped."""
 
-    def start(i: int) -> None:
-        sys.stdout.flush()
-        sys.stderr.flush()  # a child must not write the parent's buffered output again
-        r, w = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # the worker: compute, send, and leave without running the parent's exit code
-            code = 1
-            try:
-                os.close(r)
-                signal.signal(signal.SIGINT, signal.SIG_DFL)
-                logging.disable(logging.CRITICAL)
-                from embodmocap.progress import set_quiet
+    def __init__(self, procs: list[subprocess.Popen], folder: tempfile.TemporaryDirectory) -> None:
+        self.procs = procs
+        self.folder = folder
 
-                set_quiet(True)
-                try:
-                    result = (True, pieces[i]())
-                except BaseException:  # noqa: BLE001 (the parent raises it with the traceback)
-                    result = (False, traceback.format_exc())
-                with os.fdopen(w, "wb") as f:
-                    pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
-                code = 0
-            finally:
-                os._exit(code)
-        os.close(w)
-        running.append((i, pid, r))
+    def __len__(self) -> int:
+        return len(self.procs)
 
+    def __enter__(self) -> "Workers":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+            if p.stdin is not None:
+                p.stdin.close()
+        self.procs = []
+        self.folder.cleanup()
+
+
+def start_workers(n: int, preload: Sequence[str] = (), threads: int = 1) -> Workers:
+    """Start ``n`` worker processes (0 = none) that import the modules ``preload`` now and wait.
+
+    ``threads`` > 0: the workers' OpenMP / BLAS thread count (``OMP_NUM_THREADS``, ...) from the
+    start, so that they never spin up a pool of one thread per core."""
+    import embodmocap
+
+    env = dict(os.environ)
+    root = str(Path(embodmocap.__file__).resolve().parents[1])  # the folder that holds the package
+    env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    if threads > 0:
+        for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env[k] = str(threads)
+    folder = tempfile.TemporaryDirectory(prefix="embodmocap-fit-")
+    procs = []
     try:
-        while todo and len(running) < workers - 1:
-            start(todo.pop(0))
-        out[0] = pieces[0]()
-        while running:
-            i, pid, r = running[0]
-            with os.fdopen(r, "rb") as f:
-                data = f.read()
-            _, status = os.waitpid(pid, 0)
-            running.pop(0)
-            if not data:
+        for k in range(max(int(n), 0)):
+            # stderr to a file, not a pipe: a worker that warns a lot must not block on a full pipe.
+            with open(os.path.join(folder.name, f"worker{k}.err"), "wb") as err:
+                procs.append(subprocess.Popen([sys.executable, "-c", _BOOT, *preload], stdin=subprocess.PIPE,
+                                              stdout=subprocess.DEVNULL, stderr=err, env=env, close_fds=True))
+    except BaseException:
+        Workers(procs, folder).close()
+        raise
+    return Workers(procs, folder)
+
+
+def run_pieces(fn: Callable[..., Any], args: Sequence[tuple], workers: int | Workers) -> list:
+    """``[fn(*a) for a in args]``: the first in this process, the others in worker processes.
+
+    ``fn`` must be a module-level function (pickled by name) and ``args`` and the results
+    picklable. ``workers``: a number of processes in all, this one included (1 = all here; more
+    workers are started now and closed after), or :class:`Workers` started earlier (this function
+    closes them). At most one piece per worker: pieces beyond ``len(workers) + 1`` run here after
+    the first. A worker that fails raises :class:`RuntimeError` here with its traceback.
+    """
+    pool = workers if isinstance(workers, Workers) else None
+    if pool is None:
+        n = min(int(workers), len(args)) - 1
+        if n <= 0:
+            return [fn(*a) for a in args]
+        pool = start_workers(n)
+    with pool:
+        jobs = list(range(1, len(args)))[: len(pool)]
+        sent = []
+        for k, i in enumerate(jobs):
+            p = pool.procs[k]
+            src, dst = (os.path.join(pool.folder.name, f"{i}.{x}") for x in ("in", "out"))
+            with open(src, "wb") as f:
+                pickle.dump((fn, args[i]), f, protocol=pickle.HIGHEST_PROTOCOL)
+            try:
+                p.stdin.write(f"{src}\n{dst}\n".encode())
+                p.stdin.close()
+            except OSError:  # it died while importing: reported when its result is missing
+                pass
+            sent.append((i, p, dst))
+        here = [i for i in range(len(args)) if i not in jobs]
+        out: list = [None] * len(args)
+        for i in here:
+            out[i] = fn(*args[i])
+        for k, (i, p, dst) in enumerate(sent):
+            status = p.wait()
+            if not os.path.exists(dst):
+                with open(os.path.join(pool.folder.name, f"worker{k}.err"), "rb") as f:
+                    err = f.read().decode(errors="replace")
                 raise RuntimeError(f"Stage IV fit worker {i} ended without a result (exit status {status}: "
-                                   "killed, or out of memory?)")
-            ok, value = pickle.loads(data)
+                                   f"killed, or out of memory?){': ' + err[-2000:] if err else ''}")
+            with open(dst, "rb") as f:
+                ok, value = pickle.load(f)
             if not ok:
                 raise RuntimeError(f"Stage IV fit worker {i} failed:\n{value}")
             out[i] = value
-            if todo:
-                start(todo.pop(0))
-    finally:
-        for _, pid, r in running:  # this process failed or was interrupted: stop and reap the workers
-            try:
-                os.kill(pid, signal.SIGKILL)
-                os.waitpid(pid, 0)
-            except OSError:
-                pass
-            try:
-                os.close(r)
-            except OSError:
-                pass
     return out
+
+
+def _serve() -> None:
+    """A worker's life: preload, wait for a job's paths on stdin, run it, write the result."""
+    import logging
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the parent, which kills the workers
+    logging.disable(logging.CRITICAL)
+    from embodmocap.progress import set_quiet
+
+    set_quiet(True)
+    for name in sys.argv[1:]:
+        importlib.import_module(name)
+    lines = sys.stdin.read().split("\n")
+    if len(lines) < 2 or not lines[0]:
+        return  # the parent closed without a job
+    src, dst = lines[0], lines[1]
+    try:
+        with open(src, "rb") as f:
+            fn, args = pickle.load(f)
+        result = (True, fn(*args))
+    except BaseException:  # noqa: BLE001 (the parent raises it with the traceback)
+        result = (False, traceback.format_exc())
+    tmp = dst + ".part"
+    with open(tmp, "wb") as f:
+        pickle.dump(result, f, protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(tmp, dst)  # whole or absent: a killed worker leaves no half result

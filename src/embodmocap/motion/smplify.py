@@ -33,8 +33,8 @@ must be shared, so with more than one window they are fitted first by both phase
 are not consecutive), then held fixed while each window runs both phases. Window results are
 blended linearly across overlaps (translations linearly, rotations by normalised quaternion
 blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
-The windows are fitted in ``cfg.workers`` contiguous batches, each by its own forked process
-(:mod:`embodmocap.motion.fit_workers`; the same answer as one process).
+The windows are fitted in ``cfg.workers`` contiguous batches, this process's and one per worker process (fresh
+interpreters, never forks: :mod:`embodmocap.motion.fit_workers`; the same answer as one process).
 
 Threads: the fit sets ``torch.set_num_threads(cfg.threads)`` while it runs and restores the
 previous count after (process-global: fits run in parallel threads of one process should share
@@ -58,10 +58,11 @@ from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
-from embodmocap.motion.fit_workers import run_pieces
+from embodmocap.motion.fit_workers import run_pieces, start_workers
 from embodmocap.motion.floor import floor_term
 from embodmocap.motion.orientation import torso_acc_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
+from embodmocap.parallel import usable_cores
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
@@ -500,39 +501,51 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
     """
     T = ranges[-1][1]
     t0 = time.perf_counter()
-    sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
-    sub = torch.as_tensor(sub, device=start.go.device)
-    sub_init = _State(start.betas, start.go[sub], start.pose[sub], start.transl[sub])
-    shape = _fit_window(body, data.slice(sub), sub_init, cfg, names, free_betas=True, smooth=False,
-                        timing=timing, label="shape_")
-    timing["shape"] = time.perf_counter() - t0
-    # Keep the init's pelvis where it was when the betas change: transl pivots on J0(betas).
-    b0, b1 = start.betas.cpu().numpy(), shape.betas.cpu().numpy()
-    shift = torch.as_tensor(model.pelvis_offset(b0) - model.pelvis_offset(b1), dtype=start.transl.dtype,
-                            device=start.transl.device)
-    # All windows have the same length (window_ranges): fitted together, one batch, then blended.
-    idx = torch.as_tensor(np.stack([np.arange(s, e) for s, e in ranges]), device=start.go.device)  # (n, W)
-    transl0 = start.transl[idx] + shift
-    # Contiguous groups of windows, one batch per worker process (fit_workers: the same answer
-    # whatever the number of processes, the windows being independent).
-    workers = cfg.workers if start.go.device.type == "cpu" else 1
-    groups = np.array_split(np.arange(len(ranges)), max(min(workers, len(ranges)), 1))
-
-    def piece(g: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        if cfg.threads > 0:
-            torch.set_num_threads(cfg.threads)  # a forked worker: the parent's setting, to be sure
-        i = idx[torch.as_tensor(g, device=idx.device)]
-        w_init = _State(shape.betas, start.go[i], start.pose[i], transl0[g])
-        f = _fit_window(body, data.slice(i), w_init, cfg, names, free_betas=False, smooth=True, timing=timing,
-                        batched=True)
-        return tuple(x.cpu().numpy() for x in (f.go, f.pose, f.transl))
-
-    parts = run_pieces([lambda g=g: piece(g) for g in groups], workers)
-    go_w, pose_w, transl_w = (torch.as_tensor(np.concatenate(x)) for x in zip(*parts))
+    # The other processes start now and import the fit while this one fits the shape (fit_workers:
+    # fresh interpreters, never forks). Contiguous groups of windows, one batch per process: the same
+    # answer whatever the number of processes, the windows being independent.
+    # At most one process per usable core: on one core a second process only adds its imports.
+    n_proc = max(min(cfg.workers if start.go.device.type == "cpu" else 1, len(ranges), usable_cores()), 1)
+    with start_workers(n_proc - 1, (__name__,), cfg.threads) as pool:
+        sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
+        sub = torch.as_tensor(sub, device=start.go.device)
+        sub_init = _State(start.betas, start.go[sub], start.pose[sub], start.transl[sub])
+        shape = _fit_window(body, data.slice(sub), sub_init, cfg, names, free_betas=True, smooth=False,
+                            timing=timing, label="shape_")
+        timing["shape"] = time.perf_counter() - t0
+        # Keep the init's pelvis where it was when the betas change: transl pivots on J0(betas).
+        b0, b1 = start.betas.cpu().numpy(), shape.betas.cpu().numpy()
+        shift = torch.as_tensor(model.pelvis_offset(b0) - model.pelvis_offset(b1), dtype=start.transl.dtype,
+                                device=start.transl.device)
+        # All windows have the same length (window_ranges): fitted together, one batch per process, then blended.
+        idx = torch.as_tensor(np.stack([np.arange(s, e) for s, e in ranges]), device=start.go.device)  # (n, W)
+        transl0 = start.transl[idx] + shift
+        groups = np.array_split(np.arange(len(ranges)), n_proc)
+        jobs = []
+        for g in groups:
+            i = idx[torch.as_tensor(g, device=idx.device)]
+            jobs.append((body, data.slice(i), _State(shape.betas, start.go[i], start.pose[i], transl0[g]), cfg, names))
+        parts = run_pieces(_fit_group, jobs, pool)
+    for *_, t in parts:  # phase times summed over the windows of every process
+        for k, v in t.items():
+            timing[k] = timing.get(k, 0.0) + v
+    go_w, pose_w, transl_w = (torch.as_tensor(np.concatenate(x)) for x in list(zip(*parts))[:3])
     states = [_State(shape.betas, go_w[k], pose_w[k], transl_w[k]) for k in range(len(ranges))]
     log.debug("smplify: %d windows of %d frames fitted in %d batch(es)", len(ranges), idx.shape[1], len(groups))
     go, pose, transl = _blend(ranges, states, T, cfg.overlap_frames)
     return go, pose, transl, b1
+
+
+def _fit_group(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig,
+               names: list[str]) -> tuple[NDArray, NDArray, NDArray, dict[str, float]]:
+    """One process's batch of windows (betas fixed): fitted (n, W, 3) global_orient, (n, W, 69)
+    body_pose, (n, W, 3) transl as numpy, and the phase times (a worker's job: module level, so it
+    pickles by name)."""
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)  # a worker process: the parent's setting
+    timing: dict[str, float] = {}
+    f = _fit_window(body, d, init, cfg, names, free_betas=False, smooth=True, timing=timing, batched=True)
+    return tuple(x.cpu().numpy() for x in (f.go, f.pose, f.transl)) + (timing,)
 
 
 def fit_world_smpl(
