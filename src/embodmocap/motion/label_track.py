@@ -92,25 +92,28 @@ class LabelTrackConfig:
     partial_torso: bool = False
     """Off by default (session 10): with it on, hard outdoor studio seed 3 (its sub-frame sync from
     the new geometric estimate) had its legs exchanged over frames 33-48 and W-MPJPE c100 246 mm
-    instead of 37; on seed 1 it halves the first five frames' error. When on: a frame before the view's first whole torso (or after its last) that sees part of it (both
+    instead of 37 (session 11: every frame after a view's last whole torso was centred, see
+    ``partial_frames``); on seed 1 it halves the first five frames' error. When on: a frame before the view's first whole torso (or after its last) that sees part of it (both
     shoulders or both hips) is centred on them (with the offset to the whole torso's centre of the nearest frame
     that sees it all) instead of on the neighbours' centre: the trajectories of a person
     entering the view are measured against where their torso is
     (:func:`embodmocap.motion.temporal._partial_centres`). False: the centre interpolated, or held
     from the first whole torso."""
     free_after_gap: tuple[str, ...] = ("legs",)
-    """Groups (``"legs"``, ``"arms"``) whose labels, with two views, change state at no cost at the
-    frame just before a view's own trajectory comparisons resume after more than ``max_gap``
-    frames without any: nothing compares the frames on either side, so the state carried across
-    is not evidence (as at the sequence's start, ``fresh_start``). Inside the stretch a switch
-    costs what it did (single frames do not toggle on the views' agreement). Empty: the state is
-    carried across. Session 11 (random-phase studio sessions), hard outdoor seed 7: view 2's legs
-    exchanged by the detector in frames 154-158 and 163 (the chain undid them), one leg hidden in
-    159-164 (158 -> 165: 7 frames without a pair to compare), and the exchanged state carried into
-    the right labels of 165-179 (the sequence's end: 15 frames of ``flip_cost`` cost less than the
-    0.3 of a switch, the views' agreement a tie), the fitted feet 15-30 cm off; legs freed: its
-    W-MPJPE c100 33.0 -> 28.8, WA 23.7 -> 20.4 mm. Arms left out: freed too, indoor seed 4's WA
-    went 24.1 -> 25.8 mm (freed at every frame of a gap, outdoor seed 5 went 41.9 -> 337 mm)."""
+    """Groups (``"legs"``, ``"arms"``) whose labels, with two views, may go back from exchanged to
+    as given at no cost at the frame just before a view's own trajectory comparisons resume after
+    more than ``max_gap`` frames without any: nothing compares the frames on either side, so a
+    carried exchange is a guess (the detector is right most of the time; going the other way, to
+    exchanged, still costs a switch). Empty: the state is carried across. Session 11 (random-phase
+    studio sessions), hard outdoor seed 7: view 2's legs exchanged by the detector in frames
+    154-158 and 163 (the chain undid them), one leg hidden in 159-164 (158 -> 165: 7 frames without
+    a pair to compare), and the exchange carried into the right labels of 165-179 (the sequence's
+    end: 15 frames of ``flip_cost`` cost less than the 0.3 of a switch, the views' agreement a
+    tie), the fitted feet 15-30 cm off; with the legs freed W-MPJPE c100 33.0 -> 28.8, WA 23.7 ->
+    20.4 mm, the seven other seeds measured unchanged but seed 4 (W c100 68.4 -> 68.3, WA 24.09 ->
+    24.11 mm). Freeing both directions broke indoor seed 6 (view 1's legs, right in frames 47-48
+    after a whole-body miss, taken as exchanged: WA 28.2 -> 31.3 mm); freeing the arms too, seed
+    4's WA 24.1 -> 25.8 mm; freeing every frame of a gap, outdoor seed 5's W c100 41.9 -> 337 mm."""
     partial_frames: int | None = 8
     """With ``partial_torso``: only frames at most this many frames before the view's first whole
     torso (after its last) are centred on the part they see; None: every such frame (session 10's
