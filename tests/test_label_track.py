@@ -228,3 +228,22 @@ def test_a_confusion_is_not_carried_across_a_hidden_leg_into_correct_labels(walk
     # Carried across (free_after_gap empty), the last 13 frames take the exchanged state.
     _, old = track_labels(bad, LabelTrackConfig(free_after_gap=()), P=P)
     assert old[107:, 1, 1].all()
+
+
+def test_a_view_seeing_one_side_for_long_is_not_centred_on_the_last_whole_torso():
+    """Session 11 (hard outdoor studio seed 3, random phase): view 2 sees the whole torso in its
+    first 20 frames only, then the hips without the shoulders for 150 frames while the person
+    turns; centring all of them on the hips plus the last whole torso's offset (``partial_torso``
+    without ``partial_frames``) exchanged its correct arms at the start. With ``partial_frames``
+    only the frames near the whole torso are centred on the part they see."""
+    from embodmocap.motion.temporal import _torso_relative
+
+    kp = _entering(T=40, speed_px=5.0)
+    kp[20:, 0, [5, 6], 2] = 0.0  # the shoulders not seen after frame 19
+    held = _torso_relative(kp[:, 0], 0.3)
+    every = _torso_relative(kp[:, 0], 0.3, partial=True)
+    near = _torso_relative(kp[:, 0], 0.3, partial=True, partial_frames=8)
+    np.testing.assert_allclose(near[20:28], every[20:28])  # within 8 frames: centred on the hips
+    np.testing.assert_allclose(near[28:], held[28:])  # further: the held centre, as without
+    assert not np.allclose(every[28:], held[28:])
+    assert LabelTrackConfig().partial_frames == 8 and not LabelTrackConfig().partial_torso
