@@ -110,8 +110,8 @@ class LabelTrackConfig:
     a pair to compare), and the exchange carried into the right labels of 165-179 (the sequence's
     end: 15 frames of ``flip_cost`` cost less than the 0.3 of a switch, the views' agreement a
     tie), the fitted feet 15-30 cm off; with the legs freed W-MPJPE c100 33.0 -> 28.8, WA 23.7 ->
-    20.4 mm, the seven other seeds measured unchanged but seed 4 (W c100 68.4 -> 68.3, WA 24.09 ->
-    24.11 mm). Freeing both directions broke indoor seed 6 (view 1's legs, right in frames 47-48
+    20.4 mm; seeds 0-6 and 9 unchanged but seed 4 (its leg_sides pass relabels six more frames:
+    W c100 68.4 -> 68.3 in memory, 67.9 -> 68.1 in the stored output, WA +0.1 mm). Freeing both directions broke indoor seed 6 (view 1's legs, right in frames 47-48
     after a whole-body miss, taken as exchanged: WA 28.2 -> 31.3 mm); freeing the arms too, seed
     4's WA 24.1 -> 25.8 mm; freeing every frame of a gap, outdoor seed 5's W c100 41.9 -> 337 mm."""
     partial_frames: int | None = 8
@@ -268,7 +268,8 @@ def _viterbi(trans: NDArray, cfg: LabelTrackConfig) -> NDArray[np.bool_]:
 def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig, anat: NDArray | None = None,
                   free_after_gap: bool = False) -> NDArray[np.bool_]:
     """(T, 2) best path over both views' states (four joint states; ``anat`` (T, 4) their
-    anatomy costs, :func:`_disagreement`)."""
+    anatomy costs, :func:`_disagreement`; ``free_after_gap``: the group's exchange may be dropped
+    at no cost after a gap, :attr:`LabelTrackConfig.free_after_gap`)."""
     T = len(geo)
     S = [(0, 0), (1, 0), (0, 1), (1, 1)]
     geo_seen = np.abs(geo[:, 0] - geo[:, 1]) > 0
