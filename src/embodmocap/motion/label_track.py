@@ -92,12 +92,37 @@ class LabelTrackConfig:
     partial_torso: bool = False
     """Off by default (session 10): with it on, hard outdoor studio seed 3 (its sub-frame sync from
     the new geometric estimate) had its legs exchanged over frames 33-48 and W-MPJPE c100 246 mm
-    instead of 37; on seed 1 it halves the first five frames' error. When on: a frame before the view's first whole torso (or after its last) that sees part of it (both
+    instead of 37 (session 11: every frame after a view's last whole torso was centred, see
+    ``partial_frames``); on seed 1 it halves the first five frames' error. When on: a frame before the view's first whole torso (or after its last) that sees part of it (both
     shoulders or both hips) is centred on them (with the offset to the whole torso's centre of the nearest frame
     that sees it all) instead of on the neighbours' centre: the trajectories of a person
     entering the view are measured against where their torso is
     (:func:`embodmocap.motion.temporal._partial_centres`). False: the centre interpolated, or held
     from the first whole torso."""
+    free_after_gap: tuple[str, ...] = ("legs",)
+    """Groups (``"legs"``, ``"arms"``) whose labels, with two views, may go back from exchanged to
+    as given at no cost at the frame just before a view's own trajectory comparisons resume after
+    more than ``max_gap`` frames without any: nothing compares the frames on either side, so a
+    carried exchange is a guess (the detector is right most of the time; going the other way, to
+    exchanged, still costs a switch). Empty: the state is carried across. Session 11 (random-phase
+    studio sessions), hard outdoor seed 7: view 2's legs exchanged by the detector in frames
+    154-158 and 163 (the chain undid them), one leg hidden in 159-164 (158 -> 165: 7 frames without
+    a pair to compare), and the exchange carried into the right labels of 165-179 (the sequence's
+    end: 15 frames of ``flip_cost`` cost less than the 0.3 of a switch, the views' agreement a
+    tie), the fitted feet 15-30 cm off; with the legs freed W-MPJPE c100 33.0 -> 28.8, WA 23.7 ->
+    20.4 mm; seeds 0-6 and 9 unchanged but seed 4 (its leg_sides pass relabels six more frames:
+    W c100 68.4 -> 68.3 in memory, 67.9 -> 68.1 in the stored output, WA +0.1 mm). Freeing both directions broke indoor seed 6 (view 1's legs, right in frames 47-48
+    after a whole-body miss, taken as exchanged: WA 28.2 -> 31.3 mm); freeing the arms too, seed
+    4's WA 24.1 -> 25.8 mm; freeing every frame of a gap, outdoor seed 5's W c100 41.9 -> 337 mm."""
+    partial_frames: int | None = 8
+    """With ``partial_torso``: only frames at most this many frames before the view's first whole
+    torso (after its last) are centred on the part they see; None: every such frame (session 10's
+    rule). Session 11 (random-phase studio sessions): hard outdoor seed 3's view 2 sees the whole
+    torso in frames 1-19 only, and every later frame centred on frame 19's offset exchanged its
+    correct arms in frames 1-8 (W-MPJPE c100 32.1 -> 242.6 mm); with 8 (or 4) that seed is
+    unchanged by ``partial_torso``, whose effect on seed 1 (the person entering view 1 seven frames
+    before its first whole torso) stays: first five frames 28.3 -> 23.3 mm, WA 21.01 -> 20.88 mm,
+    but W-MPJPE c100 28.0 -> 29.8 mm (its anchor frames' right arm); so ``partial_torso`` stays off."""
     anatomy_cap_m: float = 0.2
     """The most a frame's wrong-side vote counts, metres (one wild triangulated point must not
     decide)."""
@@ -145,7 +170,7 @@ def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
     flipped = np.zeros((T, V, len(groups)), dtype=bool)
     if not cfg.enabled or T < 2:
         return kp, flipped
-    rels = [_torso_relative(kp[:, v], cfg.min_conf, cfg.partial_torso) for v in range(V)]
+    rels = [_torso_relative(kp[:, v], cfg.min_conf, cfg.partial_torso, cfg.partial_frames) for v in range(V)]
     for g, pairs in enumerate(groups.values()):
         # Per view: (T-1... key frames) transition costs [prev state, this state] between frames.
         trans = [_transitions(rels[v], kp[:, v, :, 2] >= cfg.min_conf, pairs, cfg) if rels[v] is not None
@@ -154,7 +179,7 @@ def track_labels(kp: NDArray, cfg: LabelTrackConfig = LabelTrackConfig(),
             geo, anat = _disagreement(P, kp, pairs, cfg, list(groups)[g])  # (T, 2), (T, 4)
             if extra and list(groups)[g] in extra:
                 anat = anat + extra[list(groups)[g]]
-            states = _viterbi_pair(trans, geo, cfg, anat)
+            states = _viterbi_pair(trans, geo, cfg, anat, list(groups)[g] in cfg.free_after_gap)
         else:
             states = np.stack([_viterbi(trans[v], cfg) for v in range(V)], -1)
         for v in range(V):
@@ -202,6 +227,18 @@ def _switch_cost(trans: NDArray, geo_seen: NDArray | None, cfg: LabelTrackConfig
     return cost
 
 
+def _after_gap(own: NDArray, max_gap: int) -> NDArray[np.bool_]:
+    """(T,) the frame just before a view's own comparisons (``own`` (T,) bool) resume, where they
+    resume more than ``max_gap`` frames after the last frame that had one: the state carried
+    across that stretch is not tied to anything the view's trajectories said
+    (:attr:`LabelTrackConfig.free_after_gap`). One frame only: inside the stretch a switch still
+    costs what it did, so single frames there do not toggle on the views' agreement alone."""
+    t = np.arange(len(own))
+    last = np.maximum.accumulate(np.where(own, t, -1))  # last own frame up to t
+    nxt = np.concatenate([own[1:], [False]])
+    return ~own & nxt & (last >= 0) & (t - last > max_gap)
+
+
 def _fresh(evidence: NDArray) -> NDArray[np.bool_]:
     """(T,) frames up to and including the first with ``evidence`` (T,) bool: a state chosen
     there changes nothing that was seen (:attr:`LabelTrackConfig.fresh_start`)."""
@@ -228,14 +265,23 @@ def _viterbi(trans: NDArray, cfg: LabelTrackConfig) -> NDArray[np.bool_]:
     return out
 
 
-def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig, anat: NDArray | None = None
-                  ) -> NDArray[np.bool_]:
+def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig, anat: NDArray | None = None,
+                  free_after_gap: bool = False) -> NDArray[np.bool_]:
     """(T, 2) best path over both views' states (four joint states; ``anat`` (T, 4) their
-    anatomy costs, :func:`_disagreement`)."""
+    anatomy costs, :func:`_disagreement`; ``free_after_gap``: the group's exchange may be dropped
+    at no cost after a gap, :attr:`LabelTrackConfig.free_after_gap`)."""
     T = len(geo)
     S = [(0, 0), (1, 0), (0, 1), (1, 1)]
     geo_seen = np.abs(geo[:, 0] - geo[:, 1]) > 0
     sw = [_switch_cost(trans[v], geo_seen, cfg) for v in range(2)]
+    # Back to the detector's labels at no cost where a view's comparisons resume after a gap
+    # (free_after_gap): only that direction, since the detector is right most of the time, a
+    # carried "as given" state is the likely one, a carried exchange a guess.
+    back_free = [_after_gap(np.abs(trans[v]).sum((1, 2)) > 0, cfg.max_gap) if free_after_gap
+                 else np.zeros(T, dtype=bool) for v in range(2)]
+
+    def change(v, t, p, s):
+        return 0.0 if p == s or (back_free[v][t] and p == 1 and s == 0) else sw[v][t]
 
     def node(t):
         a = np.zeros(4) if anat is None else anat[t]
@@ -244,7 +290,7 @@ def _viterbi_pair(trans: list[NDArray], geo: NDArray, cfg: LabelTrackConfig, ana
     acc = node(0)
     back = np.zeros((T, 4), dtype=np.int64)
     for t in range(1, T):
-        tr = np.array([[trans[0][t][p1, s1] + trans[1][t][p2, s2] + sw[0][t] * (p1 != s1) + sw[1][t] * (p2 != s2)
+        tr = np.array([[trans[0][t][p1, s1] + trans[1][t][p2, s2] + change(0, t, p1, s1) + change(1, t, p2, s2)
                         for (s1, s2) in S] for (p1, p2) in S])
         tot = acc[:, None] + tr
         back[t] = np.argmin(tot, axis=0)

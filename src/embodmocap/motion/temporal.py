@@ -108,11 +108,13 @@ def temporal_outliers(kp: NDArray, cfg: TemporalConfig = TemporalConfig()) -> ND
     return out
 
 
-def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDArray | None:
+def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False, partial_frames: int | None = None
+                    ) -> NDArray | None:
     """(T, J, 2) points minus the torso centre, over the torso's size (NaN where the centre is
     unknown); None when no frame has the whole torso. ``partial``: a frame before the first whole
     torso (after the last) that sees both shoulders or both hips takes its centre from them
-    (:func:`_partial_centres`) instead of holding the first (last) whole torso's."""
+    (:func:`_partial_centres`) instead of holding the first (last) whole torso's; with
+    ``partial_frames``, only within that many frames of it."""
     T = len(kp)
     torso = kp[:, list(TORSO)]
     full = (torso[..., 2] >= min_conf).all(-1)
@@ -136,11 +138,12 @@ def _torso_relative(kp: NDArray, min_conf: float, partial: bool = False) -> NDAr
     s = np.interp(t, t[full], _running_median(np.where(full, size, np.nan), 15)[full])
     s = np.maximum(s, 1.0)
     if partial:
-        c = _partial_centres(torso, full, c, min_conf)
+        c = _partial_centres(torso, full, c, min_conf, partial_frames)
     return (kp[..., :2] - c[:, None]) / s[:, None, None]
 
 
-def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float) -> NDArray:
+def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float, within: int | None = None
+                     ) -> NDArray:
     """(T, 2) ``c`` with each frame before the first whole torso or after the last that sees both
     shoulders or both hips (``torso`` (T, 4, 3): shoulders, hips) centred on them: their middle
     plus the offset from that middle to the centre in the nearest frame with the whole torso. Where a person enters the view, the centre held from the
@@ -159,6 +162,14 @@ def _partial_centres(torso: NDArray, full: NDArray, c: NDArray, min_conf: float)
     # left side only: centred on it, that view's correct legs were exchanged in nine frames).
     pairs = np.stack([seen[:, :2].all(-1), seen[:, 2:].all(-1)], -1)  # (T, 2): shoulders, hips
     part = outside & pairs.any(-1)
+    if within is not None:
+        # Near the whole torso only: the offset from a pair's middle to the torso centre is taken
+        # from the nearest whole torso, and holds while the person is entering or leaving, not
+        # over a long stretch in which the view sees one side (hard outdoor studio seed 3, random
+        # phase: view 2 sees the whole torso in frames 1-19 only; 150 frames centred on frame
+        # 19's offset exchanged its correct arm labels in frames 1-8).
+        t = np.arange(len(torso))
+        part &= (whole[0] - t <= within) & (t - whole[-1] <= within)
     if not part.any():
         return c
     out = c.copy()
