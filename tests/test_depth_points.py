@@ -13,8 +13,7 @@ from embodmocap.motion.depth_points import DepthPointsConfig, one_view_pairs, pl
 from test_free_space import K, _keypoints, body  # noqa: F401 - fixture
 from test_seen_surface import _scene
 
-CFG = DepthPointsConfig(min_conf=0.5)
-TRI_MIN_CONF = 0.3
+CFG = DepthPointsConfig(min_conf=0.5, other_max_conf=0.3)
 
 
 def _inputs(body, frames: int = 3):
@@ -36,10 +35,10 @@ def _inputs(body, frames: int = 3):
 
 def test_a_joint_only_one_view_sees_is_placed_at_its_depth_near_the_truth(body):
     kp3, points, conf, filled, kp2, Twc, views = _inputs(body)
-    who = one_view_pairs(kp2, TRI_MIN_CONF, CFG)
+    who = one_view_pairs(kp2, CFG)
     assert (who[:, [7, 9]] == 0).all()  # view 1 alone sees the left elbow and wrist
     assert (np.delete(who, [7, 9], axis=1) == -1).all()  # everything else both views see
-    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, TRI_MIN_CONF, CFG)
+    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, CFG)
     assert placed[:, [7, 9]].all() and placed.sum() == 2 * len(points)
     err = np.linalg.norm(p[:, [7, 9]] - kp3[[7, 9]], axis=-1)
     # Against 15 cm before: the surface view 1 measured, a limb's half thickness further on.
@@ -56,7 +55,7 @@ def test_no_masks_no_depth_or_off_leaves_the_points(body):
     Ks = np.stack([K, K])
     no_masks = [(d, s, None) for d, s, _ in views]
     for args in ((no_masks, CFG), ([None, None], CFG), (views, replace(CFG, min_conf=0.95))):
-        p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, Ks, Twc, args[0], TRI_MIN_CONF, args[1])
+        p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, Ks, Twc, args[0], args[1])
         assert not placed.any()
         assert np.array_equal(p, points) and np.array_equal(c, conf) and np.array_equal(f, filled)
 
@@ -65,6 +64,6 @@ def test_a_joint_hidden_from_the_seeing_views_depth_is_not_placed(body):
     """A detection off the person (the mask says background there) has no depth to read."""
     kp3, points, conf, filled, kp2, Twc, views = _inputs(body)
     kp2[:, 0, 9, :2] += [150.0, 0.0]  # view 1's left wrist detection 150 px off the body
-    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, TRI_MIN_CONF, CFG)
+    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, CFG)
     assert not placed[:, 9].any() and placed[:, 7].all()
     assert np.array_equal(p[:, 9], points[:, 9])

@@ -15,8 +15,9 @@ The view that sees the joint measured its depth: its depth map, on the person ma
 keypoint's pixel gives the body surface in front of the joint, and the joint centre lies a limb's
 half thickness further along the ray (as the one-phone path lifts every joint:
 :mod:`embodmocap.motion.lift`). Here only the (frame, joint) pairs that one view sees at
-``min_conf`` or more while no other view reaches the triangulation's threshold are lifted; a
-triangulated point (two views) is never replaced. The lifted point carries the view's confidence
+``min_conf`` or more while every other view's detection is below ``other_max_conf`` are lifted
+(by default the triangulation's threshold: a point triangulated from two views is not
+replaced). The lifted point carries the view's confidence
 times ``conf_scale``: it is measured along one ray only. The bone-length gate that follows
 (:mod:`embodmocap.motion.ik`) drops one that read an occluder or the background (a point away
 from its parent joint).
@@ -45,6 +46,11 @@ class DepthPointsConfig:
     """A limb joint that one view detects at this confidence or more, and no other view at the
     triangulation's ``min_conf``, is placed with that view's depth on the person mask; 0 = off
     (the fit places it from that view's ray, the smoothness and the pose prior)."""
+    other_max_conf: float = 0.1
+    """The other view's detection must be below this confidence (at the triangulation's
+    ``min_conf``, 0.1 by default, it is not used there: the joint has no triangulated point). Higher:
+    a point triangulated with a weak second view (a hidden joint's guess, jittered several times
+    more than a seen one) is replaced too."""
     conf_scale: float = 0.5
     """The placed point's confidence is the view's times this (one ray and one depth reading,
     against a triangulated point's two rays)."""
@@ -57,12 +63,12 @@ class DepthPointsConfig:
     """Depths beyond this are not trusted (the LiDAR's range)."""
 
 
-def one_view_pairs(kp2d: NDArray, tri_min_conf: float, cfg: DepthPointsConfig) -> NDArray:
-    """(T, 17) int: the view that alone sees each limb joint (``cfg.min_conf`` or more, no other
-    view at ``tri_min_conf`` or more), -1 elsewhere. kp2d: (T, V, 17, 3)."""
+def one_view_pairs(kp2d: NDArray, cfg: DepthPointsConfig) -> NDArray:
+    """(T, 17) int: the view that alone sees each limb joint (``cfg.min_conf`` or more, every
+    other view below ``cfg.other_max_conf``), -1 elsewhere. kp2d: (T, V, 17, 3)."""
     c = np.nan_to_num(kp2d[..., 2])  # (T, V, 17)
-    seeing = (c >= cfg.min_conf).sum(axis=1) >= 1
-    others = (c >= tri_min_conf).sum(axis=1)
+    seeing = (c >= cfg.min_conf).sum(axis=1) == 1
+    others = (c >= min(cfg.other_max_conf, cfg.min_conf)).sum(axis=1)
     alone = seeing & (others == 1)
     limb = np.zeros(kp2d.shape[2], dtype=bool)
     limb[list(LIMB_JOINTS)] = True
@@ -72,7 +78,7 @@ def one_view_pairs(kp2d: NDArray, tri_min_conf: float, cfg: DepthPointsConfig) -
 
 
 def place_one_view_joints(points: NDArray, conf: NDArray, filled: NDArray | None, kp2d: NDArray, K: NDArray,
-                          T_world_cam: NDArray, depth: Sequence[tuple | None], tri_min_conf: float,
+                          T_world_cam: NDArray, depth: Sequence[tuple | None],
                           cfg: DepthPointsConfig) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """The one-view limb joints placed with the seeing view's depth.
 
@@ -84,14 +90,14 @@ def place_one_view_joints(points: NDArray, conf: NDArray, filled: NDArray | None
         depth: per view ``(depth_mm (T', h, w) uint16, (width, height), masks)`` (Stage II's depth
             and packed person masks, :func:`embodmocap.motion.stage.quality_depth`), None where
             the view has no depth or no masks (its joints are not placed);
-        tri_min_conf: the triangulation's confidence threshold; cfg: settings.
+        cfg: settings.
 
     Returns:
         ``(points, conf, filled, placed)``: new arrays with the placed joints (``filled`` False
         there) and (T, 17) bool where a joint was placed.
     """
     T = len(points)
-    view = one_view_pairs(kp2d, tri_min_conf, cfg)
+    view = one_view_pairs(kp2d, cfg)
     out_p, out_c = points.copy(), conf.copy()
     out_f = np.zeros((T, points.shape[1]), dtype=bool) if filled is None else filled.copy()
     placed = np.zeros((T, points.shape[1]), dtype=bool)

@@ -238,7 +238,7 @@ def depth_points(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
 
     points, conf, filled, placed = place_one_view_joints(
         ev.points, ev.conf, ev.filled, ev.keypoints2d, ctx.K, ctx.T_world_cam, depth_of_views(ctx.depth, ctx.names),
-        ctx.cfg.triangulation.min_conf, ctx.cfg.depth_points)
+        ctx.cfg.depth_points)
     report = {"joints_placed": int(placed.sum())}
     if not placed.any():
         return ev, report
