@@ -67,3 +67,15 @@ def test_a_joint_hidden_from_the_seeing_views_depth_is_not_placed(body):
     p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, CFG)
     assert not placed[:, 9].any() and placed[:, 7].all()
     assert np.array_equal(p[:, 9], points[:, 9])
+
+
+def test_by_default_a_point_a_weak_second_view_triangulates_is_kept(body):
+    """The other view's 0.2 wrist is at the triangulation's threshold (0.1) or above: by default
+    only the elbow, which view 2 does not detect at all, is placed."""
+    kp3, points, conf, filled, kp2, Twc, views = _inputs(body)
+    cfg = DepthPointsConfig()
+    assert cfg.other_max_conf == 0.1 and cfg.min_conf > 0
+    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, cfg)
+    assert placed[:, 7].all() and not placed[:, 9].any() and placed.sum() == len(points)
+    assert np.linalg.norm(p[:, 7] - kp3[7], axis=-1).max() < 0.035
+    assert np.array_equal(p[:, 9], points[:, 9])
