@@ -25,6 +25,7 @@ from its parent joint).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -121,12 +122,9 @@ def place_one_view_joints(points: NDArray, conf: NDArray, filled: NDArray | None
         ok = ok & (z < cfg.max_depth_m)
         count = ok.sum(axis=-1)  # (n, 17)
         zs = np.where(ok, z, np.nan)
-        with np.errstate(all="ignore"):
-            import warnings
-
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                zmed = np.nanmedian(zs, axis=-1)
+        with warnings.catch_warnings():  # a window without person pixels: expected, not placed
+            warnings.simplefilter("ignore", RuntimeWarning)
+            zmed = np.nanmedian(zs, axis=-1)
         good = sel & (count >= cfg.min_pixels) & np.isfinite(zmed)
         t_idx, j_idx = np.nonzero(good)
         if not len(t_idx):
