@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from embodmocap.geometry.triangulation import TriangulationConfig
 from embodmocap.motion.label_track import LabelTrackConfig
+from embodmocap.motion.depth_points import DepthPointsConfig
 from embodmocap.motion.leg_sides import LegSidesConfig
 from embodmocap.motion.lift import LiftConfig
 from embodmocap.motion.quality import QualityConfig
@@ -254,6 +255,9 @@ class MotionConfig:
     leg_sides: LegSidesConfig = field(default_factory=LegSidesConfig)
     """Two views: the leg labels re-tracked at the start of the fit with the side of the starting
     body's pelvis each triangulated knee and ankle lies on (:mod:`embodmocap.motion.leg_sides`)."""
+    depth_points: DepthPointsConfig = field(default_factory=DepthPointsConfig)
+    """Two views: limb joints that one view sees and the other does not, placed at the start of
+    the fit with the seeing view's depth on the person mask (:mod:`embodmocap.motion.depth_points`)."""
     temporal: TemporalConfig = field(default_factory=TemporalConfig)
     """Runs of a view's 2D limb keypoints that jump off their own trajectory (relative to the
     torso) and back are dropped before triangulating and fitting (:mod:`embodmocap.motion.temporal`)."""

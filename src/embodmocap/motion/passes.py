@@ -101,6 +101,8 @@ class PassContext:
         priors: view -> (camera-space body prior per frame, (T,) has-estimate); empty: none.
         cameras: view -> mapping with ``T_world_cam`` (the body prior's frames).
         quality_of: fitted params -> their :class:`~embodmocap.motion.quality.FrameQuality`.
+        depth: view -> ``(depth_mm, (width, height), masks)``, the views' depth and person masks
+            (:func:`embodmocap.motion.stage.quality_depth`; None: not read).
     """
 
     cfg: MotionConfig
@@ -117,6 +119,7 @@ class PassContext:
     priors: Mapping | None = None
     cameras: Mapping | None = None
     quality_of: Callable | None = None
+    depth: Mapping | None = None
 
 
 @dataclass(frozen=True)
@@ -227,6 +230,19 @@ def leg_sides(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     tri = triangulate(P, kp[..., :2], kp[..., 2], ctx.cfg.triangulation)
     return replace(ev, keypoints2d=kp, points=tri.points, conf=tri.conf, filled=tri.filled), report
 
+
+def depth_points(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
+    """Limb joints one view sees and the other does not, placed with the seeing view's depth
+    (:mod:`embodmocap.motion.depth_points`)."""
+    from embodmocap.motion.depth_points import depth_of_views, place_one_view_joints
+
+    points, conf, filled, placed = place_one_view_joints(
+        ev.points, ev.conf, ev.filled, ev.keypoints2d, ctx.K, ctx.T_world_cam, depth_of_views(ctx.depth, ctx.names),
+        ctx.cfg.depth_points)
+    report = {"joints_placed": int(placed.sum())}
+    if not placed.any():
+        return ev, report
+    return replace(ev, points=points, conf=conf, filled=filled), report
 
 
 def weakest_view_conf(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
@@ -408,6 +424,9 @@ PASSES: tuple[Pass, ...] = (
     Pass("leg_sides", "start", "leg_sides.side_m", lambda c: c.leg_sides.side_m > 0,
          lambda ev, ctx: len(ctx.names) == 2 and ctx.model is not None, leg_sides,
          "both views' leg labels re-tracked with the starting body's pelvis side (two views)"),
+    Pass("depth_points", "start", "depth_points.min_conf", lambda c: c.depth_points.min_conf > 0,
+         lambda ev, ctx: len(ctx.names) == 2 and bool(ctx.depth), depth_points,
+         "limb joints one view sees placed with its depth (two views, depth and masks read)"),
     Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min", _always, weakest_view_conf,
          "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`)"),
     Pass("bone_gate", "start", "bone_tol", lambda c: c.bone_tol > 0, _always, bone_gate,

@@ -180,7 +180,7 @@ def fit_motion(cfg: MotionConfig, model, k3: Keypoints3DFile, cams: Mapping[str,
     K, T_wc = np.stack([cams[v]["K"] for v in names]), np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1)
     used = {"kp2d": kp2d, "k3": k3}  # what the fit uses (a start pass may re-label: leg_sides)
     ctx = PassContext(cfg, tuple(names), K, T_wc, label=label, source=source, model=model, layout=layout, fps=fps,
-                      gender=gender, priors=priors, cameras=cams,
+                      gender=gender, priors=priors, cameras=cams, depth=depth,
                       quality_of=lambda p: fit_quality(cfg, model, p, layout, cams, kps, used["kp2d"], used["k3"], T,
                                                        depth))
     # The start passes (confidences, bone-length gate, keypoint and prior starts, limbs carried,

@@ -135,7 +135,8 @@ def run(cfg: MotionConfig, session: str | Path, seq: str | None = None, *, force
                                       if _depth_tests(cfg) else None,
                                       # and the seen-surface test its person masks
                                       "<view>/masks.npy": {v: out.view(v).masks for v in names if out.view(v).masks.is_file()}
-                                      if cfg.quality.surface_m > 0 or cfg.quality.front_m > 0 else None})
+                                      if cfg.quality.surface_m > 0 or cfg.quality.front_m > 0
+                                      or cfg.depth_points.min_conf > 0 else None})
     with sm.step("fit", fp_fit, force=force, label=label) as step:
         if step.run:
             fit = solve.fit_motion(cfg, model, read_keypoints3d(out.keypoints3d), cams, kps, T, fps, priors, layout,
@@ -181,8 +182,10 @@ def keypoint_layout(out: SequenceLayout, seq: str) -> str:
 
 
 def _depth_tests(cfg: MotionConfig) -> bool:
-    """Whether the quality reads the views' depth (the free-space or a seen-surface test)."""
-    return cfg.quality.free_space_m > 0 or cfg.quality.surface_m > 0 or cfg.quality.front_m > 0
+    """Whether the fit reads the views' depth (the quality's free-space or seen-surface tests, the
+    one-view joints placed with depth: :mod:`embodmocap.motion.depth_points`)."""
+    return (cfg.quality.free_space_m > 0 or cfg.quality.surface_m > 0 or cfg.quality.front_m > 0
+            or cfg.depth_points.min_conf > 0)
 
 
 def quality_depth(out: SequenceLayout, names) -> dict:

@@ -59,6 +59,15 @@ class SwapConfig:
     share (:func:`embodmocap.motion.ik.symmetric_length`). 0 = off."""
     bone_max_extra_px: float = 5.0
     """Largest increase of the group's reprojection error a bone-length swap may cause, pixels."""
+    bone_continuity: bool = True
+    """A run of frames that the bone lengths would swap back in one view is left alone where the
+    swapped labels continue that view's neighbouring frames worse than its own labels do
+    (:func:`_continuity_gain` below 0): the bones say only that one of the two views is wrong,
+    and with a side view that sees one arm well and the other weakly, swapping its labels for one
+    frame can make every bone plausible (the weak side's points dropped below the triangulation's
+    confidence) while its trajectories say the labels were right. Hard indoor studio seed 4
+    (issue 29): view 1's arms exchanged at frame 100 alone, the triangulated left wrist 18 cm off
+    at W-MPJPE's second chunk anchor. False: every run the bones choose is swapped."""
 
 
 def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
@@ -187,6 +196,12 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
         nv = _implausible_bones(Xv, bones, L, cfg.bone_tol)
         ok = (nv == 0) & (n0 >= 1) & (nv < best_n) & (err <= base + cfg.bone_max_extra_px)
         best_n, best_v = np.where(ok, nv, best_n), np.where(ok, v, best_v)
+    if cfg.bone_continuity:
+        # Runs whose swap breaks the view's own trajectories at their ends are not swapped.
+        for v in range(kp.shape[1]):
+            for a, b in _runs(best_v == v):
+                if _continuity_gain(kp, v, (a, b), pairs, tcfg.min_conf) < 0:
+                    best_v[a:b] = -1
     t_idx = np.flatnonzero(best_v >= 0)
     for t in t_idx:
         kp[t, best_v[t]] = _swap(kp[t, best_v[t]], pairs)
