@@ -9,13 +9,13 @@
 3. ``refine``: both views' yaw + translation refined jointly with the paper's losses (cross-view
    track on the performer, Chamfer of each view's background depth against the scene mesh,
    reprojection of the registered matches), Adam and Levenberg-Marquardt on the same residuals,
-   the better kept; with ``presync`` the track term pairs view 2's points at view 1's instants, by
+   the better kept; with ``presync`` (off by default) the track term pairs view 2's points at view 1's instants, by
    the sub-frame sync measured first on the registration-only cameras (:mod:`embodmocap.calibrate.presync`);
    -> ``calibration.json`` (offsets before/after, residual report, registered fractions, warnings);
 4. ``geosync``: with both views in the scene's world (whatever their time offset), the offset at
    which the two views' keypoint rays meet, to a fraction of a frame (measured on the cameras
-   ``sync_cameras`` names: the registration-only ones by default, which the performer's keypoints
-   took no part in); ``sync.json`` gets it, its
+   ``sync_cameras`` names: the refined ones by default, or the registration-only ones, which the
+   performer's keypoints took no part in); ``sync.json`` gets it, its
    agreement with the laser and the final choice, which Stage IV applies (sub-frame) ->
    ``<view>/cameras_world.npz`` (per-frame cameras in the scene's world, with that offset).
 
