@@ -112,7 +112,6 @@ def track_pairs_on_clock(views: Mapping[str, ViewInputs], frames: NDArray, resid
     w = np.where(w < 1e-9, 0.0, np.where(w > 1 - 1e-9, 1.0, w))
     k0 = np.where(w == 1.0, k1, k0)
     w = np.where(w == 1.0, 0.0, w)
-    F, J = len(frames), len(j)
     a = kp1[frames][:, j]  # (F, J, 3)
     b0, b1 = kp2[k0][:, j], kp2[k1][:, j]
     both = w[:, None] > 0
