@@ -288,3 +288,29 @@ def test_solve_in_memory_gives_the_run_s_files(session, done, tmp_path):
         assert np.array_equal(res.T_world_vio[v], done.T_world_vio[v])
     assert _plain_json(res.report) == _plain_json(json.loads(files.calibration.read_text()))
     assert _plain_json(res.sync_record) == _plain_json(json.loads(files.final_sync.read_text()))
+
+
+def test_presync_measures_on_the_registration_cameras(session, done, tmp_path):
+    """``presync`` with ``sync_cameras = "registration"``: the sub-frame sync measured before the
+    refinement is recorded in calibration.json, and step 4's measurement, on the same
+    registration-only cameras, is the same one; the session is in phase (the truth's
+    ``view_time_offset_frames`` is 0), so both are within half a frame of 0, and the refined view
+    offsets stay within the default run's bounds of the truth (4 cm / 0.8 deg)."""
+    from embodmocap.io.ground_truth import read_truth_info
+    from embodmocap.io.stage_files import read_calibration
+
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    assert read_truth_info(SessionLayout(work).ground_truth.info)["view_time_offset_frames"]["v2"] == 0.0
+    out = stage.run(replace(CFG, presync=True, sync_cameras="registration"), work)
+    sl = SessionLayout(work).sequence("seq0")
+    pre = read_calibration(sl.calibration).record["presync"]
+    rec = json.loads(sl.final_sync.read_text())
+    assert pre["geometric_offset_frames"] == pytest.approx(rec["sources"]["geometric"]["offset_frames"], abs=1e-4)
+    assert abs(pre["residual_frames"]) < 0.5 and abs(rec["chosen"]["residual_frames"]) < 0.5
+    assert pre["applied"] == (pre["residual_frames"] != 0.0)
+    truth = true_offsets(work)
+    for v in VIEWS:
+        probe = np.load(sl.view(v).cameras)["T_world_cam"][:, :3, 3]
+        cm, deg = offset_error(out.T_world_vio[v], truth[v], probe)
+        assert cm < 0.04 and deg < 0.8, (v, cm, deg)

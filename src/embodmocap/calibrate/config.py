@@ -195,5 +195,26 @@ class CalibrateConfig:
     """At most this many sequence frames (evenly spread) give the cross-view track term its
     keypoint pairs (a 6 s sequence uses all its frames; a 60 s one 1 in 6: the term fixes 8
     parameters, and each frame read costs two depth maps)."""
+    presync: bool = False
+    """Before the refinement, measure the sub-frame sync on the registration-only cameras (the
+    geometric sync and the choice of step 4, :mod:`embodmocap.calibrate.presync`) and pair the
+    cross-view track term's points at view 1's instants by it (view 2's interpolated between its
+    two nearest frames). Without it the track term pairs the same sequence frame of both views, and
+    a phone filming a fraction of a frame off the other pulls view 2 towards "in phase" (by the
+    performer's motion over that fraction), which the sync measured afterwards partly takes for
+    the truth. Step 4 measures the sync again (what is applied) on the cameras ``sync_cameras`` names.
+    Off by default: on the 10 random-phase hard seeds (2026-12-05-s11-phase) it, with
+    ``sync_cameras = "registration"``, cut the sub-frame error where the geometry was chosen
+    (0.385 / 0.232 / 0.222 -> 0.001 / 0.071 / 0.019 frame) but left WA / PA 0.1-0.7 mm worse on
+    two seeds and W-MPJPE swinging both ways (one seed 32 -> 61 mm)."""
+    presync_max_frames: float = 1.0
+    """The sub-frame sync before the refinement is applied to the track pairs only when within
+    this many frames of the slicing (a farther choice is another integer offset: step 4's call)."""
+    sync_cameras: Literal["refined", "registration"] = "refined"
+    """The cameras on which step 4 measures the geometric sync: the refined ones (drift included),
+    or the registration-only ones (before the refinement, which the performer's keypoints took part
+    in: with a sub-frame phase they are pulled towards it; the sync measured on them is
+    independent of the track term). The world cameras written are the refined ones either way.
+    ``refined`` by default (see ``presync``, with which ``registration`` was measured)."""
     geosync: GeoSyncConfig = field(default_factory=GeoSyncConfig)
     """Geometric sync after registration (keypoint rays meeting) and the choice of sync source."""

@@ -41,7 +41,8 @@ class GeosyncResult:
 def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], T_world_vio: Mapping[str, NDArray],
                    fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "",
                    laser_dots: Mapping[str, object] | None = None, subframe_sync: bool = True,
-                   sync_force: bool = False) -> GeosyncResult:
+                   sync_force: bool = False, measure_on: tuple[Mapping[str, ViewInputs], Mapping[str, NDArray]] | None = None
+                   ) -> GeosyncResult:
     """With both views in the scene's world (whatever their time offset), the offset at which the
     two views' keypoint rays meet (:mod:`embodmocap.sequence.geosync`); the final choice among
     laser, manual and geometric (:mod:`embodmocap.sequence.sync_record`); the per-frame world
@@ -53,7 +54,10 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         for the messages); label: the sequence (log lines); laser_dots: view -> the view's last
         sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`;
         None: no same-dot check); subframe_sync, sync_force: the sequence's session.toml keys
-        (:func:`embodmocap.sequence.sync_record.decide`).
+        (:func:`embodmocap.sequence.sync_record.decide`); measure_on: (views, T_world_vio) on
+        whose cameras the offset is measured when not those of ``views`` and ``T_world_vio``
+        (``CalibrateConfig.sync_cameras = "registration"``: the registration-only cameras); the
+        world cameras written are always ``views`` and ``T_world_vio``'s.
     """
     from embodmocap.sequence.geosync import geometric_sync as find_offset
     from embodmocap.sequence.laser_check import check_laser_dots
@@ -67,7 +71,9 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
     if len(names) == 1:  # one phone: Stage II's record is final (no other clock to find)
         return _one_view_result(record, cams, world)
     if cfg.geosync.enabled:
-        data = [(cams[v]["K"], world[v], views[v].keypoints, frame_times(cams[v], fps)) for v in names]
+        mv, mT = measure_on if measure_on is not None else (views, T_world_vio)
+        data = [(cams[v]["K"], mT[v] @ mv[v].cameras["T_world_cam"], views[v].keypoints, frame_times(cams[v], fps))
+                for v in names]
         search = search_half_width_s(record, cfg.geosync)
         geo = find_offset(*data[0], *data[1], fps=fps, search_s=search, cfg=cfg.geosync)
         log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,

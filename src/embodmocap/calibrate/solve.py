@@ -225,15 +225,27 @@ def scene_points(cfg: CalibrateConfig, vertices: NDArray, faces: NDArray):
     return L.ScenePoints.from_mesh(vertices, faces, cfg.scene_points)
 
 
-def track_pairs(views: Mapping[str, ViewInputs], max_frames: int = 0):
+def track_pairs(views: Mapping[str, ViewInputs], max_frames: int = 0, residual_s: float = 0.0, fps: float = 30.0):
     """Cross-view performer correspondences from the Stage II keypoints, back-projected with depth;
-    from at most ``max_frames`` evenly spread frames (0 = all); None when there are none."""
+    from at most ``max_frames`` evenly spread frames (0 = all); None when there are none.
+
+    ``residual_s``: view 2's sub-frame sync (its time minus view 1's for one instant, on top of the
+    slicing; :func:`embodmocap.calibrate.presync.presync_residual`); when not 0, view 2's points are
+    taken at view 1's instants (:func:`embodmocap.calibrate.presync.track_pairs_on_clock`), else the
+    two views' points of the same sequence frame are paired. ``fps``: the sequence frame rate."""
     from embodmocap.calibrate import losses as L
+    from embodmocap.calibrate.presync import track_pairs_on_clock
 
     kp = {v: views[v].keypoints for v in VIEWS}
     cams = {v: views[v].cameras for v in VIEWS}
-    corr = L.KeypointCorrespondences(kp["v1"], kp["v2"]).correspondences()
+    src = L.KeypointCorrespondences(kp["v1"], kp["v2"])
     n = min(len(kp["v1"]), len(kp["v2"]))
+    if residual_s != 0.0:
+        frames = np.arange(len(kp["v1"]))
+        if 0 < max_frames < len(frames):
+            frames = np.unique(np.linspace(0, n - 1, max_frames).round().astype(np.int64))
+        return track_pairs_on_clock(views, frames, residual_s, fps, src)
+    corr = src.correspondences()
     if 0 < max_frames < n:
         keep = np.isin(corr.frames, np.unique(np.linspace(0, n - 1, max_frames).round().astype(np.int64)))
         corr = replace(corr, frames=corr.frames[keep], xy_a=corr.xy_a[keep], xy_b=corr.xy_b[keep],
@@ -380,7 +392,7 @@ def initial_offsets(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], regs:
 
 def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: dict, regs: Mapping,
                   init_report: dict, points=None, use_tracks: bool = True, *, sequence: str = "",
-                  scene: str = "") -> dict:
+                  scene: str = "", presync: tuple[float, dict] | None = None, fps: float = 30.0) -> dict:
     """The views' offsets refined jointly (one view: alone, no track term); returns
     ``calibration.json``'s content (``one_view`` true for one view).
 
@@ -389,6 +401,9 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
             ``cfg.refine_views``); use_tracks: use the cross-view keypoint pairs (False when the
             views were sliced from their first frames, i.e. not simultaneous frame by frame);
         sequence, scene: names written into the report.
+        presync: :func:`embodmocap.calibrate.presync.presync_residual`'s (residual_s, record): the
+            track term pairs view 2's points at view 1's instants by it (None: frame pairs, as
+            without ``cfg.presync``); fps: the sequence frame rate.
     """
     warnings: list[str] = []
     names = [v for v in VIEWS if v in views]
@@ -396,7 +411,8 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
     result = None
     if cfg.refine_views:
         points = points() if callable(points) else points
-        tracks = track_pairs(views, cfg.track_frames) if use_tracks and len(names) > 1 else None
+        shift = presync[0] if presync is not None else 0.0
+        tracks = track_pairs(views, cfg.track_frames, shift, fps) if use_tracks and len(names) > 1 else None
         if not use_tracks and len(names) > 1:
             warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
                             "pairs are not used by the refinement")
@@ -423,6 +439,8 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
             "vio_check": init_report[v]["vio_check"],
             "offset_fit": init_report[v],
         }
+    if presync is not None:
+        report["presync"] = presync[1]
     if result is not None:
         report["refine"] = {
             "solver": result.solver, "iterations": result.iterations, "loss_before": result.loss_before,
@@ -433,6 +451,25 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
                         for k, r in result.runs.items()},
         }
     return report
+
+
+def presync_step(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], init: Mapping[str, YawOffset],
+                 fps: float, label: str = "", subframe_sync: bool = True, sync_force: bool = False):
+    """The sub-frame sync on the registration-only cameras (:mod:`embodmocap.calibrate.presync`),
+    ``refine_report``'s ``presync``; None when ``cfg.presync`` is off or there is one view."""
+    from embodmocap.calibrate.presync import presync_residual
+
+    if not cfg.presync or len(views) < 2:
+        return None
+    return presync_residual(cfg, record, views, {v: init[v].T for v in views}, fps, label, subframe_sync, sync_force)
+
+
+def sync_measure_cameras(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], report: dict):
+    """Step 4's ``measure_on``: the registration-only cameras (views, offsets) with
+    ``cfg.sync_cameras = "registration"``, else None (the refined cameras)."""
+    if cfg.sync_cameras != "registration":
+        return None
+    return views, {v: np.asarray(report["views"][v]["T_world_vio_registration"]) for v in report["views"]}
 
 
 def drift_record(offset) -> dict:
@@ -563,10 +600,13 @@ def solve(cfg: CalibrateConfig, inputs: CalibrateInputs) -> CalibrateResult:
         files[v] = performer_registration(rv, T_place)
         regs[v] = dict(files[v].items())
     init, init_report = initial_offsets(cfg, inputs.views, regs)
-    report = refine_report(cfg, inputs.views, init, regs, init_report, points, slicing not in UNPAIRED_SLICING,
-                           sequence=inputs.sequence, scene=inputs.scene)
+    use_tracks = slicing not in UNPAIRED_SLICING and len(names) > 1
+    pre = presync_step(cfg, inputs.sync_record, inputs.views, init, inputs.fps, inputs.sequence,
+                       inputs.subframe_sync, inputs.sync_force) if use_tracks else None
+    report = refine_report(cfg, inputs.views, init, regs, init_report, points, use_tracks,
+                           sequence=inputs.sequence, scene=inputs.scene, presync=pre, fps=inputs.fps)
     T_world_vio = {v: np.asarray(report["views"][v]["T_world_vio"]) for v in names}
     geo = geometric_sync(cfg, inputs.sync_record, drift_corrected(inputs.views, report), T_world_vio, inputs.fps,
                          inputs.contact_sheets, inputs.sequence, inputs.laser_dots, inputs.subframe_sync,
-                         inputs.sync_force)
+                         inputs.sync_force, sync_measure_cameras(cfg, inputs.views, report))
     return CalibrateResult({v: files[v] for v in names}, report, geo.record, geo.cameras_world, T_world_vio)

@@ -9,10 +9,13 @@
 3. ``refine``: both views' yaw + translation refined jointly with the paper's losses (cross-view
    track on the performer, Chamfer of each view's background depth against the scene mesh,
    reprojection of the registered matches), Adam and Levenberg-Marquardt on the same residuals,
-   the better kept;
+   the better kept; with ``presync`` (off by default) the track term pairs view 2's points at view 1's instants, by
+   the sub-frame sync measured first on the registration-only cameras (:mod:`embodmocap.calibrate.presync`);
    -> ``calibration.json`` (offsets before/after, residual report, registered fractions, warnings);
 4. ``geosync``: with both views in the scene's world (whatever their time offset), the offset at
-   which the two views' keypoint rays meet, to a fraction of a frame; ``sync.json`` gets it, its
+   which the two views' keypoint rays meet, to a fraction of a frame (measured on the cameras
+   ``sync_cameras`` names: the refined ones by default, or the registration-only ones, which the
+   performer's keypoints took no part in); ``sync.json`` gets it, its
    agreement with the laser and the final choice, which Stage IV applies (sub-frame) ->
    ``<view>/cameras_world.npz`` (per-frame cameras in the scene's world, with that offset).
 
@@ -156,13 +159,24 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     # 3. Joint refinement. Its cross-view keypoint pairs are frame pairs: meaningful when the
     # slicing is within about a frame of the true sync, i.e. unless a view had no laser event.
     use_tracks = slicing not in UNPAIRED_SLICING and len(names) > 1
-    fp_ref = STEPS.fingerprint("refine", cfg, after={"register": fp_reg}, context={"use_tracks": use_tracks}, reads={
-        **upstream, "<view>/registration.npz": {v: out.view(v).registration for v in names}})
+    # With cfg.presync the track pairs are taken at the sub-frame sync measured on the registration
+    # cameras (calibrate.presync): the sync record and the keypoints are then inputs of this step.
+    presync = cfg.presync and use_tracks
+    rec = _sync_record(out, entry.name)
+    fp_ref = STEPS.fingerprint("refine", cfg, after={"register": fp_reg}, context={
+        "use_tracks": use_tracks, "presync_geosync": cfg.geosync if presync else None,
+        "subframe_sync": entry.subframe_sync if presync else None, "sync_force": entry.sync_force if presync else None},
+        reads={**upstream, "<view>/registration.npz": {v: out.view(v).registration for v in names},
+               "sync.json": [{k: rec[k] for k in ("views", "slicing", "sources")}] if presync else None,
+               "<view>/keypoints2d.npz": {v: out.view(v).keypoints for v in names} if use_tracks else None})
     calib_path = out.calibration
     with sm.step("refine", fp_ref, force=force, label=label) as step:
         if step.run:
+            fps = sequence_fps(out)
+            pre = solve.presync_step(cfg, rec, views, init, fps, entry.name, entry.subframe_sync,
+                                     entry.sync_force) if presync else None
             report = solve.refine_report(cfg, views, init, regs, init_report, points, use_tracks,
-                                         sequence=entry.name, scene=entry.scene)
+                                         sequence=entry.name, scene=entry.scene, presync=pre, fps=fps)
             write_calibration(calib_path, report)
             step.record([calib_path], {f"{v}_{k}": report["views"][v][k] for v in names
                                        for k in ("refine_shift_m", "refine_yaw_deg")} | {"one_view": entry.one_view})
@@ -180,7 +194,9 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                                reads={"sync.json": [{k: rec[k] for k in ("views", "slicing")}, rec["sources"].get("laser"),
                                                     rec["sources"].get("manual")],
                                       "calibration.json": [{v: report["views"][v]["T_world_vio"] for v in names},
-                                                           {v: report["views"][v].get("drift") for v in names}],
+                                                           {v: report["views"][v].get("drift") for v in names},
+                                                           *([{v: report["views"][v]["T_world_vio_registration"] for v in names}]
+                                                             if cfg.sync_cameras == "registration" else [])],
                                       "<view>/keypoints2d.npz": {v: out.view(v).keypoints for v in names},
                                       "<view>/cameras.npz": {v: out.view(v).cameras for v in names}})
     with sm.step("geosync", fp_geo, force=force, label=label) as step:
@@ -190,7 +206,8 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
             dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in names}) \
                 if len(names) > 1 else None  # one dot seen by two views is one place; one view has nothing to compare
             geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
-                                       sheets, entry.name, dots, entry.subframe_sync, entry.sync_force)
+                                       sheets, entry.name, dots, entry.subframe_sync, entry.sync_force,
+                                       solve.sync_measure_cameras(cfg, views, report))
             write_sync(out.final_sync, geo.record)  # Stage II's sync.json stays Stage II's
             for w in geo.record["warnings"]:
                 log.warning("%s", w)

@@ -23,12 +23,16 @@ STEPS = StageSteps("calibrate", CalibrateConfig, (
                    "min_registered_frames", "place_by_performer", "performer_min_on_mesh", "performer_on_mesh_m",
                    "track_frames", "scene_points"),
          writes=(_DIR + "<view>/registration.npz",), doc="frames registered into the sparse model (per view: register_<view>)"),
-    Step("refine", after=("register",), reads=(*_UPSTREAM, "<view>/registration.npz"), context=("use_tracks",),
+    # With `presync`, the refinement's track term pairs the views at the sub-frame sync measured on
+    # the registration cameras: Stage II's sync record, the keypoints, the session.toml keys and the
+    # geosync settings (declared by the geosync step; given here as context) are then its inputs too.
+    Step("refine", after=("register",), reads=(*_UPSTREAM, "<view>/registration.npz", "sync.json", "<view>/keypoints2d.npz"),
+         context=("use_tracks", "presync_geosync", "subframe_sync", "sync_force"),
          settings=("refine", "refine_views", "chamfer_frames", "chamfer_points_per_frame", "max_refine_shift_m",
-                   "max_refine_yaw_deg"),
+                   "max_refine_yaw_deg", "presync", "presync_max_frames"),
          writes=(_DIR + "calibration.json",), doc="yaw + translation of each view refined jointly"),
     Step("geosync", reads=("sync.json", "calibration.json", "<view>/keypoints2d.npz", "<view>/cameras.npz"),
-         context=("subframe_sync", "sync_force"), settings=("geosync",), version=GEOSYNC_VERSION,
+         context=("subframe_sync", "sync_force"), settings=("geosync", "sync_cameras"), version=GEOSYNC_VERSION,
          writes=(_DIR + "final_sync.json", _DIR + "<view>/cameras_world.npz"),
          doc="the time offset where the views' keypoint rays meet; the world cameras"),
 ))
