@@ -9,8 +9,12 @@ What each job needs (``pipeline.py`` runs the same stages one after the other wi
                    (``calibrate.stage.run(only_register=True)``)  step is (it reads only the ``sfm``
                                                                   step's model; the wait is for
                                                                   memory: REGISTER_AFTER)
-    calibrate/Q    Stage III (its registration already current)   scene/S and register/Q are done
-    motion/Q       Stage IV                                       calibrate/Q is done
+    calibrate/Q    Stage III (its registration already current)   register/Q is done and S's ``mesh``
+                   (``run(scene_running=True)``)                  step is (CALIBRATE_AFTER: Stage III
+                                                                  reads the raw mesh, not what
+                                                                  ``floor`` and ``simplify`` make)
+    motion/Q       Stage IV                                       scene/S and calibrate/Q are done (the
+                                                                  fit's floor is the simplified mesh)
 
 At most ``workers`` jobs run at once; a free worker takes the ready job that comes first in
 :data:`PRIORITY`: Stage I, then Stage III and IV (the chain after Stage I is the run's critical
@@ -58,6 +62,9 @@ STAGE_OF = {"scene": "scene", "sequence": "sequence", "register": "register", "c
 #: 60 s views) put the processes' sum above one sequential process's peak. After ``mesh`` it runs
 #: beside ``floor`` and ``simplify`` instead, ~10 s later on the run's critical path.
 REGISTER_AFTER = "mesh"
+#: The step of Stage I after which the rest of Stage III may start: it reads the sparse model and
+#: the raw mesh, not what Stage I's ``floor`` and ``simplify`` steps make, so those two run beside it.
+CALIBRATE_AFTER = "mesh"
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -101,8 +108,8 @@ def plan_jobs(scenes, sequences) -> list[Job]:
     for q, s in sequences:
         jobs += [Job("sequence", q, scene=s),
                  Job("register", q, (f"sequence/{q}", f"scene/{s}#{REGISTER_AFTER}"), s),
-                 Job("calibrate", q, (f"scene/{s}", f"register/{q}"), s),
-                 Job("motion", q, (f"calibrate/{q}",), s)]
+                 Job("calibrate", q, (f"scene/{s}#{CALIBRATE_AFTER}", f"register/{q}"), s),
+                 Job("motion", q, (f"scene/{s}", f"calibrate/{q}"), s)]
     return jobs
 
 
@@ -119,7 +126,8 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
     elif job.kind in ("register", "calibrate"):
         from embodmocap.calibrate.stage import run
 
-        run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register")
+        run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register",
+            scene_running=job.kind == "calibrate")
     elif job.kind == "motion":
         from embodmocap.motion.stage import run
 
