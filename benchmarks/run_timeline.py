@@ -145,8 +145,12 @@ def report(data: dict, cores: int, bin_s: float) -> None:
         s["procs"] = {int(k): v for k, v in s["procs"].items()}
         s["cmd"] = {int(k): v for k, v in s.get("cmd", {}).items()}
     cmds = {}
-    for s in samples:
-        cmds.update(s["cmd"])
+    for s in samples:  # a process's first command line (an ended, unreaped one shows none)
+        for p, c in s["cmd"].items():
+            if c and p not in cmds:
+                cmds[p] = c
+        for p in s["procs"]:
+            cmds.setdefault(p, "")
     roles, n = {}, 0
     for pid in sorted(cmds, key=lambda p: min(s["t"] for s in samples if p in s["procs"])):
         r = _role(cmds[pid], pid, root)
