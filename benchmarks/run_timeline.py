@@ -208,6 +208,11 @@ def report(data: dict, cores: int, bin_s: float) -> None:
         ours_total += ours
         busy_other += max(0.0, frac * dt - ours)
     print(f"{'machine':>9} |{mline}| (tenths of {cores} cores)")
+    peak = max(samples, key=lambda s: sum(v[1] for v in s["procs"].values()))
+    own = {p: max((s["procs"][p][1] for s in samples if p in s["procs"]), default=0) // 1024 for p in roles}
+    print(f"\npeak of the processes' RSS sum: {sum(v[1] for v in peak['procs'].values()) // 1024} MB at {peak['t']:.0f} s ("
+          + ", ".join(f"{roles.get(p, p)} {v[1] // 1024}" for p, v in peak["procs"].items())
+          + "); each process's own peak: " + ", ".join(f"{roles[p]} {m}" for p, m in own.items()))
     ours = sum(cpu_end.values())
     print(f"\nidle core-seconds of the run on {cores} cores: {cores * wall - ours:.1f} of {cores * wall:.1f} "
           f"({100 * (1 - ours / (cores * wall)):.0f} %); other processes on the machine meanwhile: {busy_other:.1f} core-s "

@@ -5,10 +5,9 @@ What each job needs (``pipeline.py`` runs the same stages one after the other wi
     job            what it runs                                   starts once
     scene/S        Stage I of scene S                             -
     sequence/Q     Stage II of sequence Q                         - (Stage II reads nothing of Stage I)
-    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``mesh``
-                   (``calibrate.stage.run(only_register=True)``)  step is (it reads only the ``sfm``
-                                                                  step's model; the wait is for
-                                                                  memory: REGISTER_AFTER)
+    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``sfm``
+                   (``calibrate.stage.run(only_register=True)``)  step is (it reads only that step's
+                                                                  model: REGISTER_AFTER)
     calibrate/Q    Stage III (its registration already current)   register/Q is done and S's ``mesh``
                    (``run(scene_running=True)``)                  step is (CALIBRATE_AFTER: Stage III
                                                                   reads the raw mesh, not what
@@ -19,9 +18,10 @@ What each job needs (``pipeline.py`` runs the same stages one after the other wi
 At most ``workers`` jobs run at once; a free worker takes the ready job that comes first in
 :data:`PRIORITY`: Stage I, then Stage III and IV (the chain after Stage I is the run's critical
 path), then the registration and Stage II, which fit beside Stage I. On the 60 s session the second
-core runs Stage II while Stage I builds its sparse model, and the registration beside Stage I's last
-steps (:data:`REGISTER_AFTER`: not beside the mesh, whose memory peak it would add to), so the
-run's wall time is about Stage I + the rest of Stage III + Stage IV.
+core runs Stage II while Stage I builds its sparse model, then the registration while Stage I fuses
+its mesh (about as long: :data:`REGISTER_AFTER`), then the rest of Stage III beside Stage I's
+``floor`` and ``simplify`` (:data:`CALIBRATE_AFTER`), so the run's wall time is about Stage I's
+key frames, sparse model and mesh + the rest of Stage III + Stage IV.
 
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
@@ -57,11 +57,13 @@ PRIORITY = ("scene", "calibrate", "motion", "register", "sequence")
 #: The stage each job kind runs, as progress lines and :class:`~embodmocap.pipeline.StageRun` name it.
 STAGE_OF = {"scene": "scene", "sequence": "sequence", "register": "register", "calibrate": "calibrate",
             "motion": "motion"}
-#: The step of Stage I after which the registration starts. It needs only ``sfm``, but Stage I's
-#: memory peaks in ``mesh`` (~3.1 GB on a 15 s scan): a registration beside it (~0.6-0.9 GB on
-#: 60 s views) put the processes' sum above one sequential process's peak. After ``mesh`` it runs
-#: beside ``floor`` and ``simplify`` instead, ~10 s later on the run's critical path.
-REGISTER_AFTER = "mesh"
+#: The step of Stage I after which the registration starts: the one whose sparse model it reads.
+#: It then runs beside Stage I's ``mesh`` (on the 60 s session both take ~28 CPU s), off the run's
+#: critical path. Memory: Stage I's mesh peaks at ~2.9 GB on a 15 s scan and a registration of
+#: 60 s views at ~0.75 GB; with the scheduler at ~0.1 GB (it imports no stage) the sum stays below
+#: the sequential run's peak (~4.1 GB, reached in Stage I). Session 10 waited for ``mesh`` when the
+#: scheduler held ~0.3 GB: the registration's 29 s were then on the critical path.
+REGISTER_AFTER = "sfm"
 #: The step of Stage I after which the rest of Stage III may start: it reads the sparse model and
 #: the raw mesh, not what Stage I's ``floor`` and ``simplify`` steps make, so those two run beside it.
 CALIBRATE_AFTER = "mesh"
