@@ -314,3 +314,32 @@ def test_presync_measures_on_the_registration_cameras(session, done, tmp_path):
         probe = np.load(sl.view(v).cameras)["T_world_cam"][:, :3, 3]
         cm, deg = offset_error(out.T_world_vio[v], truth[v], probe)
         assert cm < 0.04 and deg < 0.8, (v, cm, deg)
+
+
+def test_whole_stage_beside_stage_one_s_last_steps_needs_its_mesh_step(session, done, tmp_path):
+    """``scene_running`` (``embodmocap run`` starts Stage III after Stage I's ``mesh`` step, beside
+    its ``floor`` and ``simplify``): a Stage I still running is accepted once its ``sfm`` and
+    ``mesh`` steps are recorded, refused while its mesh is not done or changed since; without the
+    flag a running Stage I is refused as before."""
+    work = tmp_path / "s"
+    shutil.copytree(session, work)
+    scene_manifest = SessionLayout(work).scene("scene0").manifest
+    data = json.loads(scene_manifest.read_text())
+    running = dict(data, status="running")
+    scene_manifest.write_text(json.dumps(running))
+    with pytest.raises(InputError, match="did not finish its last run \\(running\\)"):
+        stage.run(CFG, work)
+    out = stage.run(CFG, work, scene_running=True)
+    assert set(out.skipped) == {"register_v1", "register_v2", "refine", "geosync"}
+    assert json.loads(SessionLayout(work).sequence("seq0").calibrate_manifest.read_text())["status"] == "ok"
+    for v in VIEWS:
+        np.testing.assert_array_equal(out.T_world_vio[v], done.T_world_vio[v])
+    no_mesh = dict(running, steps={k: s for k, s in data["steps"].items() if k not in ("mesh", "floor", "simplify")})
+    scene_manifest.write_text(json.dumps(no_mesh))
+    with pytest.raises(InputError, match="its mesh step is not done"):
+        stage.run(CFG, work, scene_running=True)
+    scene_manifest.write_text(json.dumps(running))
+    mesh = SessionLayout(work).scene("scene0").mesh_raw
+    mesh.write_bytes(mesh.read_bytes() + b"\n")
+    with pytest.raises(InputError, match="changed since it was written"):
+        stage.run(CFG, work, scene_running=True)

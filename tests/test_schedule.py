@@ -1,7 +1,7 @@
 """`embodmocap run` with two workers (embodmocap.schedule) against the sequential run.
 
 A studio session with two sequences, one of whose captures is broken. With two workers: Ctrl-C while
-Stage III's registration runs beside Stage I's last steps stops every worker, each stage recording
+Stage III's registration runs beside Stage I's mesh stops every worker, each stage recording
 ``interrupted``; the rerun resumes without redoing Stage I's finished
 steps, the broken sequence fails alone, the good one goes through every stage. Its outputs are
 then the same, array by array, as one sequential run's (``--workers 1``) on a copy of the session.
@@ -54,7 +54,7 @@ def test_two_workers_resume_isolate_failures_and_match_one(tmp_path):
     calib = lay.sequence(SYNTH.sequence_name).calibrate_manifest
     proc = _cli("run", str(a), "--workers", "2")
     deadline = time.time() + 900
-    while "mesh" not in _steps(scene.manifest) or not calib.is_file():  # the registration has started
+    while "sfm" not in _steps(scene.manifest) or not calib.is_file():  # the registration has started
         assert proc.poll() is None and time.time() < deadline, proc.stdout.read() if proc.poll() is not None else "timeout"
         time.sleep(0.5)
     time.sleep(2.0)

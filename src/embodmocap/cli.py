@@ -150,7 +150,7 @@ class Run:
     """Redo every step even when its outputs are up to date."""
     workers: int = 0
     """Stages run at once, each in a worker process (Stage II beside Stage I, Stage III's registration
-    beside Stage I's last steps); 0 = the usable cores, at most 2; 1 = one after the other in this process.
+    beside Stage I's mesh, the rest of Stage III beside Stage I's last steps); 0 = the usable cores, at most 2; 1 = one after the other in this process.
     The outputs are the same; the memory in use is the sum of the processes."""
     config: Annotated[PipelineConfig, tyro.conf.arg(name="")] = PipelineConfig()
     """Settings of every stage."""

@@ -90,10 +90,6 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
     ``workers``: stages run at once, each in a worker process (:mod:`embodmocap.schedule`); 0 = the
     usable cores, at most 2; 1 = one after the other in this process (the outputs are the same).
     """
-    from embodmocap.calibrate import stage as stage3
-    from embodmocap.motion import stage as stage4
-    from embodmocap.scene import stage as stage1
-    from embodmocap.sequence import stage as stage2
     from embodmocap.schedule import default_workers, plan_jobs, run_jobs
 
     lay = SessionLayout(Path(session))
@@ -113,6 +109,13 @@ def run_session(cfg: PipelineConfig, session: str | Path, *, force: bool = False
         run_jobs(replace(cfg, motion=motion_cfg, device=None), lay.root, plan_jobs(manifest.scenes, todo), workers,
                  force, say, lambda *r: runs.append(StageRun(*r)))
         return PipelineResult(lay.root, tuple(runs))
+    # The stages are imported here, not above: with workers the scheduler only waits, and their
+    # imports (torch among them, ~190 MB) would sit in its memory beside the workers' peaks.
+    from embodmocap.calibrate import stage as stage3
+    from embodmocap.motion import stage as stage4
+    from embodmocap.scene import stage as stage1
+    from embodmocap.sequence import stage as stage2
+
     map_large_blocks()  # one process runs every stage: keep its heap from holding a stage's peak (embodmocap.memory)
 
     def attempt(target: str, stage: str, fn: Callable[[], object]) -> bool:

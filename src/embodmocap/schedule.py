@@ -5,23 +5,29 @@ What each job needs (``pipeline.py`` runs the same stages one after the other wi
     job            what it runs                                   starts once
     scene/S        Stage I of scene S                             -
     sequence/Q     Stage II of sequence Q                         - (Stage II reads nothing of Stage I)
-    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``mesh``
-                   (``calibrate.stage.run(only_register=True)``)  step is (it reads only the ``sfm``
-                                                                  step's model; the wait is for
-                                                                  memory: REGISTER_AFTER)
-    calibrate/Q    Stage III (its registration already current)   scene/S and register/Q are done
-    motion/Q       Stage IV                                       calibrate/Q is done
+    register/Q     Stage III's registration of Q's views          sequence/Q is done and S's ``sfm``
+                   (``calibrate.stage.run(only_register=True)``)  step is (it reads only that step's
+                                                                  model: REGISTER_AFTER)
+    calibrate/Q    Stage III (its registration already current)   register/Q is done and S's ``mesh``
+                   (``run(scene_running=True)``)                  step is (CALIBRATE_AFTER: Stage III
+                                                                  reads the raw mesh, not what
+                                                                  ``floor`` and ``simplify`` make)
+    motion/Q       Stage IV                                       scene/S and calibrate/Q are done (the
+                                                                  fit's floor is the simplified mesh)
 
 At most ``workers`` jobs run at once; a free worker takes the ready job that comes first in
 :data:`PRIORITY`: Stage I, then Stage III and IV (the chain after Stage I is the run's critical
 path), then the registration and Stage II, which fit beside Stage I. On the 60 s session the second
-core runs Stage II while Stage I builds its sparse model, and the registration beside Stage I's last
-steps (:data:`REGISTER_AFTER`: not beside the mesh, whose memory peak it would add to), so the
-run's wall time is about Stage I + the rest of Stage III + Stage IV.
+core runs Stage II while Stage I builds its sparse model, then the registration while Stage I fuses
+its mesh (about as long: :data:`REGISTER_AFTER`), then the rest of Stage III beside Stage I's
+``floor`` and ``simplify`` (:data:`CALIBRATE_AFTER`), so the run's wall time is about Stage I's
+key frames, sparse model and mesh + the rest of Stage III + Stage IV.
 
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
-(its imports are paid once), else it is stopped, so no idle process holds memory next to a peak. A worker tells the scheduler which steps it finished (through
+(its imports are paid once), preferably the next job of its own scene or sequence; it waits idle
+when that job waits only on running ones (the registration's worker for Stage I's mesh), else it is
+stopped, so no idle process holds memory next to a peak. A worker tells the scheduler which steps it finished (through
 :data:`embodmocap.io.stage_manifest.STEP_LISTENERS`), forwards its log records to this process's
 handlers, and returns the memory a job freed to the system before the next one.
 
@@ -53,11 +59,16 @@ PRIORITY = ("scene", "calibrate", "motion", "register", "sequence")
 #: The stage each job kind runs, as progress lines and :class:`~embodmocap.pipeline.StageRun` name it.
 STAGE_OF = {"scene": "scene", "sequence": "sequence", "register": "register", "calibrate": "calibrate",
             "motion": "motion"}
-#: The step of Stage I after which the registration starts. It needs only ``sfm``, but Stage I's
-#: memory peaks in ``mesh`` (~3.1 GB on a 15 s scan): a registration beside it (~0.6-0.9 GB on
-#: 60 s views) put the processes' sum above one sequential process's peak. After ``mesh`` it runs
-#: beside ``floor`` and ``simplify`` instead, ~10 s later on the run's critical path.
-REGISTER_AFTER = "mesh"
+#: The step of Stage I after which the registration starts: the one whose sparse model it reads.
+#: It then runs beside Stage I's ``mesh`` (on the 60 s session both take ~28 CPU s), off the run's
+#: critical path. Memory: Stage I's mesh peaks at ~2.9 GB on a 15 s scan and a registration of
+#: 60 s views at ~0.75 GB; with the scheduler at ~0.1 GB (it imports no stage) the sum stays below
+#: the sequential run's peak (~4.1 GB, reached in Stage I). Session 10 waited for ``mesh`` when the
+#: scheduler held ~0.3 GB: the registration's 29 s were then on the critical path.
+REGISTER_AFTER = "sfm"
+#: The step of Stage I after which the rest of Stage III may start: it reads the sparse model and
+#: the raw mesh, not what Stage I's ``floor`` and ``simplify`` steps make, so those two run beside it.
+CALIBRATE_AFTER = "mesh"
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -101,8 +112,8 @@ def plan_jobs(scenes, sequences) -> list[Job]:
     for q, s in sequences:
         jobs += [Job("sequence", q, scene=s),
                  Job("register", q, (f"sequence/{q}", f"scene/{s}#{REGISTER_AFTER}"), s),
-                 Job("calibrate", q, (f"scene/{s}", f"register/{q}"), s),
-                 Job("motion", q, (f"calibrate/{q}",), s)]
+                 Job("calibrate", q, (f"scene/{s}#{CALIBRATE_AFTER}", f"register/{q}"), s),
+                 Job("motion", q, (f"scene/{s}", f"calibrate/{q}"), s)]
     return jobs
 
 
@@ -119,7 +130,8 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
     elif job.kind in ("register", "calibrate"):
         from embodmocap.calibrate.stage import run
 
-        run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register")
+        run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register",
+            scene_running=job.kind == "calibrate")
     elif job.kind == "motion":
         from embodmocap.motion.stage import run
 
@@ -161,11 +173,14 @@ def _received(conn: Connection):
 def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     """A worker's loop: receive ``(job, cfg, session, force)``, run it, send back what happened:
     ``("step", key, stage, step)`` as steps finish, ``("log", record)``, and at the end
-    ``("done", key, status, seconds, message)`` with status ``ok``, ``failed`` (an expected failure
-    of the target), ``error`` (a bug: the traceback) or ``interrupted`` (Ctrl-C; the worker exits)."""
+    ``("done", key, status, seconds, message, digests)`` with status ``ok``, ``failed`` (an expected
+    failure of the target), ``error`` (a bug: the traceback) or ``interrupted`` (Ctrl-C; the worker
+    exits), and the file digests it knows (:func:`~embodmocap.io.stage_manifest.known_digests`), which
+    the scheduler hands to the next jobs: a fresh worker then need not hash a capture's frame files
+    again to check its upstream (2-4 CPU s on the 60 s session)."""
     from embodmocap import errors
     from embodmocap.io import stage_manifest
-    from embodmocap.memory import map_large_blocks, release_freed_memory
+    from embodmocap.memory import map_large_blocks, release_freed_memory, trim_heaps
     from embodmocap.progress import set_quiet
 
     lock = threading.Lock()  # a stage's own threads log too
@@ -181,10 +196,18 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     set_quiet(quiet)
     map_large_blocks()  # as the sequential run does (embodmocap.memory)
     current = [""]
-    stage_manifest.STEP_LISTENERS.append(lambda stage, step: send(("step", current[0], stage, step)))
+
+    def step_done(stage: str, step: str) -> None:
+        send(("step", current[0], stage, step))
+        # What the step freed goes back now, not at the job's end: Stage I's worker kept its mesh
+        # step's ~2 GB through floor and simplify, beside Stage III's refinement (embodmocap.memory).
+        trim_heaps()
+
+    stage_manifest.STEP_LISTENERS.append(step_done)
     errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
-    for job, cfg, session, force in _received(conn):
+    for job, cfg, session, force, digests in _received(conn):
         current[0] = job.key
+        stage_manifest.remember_digests(digests)
         t0 = time.perf_counter()
         status, text = "ok", ""
         try:
@@ -199,7 +222,7 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
                 status, text = "error", traceback.format_exc()
         release_freed_memory()
         try:
-            send(("done", job.key, status, time.perf_counter() - t0, text))
+            send(("done", job.key, status, time.perf_counter() - t0, text, stage_manifest.known_digests()))
         except (BrokenPipeError, OSError):
             return
         if status == "interrupted":
@@ -212,6 +235,7 @@ class _Worker:
     conn: Connection
     job: Job | None = None
     started: float = 0.0
+    last: str = ""  # the scene or sequence of the last job it ran
 
 
 class WorkerPool:
@@ -226,8 +250,11 @@ class WorkerPool:
     def idle(self) -> int:
         return self.size - sum(1 for w in self.workers if w.job is not None)
 
-    def start(self, job: Job) -> None:
-        w = next((w for w in self.workers if w.job is None and w.proc.is_alive()), None)
+    def start(self, job: Job, digests: dict) -> None:
+        """Send ``job`` to an idle worker, preferably one whose last job was of the same scene or
+        sequence (its imports and caches are that target's), else start a worker."""
+        idle = [w for w in self.workers if w.job is None and w.proc.is_alive()]
+        w = next((w for w in idle if w.last == job.name), idle[0] if idle else None)
         if w is None:
             parent, child = self._ctx.Pipe()
             pkg = logging.getLogger("embodmocap")
@@ -239,8 +266,8 @@ class WorkerPool:
             child.close()
             w = _Worker(proc, parent)
             self.workers.append(w)
-        w.job, w.started = job, time.perf_counter()
-        w.conn.send((job, self.cfg, str(self.session), self.force))
+        w.job, w.started, w.last = job, time.perf_counter(), job.name
+        w.conn.send((job, self.cfg, str(self.session), self.force, digests))
 
     def messages(self, timeout: float) -> list[tuple]:
         """What the busy workers sent within ``timeout`` s; a worker that died gives its job
@@ -267,7 +294,7 @@ class WorkerPool:
                 code = w.proc.exitcode
                 why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
                 out.append(("done", w.job.key, "failed", time.perf_counter() - w.started,
-                            f"its worker process died ({why})"))
+                            f"its worker process died ({why})", {}))
                 w.job = None
             if w.job is None and not w.proc.is_alive():
                 self.workers.remove(w)
@@ -290,11 +317,14 @@ class WorkerPool:
             except KeyboardInterrupt:  # a second Ctrl-C: stop waiting
                 break
 
-    def stop_idle(self) -> None:
-        """Stop the idle workers (called when no job is ready for them): an idle worker's imports
-        and heap are hundreds of MB next to a running stage's peak (Stage I's mesh, Stage IV's
-        fit); a fresh worker starts when a job is ready (seconds of imports)."""
-        for w in [w for w in self.workers if w.job is None]:
+    def stop_idle(self, keep: set[str] = frozenset()) -> None:
+        """Stop the idle workers (called when no job is ready for them) but those whose last job was
+        of a target in ``keep`` (a job of it will be ready when a running job gets on): an idle
+        worker's imports and heap are hundreds of MB next to a running stage's peak (Stage I's mesh,
+        Stage IV's fit), while a fresh worker costs seconds of start-up (spawn, imports, caches) on
+        the run's critical path when the job it waits for is the next step of the chain (Stage
+        III's refinement after its registration, waiting for Stage I's mesh)."""
+        for w in [w for w in self.workers if w.job is None and w.last not in keep]:
             try:
                 w.conn.send(None)
             except (OSError, BrokenPipeError):
@@ -345,6 +375,7 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
     by_key = {j.key: j for j in jobs}
     state = {j.key: "pending" for j in jobs}
     steps: set[str] = set()  # "key#step" of the steps running jobs reported
+    digests: dict = {}  # the file digests the workers computed (stage_manifest.known_digests)
     pool = WorkerPool(workers, cfg, session, force)
 
     def met(need: str) -> bool:
@@ -377,7 +408,8 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
         elif msg[0] == "step":
             steps.add(f"{msg[1]}#{msg[3]}")
         elif msg[0] == "done":
-            _, key, status, seconds, text = msg
+            _, key, status, seconds, text, known = msg
+            digests.update(known)
             job = by_key[key]
             stage = STAGE_OF[job.kind]
             if status == "ok":
@@ -402,10 +434,12 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
                     if pool.idle() > 0 and j.kind == kind and state[j.key] == "pending" and all(map(met, j.needs)):
                         state[j.key] = "running"
                         say(f"{j.target}: {STAGE_OF[j.kind]} ...")
-                        pool.start(j)
+                        pool.start(j, digests)
             if not any(s == "running" for s in state.values()):
                 break
-            pool.stop_idle()
+            # Kept: a worker of a target whose next job waits only on running ones (see stop_idle).
+            pool.stop_idle({j.name for j in jobs if state[j.key] == "pending" and all(
+                met(n) or state[n.split("#")[0]] == "running" for n in j.needs)})
             for msg in pool.messages(0.5):
                 handle(msg)
             if any(s == "interrupted" for s in state.values()):

@@ -74,13 +74,17 @@ class CalibrateOutputs:
 
 @tracked_stage
 def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, force: bool = False,
-        only_register: bool = False) -> CalibrateOutputs | None:
+        only_register: bool = False, scene_running: bool = False) -> CalibrateOutputs | None:
     """Run Stage III for sequence ``seq`` (the only one when None).
 
     ``only_register``: step 1 only, for ``embodmocap run`` on several cores (:mod:`embodmocap.schedule`),
     which starts it while Stage I still fuses the mesh: of Stage I it needs only the finished
     ``sfm`` step; a view that must be placed through the performer (which needs the mesh) is left
     to the whole stage. The manifest then ends ``partial`` and nothing is returned.
+
+    ``scene_running``: the whole stage while Stage I still runs its last steps (``floor``,
+    ``simplify``, which Stage III does not read), for the same scheduler: of Stage I it needs the
+    finished ``sfm`` and ``mesh`` steps (:func:`require_step`) in place of the finished stage.
     """
     lay = SessionLayout(Path(session))
     entry = load_manifest(lay.manifest).sequence(seq)
@@ -88,15 +92,17 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     out = lay.sequence(entry.name)
     names = entry.view_names  # ("v1", "v2"), or ("v1",) for a one-phone sequence
     scene_up = Upstream(scene.manifest, "scene", f"embodmocap scene {lay.root} --scene {entry.scene}")
-    if only_register:
-        require_step(scene_up, "sfm")
+    if only_register or scene_running:
+        # Stage I is still running (embodmocap.schedule): the steps this call reads must be done.
+        for step in ("sfm",) if only_register else ("sfm", "mesh"):
+            require_step(scene_up, step)
     if not scene.sfm_model.is_dir() or not (only_register or scene.mesh_raw.is_file()):
         raise InputError(scene.root, "Stage I outputs are missing", f"run `embodmocap scene {lay.root} --scene {entry.scene}` first")
     for v in names:
         if not out.view(v).cameras.is_file() or not out.view(v).keypoints.is_file():
             raise InputError(out.view(v).root, "Stage II outputs are missing", f"run `embodmocap sequence {lay.root} --seq {entry.name}` first")
     sm = StageManifest(out.calibrate_manifest, "calibrate", cfg, root=lay.root, upstream=[
-        *([] if only_register else [scene_up]),
+        *([] if only_register or scene_running else [scene_up]),
         Upstream(out.manifest, "sequence", f"embodmocap sequence {lay.root} --seq {entry.name}")],
         inputs=[scene.sfm_dir, scene.mesh_raw, *[getattr(out.view(v), k) for v in names
                                                   for k in ("cameras", "keypoints", "masks", "depth")]])

@@ -58,6 +58,20 @@ MAX_MANIFEST_BYTES = 64 << 20
 _DIGESTS: dict[tuple, str] = {}
 
 
+def known_digests() -> dict[tuple, str]:
+    """The file digests this process has computed (a copy), for :func:`remember_digests` in
+    another process on the same files: ``embodmocap run``'s workers share them (a fresh worker
+    would otherwise hash a capture's thousands of frame files again to check its upstream)."""
+    return dict(_DIGESTS)
+
+
+def remember_digests(digests: dict[tuple, str]) -> None:
+    """Take digests another process computed (:func:`known_digests`). Safe between processes on
+    one machine: a key holds the file's device, inode, size and modification time, so a rewritten
+    file misses it as it would in the process that hashed it."""
+    _DIGESTS.update(digests)
+
+
 def file_digest(path: str | Path) -> str:
     """A content fingerprint of one file (hex, 32 characters).
 
