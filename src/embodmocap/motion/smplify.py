@@ -52,10 +52,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
+from embodmocap.geometry.rotations import smooth_rotvecs
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.fit_workers import run_pieces
@@ -299,6 +301,24 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
     edge = TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)
     edge = tt(TM.edge_hold_weights(edge, c2 > 0, cfg.edge_hold)) if on else None
     return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
+
+
+def smooth_motion(go: NDArray, pose: NDArray, transl: NDArray, sigma: float,
+                  valid: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """Per-frame SMPL rotations (T, 3) ``go``, (T, 69) ``pose`` and translations (T, 3) smoothed
+    through time by a Gaussian of ``sigma`` frames (rotations as quaternions,
+    :func:`~embodmocap.geometry.rotations.smooth_rotvecs`), each run of ``valid`` (T,) frames on
+    its own (an unplaced frame's body is a guess that must not leak into its placed neighbours;
+    the unplaced frames themselves are left as given). ``valid`` None = one run."""
+    go, pose, transl = (np.array(x, dtype=np.float64) for x in (go, pose, transl))
+    T = len(go)
+    ok = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):  # runs [a, b) of valid frames
+        go[a:b] = smooth_rotvecs(go[a:b], sigma)
+        pose[a:b] = smooth_rotvecs(pose[a:b].reshape(b - a, 23, 3), sigma).reshape(b - a, 69)
+        transl[a:b] = gaussian_filter1d(transl[a:b], sigma, axis=0, mode="nearest")
+    return go, pose, transl
 
 
 # ---------------------------------------------------------------------------------------------
@@ -602,6 +622,9 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
     if floor_z is not None:
         data = replace(data, floor=torch.as_tensor(float(floor_z), dtype=dtype, device=device))
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    if cfg.init_smooth_frames > 0:  # a jittery start slows Adam under the smoothness terms (see the setting)
+        go, pose, transl = smooth_motion(init.global_orient, init.body_pose, init.transl, cfg.init_smooth_frames, valid)
+        init = replace(init, global_orient=go, body_pose=pose, transl=transl)
     start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
 
     timing: dict[str, float] = {}
@@ -614,6 +637,8 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
 
     # float64 out whatever the fit's dtype: the files and the stages after the fit are float64.
     go, pose, transl, betas = (np.asarray(x, dtype=np.float64) for x in (go, pose, transl, betas))
+    if cfg.output_smooth_frames > 0:
+        go, pose, transl = smooth_motion(go, pose, transl, cfg.output_smooth_frames, valid)
     params = SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=init.fps, gender=init.gender)
     before = _evaluate(body, start, data, cfg, names)
     after_state = _State(tt(betas), tt(go), tt(pose), tt(transl))
