@@ -78,8 +78,7 @@ def test_the_term_removes_the_heading_wobble_of_noisy_hip_and_shoulder_keypoints
     truth = _heading_deg(joints)
     out = {}
     for w in (0.0, 10.0):
-        # The term alone: the filter of the output (output_smooth_frames) off in both fits.
-        cfg = SmplifyConfig(device="cpu", w_orient_acc=w, output_smooth_frames=0.0)
+        cfg = SmplifyConfig(device="cpu", w_orient_acc=w)
         res = fit_world_smpl(body, noisy, np.ones(coco.shape[:2]), views, init, None, cfg)
         j, _ = _joints(body, res.params)
         err = (_heading_deg(j) - truth + 180.0) % 360.0 - 180.0
