@@ -168,6 +168,16 @@ class SmplifyConfig:
     ``w_joint_acc`` 45 and ``w_orient_acc`` 10: 32.1 / 27.0 / 39.0 -> 17.2 / 17.0 / 17.3
     (session 11). Off by default: alone it changed W-MPJPE c100 by -0.5..+1.4 mm on the hard seeds
     (the anchors' two frames); it is what makes the stronger smoothing weights usable."""
+    acc_cut_unplaced: bool = False
+    """True: the joint and torso-orientation acceleration terms (``w_joint_acc``,
+    ``w_orient_acc``) leave out the second differences whose three frames mix placeable and
+    unplaceable ones, so the smoothing does not pull the placed frames beside a gap towards the
+    unplaced frames' (one-view, often wrong) bodies; the velocity terms still join them. Why: with
+    ``w_joint_acc`` 45 and ``w_orient_acc`` 10 the root error of hard seed 6 beside its gap of
+    unplaced frames (140-159) doubled (RTE 0.527 -> 0.657 %). Off by default: with those weights
+    and both filters (session 11, Stage IV in memory, hard seeds 0-7 and 9) it halved that rise
+    (0.586 %, still 11 % over) but raised W-MPJPE c100 on seed 1 (28.8 -> 33.9 mm; 28.7 without
+    the cut)."""
     output_smooth_frames: float = 0.0
     """Std (frames) of a Gaussian through time applied to the fitted rotations and translation
     after the fit, within each run of placeable frames (the frames flagged unplaceable left as
