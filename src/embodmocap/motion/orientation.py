@@ -23,6 +23,7 @@ biased, and WA-MPJPE and RTE get worse (benchmarks/history/2026-12-05-s10-yaw.md
 from __future__ import annotations
 
 import torch
+from embodmocap.motion.terms import same_run_triples
 
 #: SMPL joints of the torso frame: pelvis, hips, neck, shoulders.
 PELVIS, L_HIP, R_HIP, NECK, L_SHOULDER, R_SHOULDER = 0, 1, 2, 12, 16, 17
@@ -57,7 +58,5 @@ def torso_acc_term(joints: torch.Tensor, placed: torch.Tensor | None = None) -> 
     R = torso_frames(joints)
     d2 = 0.5 * ((R[2:] - 2.0 * R[1:-1] + R[:-2]) ** 2).sum((-1, -2))  # (T-2,)
     if placed is not None:  # (T,) 1 placeable, 0 not: a difference spanning both counts 0
-        p = placed
-        d2 = d2 * (1.0 - (torch.maximum(torch.maximum(p[2:], p[1:-1]), p[:-2])
-                          - torch.minimum(torch.minimum(p[2:], p[1:-1]), p[:-2])))
+        d2 = d2 * same_run_triples(placed)
     return d2.mean()

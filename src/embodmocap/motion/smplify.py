@@ -352,18 +352,12 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
-        if d.placed is not None and joints.shape[0] >= 3:
-            # Second differences that span a placed / unplaced boundary count 0 (cfg.acc_cut_unplaced).
-            p = d.placed
-            cut = 1.0 - (torch.maximum(torch.maximum(p[2:], p[1:-1]), p[:-2]) - torch.minimum(torch.minimum(p[2:], p[1:-1]), p[:-2]))
-            d2 = ((joints[2:] - 2.0 * joints[1:-1] + joints[:-2]) ** 2).sum(-1).mean(-1)  # (T-2,)
-            out["joint_acc"] = cfg.w_joint_acc * (cut * d2).mean()
-        else:
-            out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
+        # d.placed (cfg.acc_cut_unplaced): the differences spanning a placed / unplaced boundary count 0
+        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints, d.placed)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
         if cfg.w_orient_acc > 0:  # the torso's heading held smooth (motion.orientation)
-            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints, None if d.placed is None else d.placed)
+            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints, d.placed)
         if d.edge is not None:
             out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
