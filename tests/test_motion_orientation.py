@@ -56,6 +56,26 @@ def test_torso_frame_and_its_acceleration_known_answers():
     assert float(torso_acc_term(torch.as_tensor(_turning_torso(wobble[:2])))) == 0.0
 
 
+def test_the_cut_at_unplaced_frames_drops_only_the_differences_that_span_a_boundary():
+    # Frames 10-14 unplaced (their heading a wrong guess 1 rad off, held); the placed ones turn at a
+    # constant angular acceleration a. With the cut the jumps at 9-10 and 14-15 cost nothing, and
+    # what is left is a^2 over the second differences inside one run (mean over all T - 2).
+    t = np.arange(30, dtype=np.float64)
+    a = 0.002
+    yaw = 0.5 * a * (t - 14.5) ** 2
+    yaw[10:15] = 1.0
+    placed = np.ones(30)
+    placed[10:15] = 0.0
+    J = torch.as_tensor(_turning_torso(yaw))
+    full = float(torso_acc_term(J))
+    cut = float(torso_acc_term(J, torch.as_tensor(placed)))
+    inside = 8 + 13  # triples wholly in frames 0-9 and 15-29; those in 10-14 cost 0 (held)
+    assert cut == pytest.approx(a ** 2 * inside / 28, rel=0.05)
+    assert full > 1e3 * cut  # the jumps dominate without the cut
+    # All frames placed: the cut changes nothing.
+    assert float(torso_acc_term(J, torch.ones(30, dtype=J.dtype))) == pytest.approx(full, rel=1e-12)
+
+
 @pytest.fixture(scope="module")
 def walk():
     body = load_body_model(None)

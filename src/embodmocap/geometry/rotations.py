@@ -162,6 +162,27 @@ def rotvec_between(a: F, b: F) -> F:
     return ax / np.linalg.norm(ax, axis=-1, keepdims=True).clip(min=1e-12) * ang[..., None]
 
 
+def smooth_rotvecs(v: F, sigma: float) -> F:
+    """Rotation vectors (T, ..., 3) smoothed along axis 0 by a Gaussian of ``sigma`` samples.
+
+    Each series' quaternions are put on one hemisphere sample by sample (``q`` and ``-q`` are the
+    same rotation; a sign flip between neighbours would average to nonsense), filtered component by
+    component (the ends repeated) and normalised: for neighbours a few degrees apart this is the
+    weighted rotation mean to second order. ``sigma`` <= 0 or fewer than 2 samples: ``v`` as given.
+    """
+    from scipy.ndimage import gaussian_filter1d
+
+    v = np.array(v, dtype=np.float64)  # a writable copy (SciPy refuses read-only buffers)
+    if sigma <= 0 or v.shape[0] < 2:
+        return v
+    q = rotvec_to_quat(v)
+    # Running product of the signs: each sample on the hemisphere of the one before it.
+    flip = np.where((q[1:] * q[:-1]).sum(-1) < 0, -1.0, 1.0)
+    q = q * np.concatenate([np.ones_like(flip[:1]), np.cumprod(flip, axis=0)], 0)[..., None]
+    q = gaussian_filter1d(q, sigma, axis=0, mode="nearest")
+    return quat_to_rotvec(q / np.linalg.norm(q, axis=-1, keepdims=True).clip(min=1e-12))
+
+
 # ------------------------------------------------------------------------------- torch (autograd)
 
 

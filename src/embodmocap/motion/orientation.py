@@ -23,6 +23,7 @@ biased, and WA-MPJPE and RTE get worse (benchmarks/history/2026-12-05-s10-yaw.md
 from __future__ import annotations
 
 import torch
+from embodmocap.motion.terms import same_run_triples
 
 #: SMPL joints of the torso frame: pelvis, hips, neck, shoulders.
 PELVIS, L_HIP, R_HIP, NECK, L_SHOULDER, R_SHOULDER = 0, 1, 2, 12, 16, 17
@@ -41,7 +42,7 @@ def torso_frames(joints: torch.Tensor) -> torch.Tensor:
     return torch.stack([left, up, torch.linalg.cross(left, up)], -1)
 
 
-def torso_acc_term(joints: torch.Tensor) -> torch.Tensor:
+def torso_acc_term(joints: torch.Tensor, placed: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared angular acceleration of the torso frame (:func:`torso_frames`) of joints
     (T, 24, 3), rad^2 per frame^2; 0 for fewer than 3 frames.
 
@@ -49,10 +50,13 @@ def torso_acc_term(joints: torch.Tensor) -> torch.Tensor:
     terms of the squared angular velocity, so half its squared Frobenius norm is ``|a|^2`` for
     small steps (``a`` the angular acceleration in rad per frame^2); a turn at a constant rate of
     ``w`` rad per frame costs about ``w^4`` (1e-5 for a quarter turn per second). Mean over the
-    ``T - 2`` frames.
+    ``T - 2`` frames. ``placed`` (T,) 1 for a placeable frame, 0 not (``SmplifyConfig.acc_cut_unplaced``):
+    the second differences whose three frames mix both count 0 (still divided by ``T - 2``).
     """
     if joints.shape[0] < 3:
         return joints.sum() * 0.0
     R = torso_frames(joints)
-    d2 = R[2:] - 2.0 * R[1:-1] + R[:-2]
-    return 0.5 * (d2 ** 2).sum((-1, -2)).mean()
+    d2 = 0.5 * ((R[2:] - 2.0 * R[1:-1] + R[:-2]) ** 2).sum((-1, -2))  # (T-2,)
+    if placed is not None:  # (T,) 1 placeable, 0 not: a difference spanning both counts 0
+        d2 = d2 * same_run_triples(placed)
+    return d2.mean()

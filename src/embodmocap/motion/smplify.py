@@ -52,10 +52,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter1d
 
 from embodmocap.body.joints import coco17_matrix, face_vertex_ids
 from embodmocap.body.model import BodyModel
 from embodmocap.geometry.rotations import rotvec_to_matrix_torch as axis_angle_to_matrix
+from embodmocap.geometry.rotations import smooth_rotvecs
 from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.fit_workers import run_pieces, start_workers
@@ -243,11 +245,13 @@ class _Data:
     prior_conf: torch.Tensor | None  # (T,)
     edge: torch.Tensor | None = None  # (T, 24, 1 + V) or (T,) edge velocity weights (TM.edge_hold_weights)
     floor: torch.Tensor | None = None  # () the scene's floor height (motion.floor), None = no floor term
+    placed: torch.Tensor | None = None  # (T,) 1 placeable frame, 0 not (cfg.acc_cut_unplaced), None = no cut
 
     def slice(self, idx: slice | torch.Tensor) -> "_Data":
         cut = lambda x: None if x is None else x[idx]  # noqa: E731
         return _Data(cut(self.kp3d), cut(self.conf3d), self.K, cut(self.T_world_cam), cut(self.kp2d),
-                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge), self.floor)
+                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge), self.floor,
+                     cut(self.placed))
 
 
 def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: SmplParams, prior, model_betas: int) -> int:
@@ -302,6 +306,24 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
     return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 
+def smooth_motion(go: NDArray, pose: NDArray, transl: NDArray, sigma: float,
+                  valid: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """Per-frame SMPL rotations (T, 3) ``go``, (T, 69) ``pose`` and translations (T, 3) smoothed
+    through time by a Gaussian of ``sigma`` frames (rotations as quaternions,
+    :func:`~embodmocap.geometry.rotations.smooth_rotvecs`), each run of ``valid`` (T,) frames on
+    its own (an unplaced frame's body is a guess that must not leak into its placed neighbours;
+    the unplaced frames themselves are left as given). ``valid`` None = one run."""
+    go, pose, transl = (np.array(x, dtype=np.float64) for x in (go, pose, transl))
+    T = len(go)
+    ok = np.ones(T, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):  # runs [a, b) of valid frames
+        go[a:b] = smooth_rotvecs(go[a:b], sigma)
+        pose[a:b] = smooth_rotvecs(pose[a:b].reshape(b - a, 23, 3), sigma).reshape(b - a, 69)
+        transl[a:b] = gaussian_filter1d(transl[a:b], sigma, axis=0, mode="nearest")
+    return go, pose, transl
+
+
 # ---------------------------------------------------------------------------------------------
 # Objective
 # ---------------------------------------------------------------------------------------------
@@ -331,11 +353,12 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
-        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
+        # d.placed (cfg.acc_cut_unplaced): the differences spanning a placed / unplaced boundary count 0
+        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints, d.placed)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
         if cfg.w_orient_acc > 0:  # the torso's heading held smooth (motion.orientation)
-            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints)
+            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints, d.placed)
         if d.edge is not None:
             out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
@@ -431,7 +454,8 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
 
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
-        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor)
+        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor,
+                  d.placed)
         dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
         def total(phase):
@@ -612,9 +636,14 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
         data = _Data(data.kp3d, data.conf3d, data.K, data.T_world_cam, data.kp2d, data.conf2d, data.prior,
                      data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device),
                      data.edge)
+    if cfg.acc_cut_unplaced and valid is not None:
+        data = replace(data, placed=torch.as_tensor(np.asarray(valid, dtype=np.float64), dtype=dtype, device=device))
     if floor_z is not None:
         data = replace(data, floor=torch.as_tensor(float(floor_z), dtype=dtype, device=device))
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+    if cfg.init_smooth_frames > 0:  # a jittery start slows Adam under the smoothness terms (see the setting)
+        go, pose, transl = smooth_motion(init.global_orient, init.body_pose, init.transl, cfg.init_smooth_frames, valid)
+        init = replace(init, global_orient=go, body_pose=pose, transl=transl)
     start = _State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
 
     timing: dict[str, float] = {}
@@ -627,6 +656,8 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
 
     # float64 out whatever the fit's dtype: the files and the stages after the fit are float64.
     go, pose, transl, betas = (np.asarray(x, dtype=np.float64) for x in (go, pose, transl, betas))
+    if cfg.output_smooth_frames > 0:
+        go, pose, transl = smooth_motion(go, pose, transl, cfg.output_smooth_frames, valid)
     params = SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=init.fps, gender=init.gender)
     before = _evaluate(body, start, data, cfg, names)
     after_state = _State(tt(betas), tt(go), tt(pose), tt(transl))
