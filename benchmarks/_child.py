@@ -79,6 +79,26 @@ def _kb(path: str, key: str) -> int:
     return 0
 
 
+def communicate_sampling(proc: subprocess.Popen, sample, every_s: float) -> tuple:
+    """``proc.communicate()`` while a thread calls ``sample()`` every ``every_s`` seconds until the
+    child has exited (the child's process tree is only visible while it runs, so the benchmarks
+    that measure memory or CPU per process poll it from beside the wait)."""
+    done = threading.Event()
+
+    def loop() -> None:
+        while not done.is_set():
+            sample()
+            done.wait(every_s)
+
+    th = threading.Thread(target=loop, daemon=True)
+    th.start()
+    try:
+        return proc.communicate()
+    finally:
+        done.set()
+        th.join()
+
+
 def run_cli_tree(*args: str, src: str | None = None, every_s: float = 0.2) -> dict:
     """:func:`run_cli_usage` for a command that may start worker processes (``embodmocap run``
     with ``--workers``): besides the child's own peak, the peak over time of the sum of the resident
@@ -97,23 +117,16 @@ def run_cli_tree(*args: str, src: str | None = None, every_s: float = 0.2) -> di
     proc = subprocess.Popen([sys.executable, "-c", _CODE, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env)
     peak = {"rss": 0, "pss": 0, "n": 0}
-    done = threading.Event()
 
     def sample() -> None:
-        while not done.is_set():
-            pids = _tree(proc.pid)
-            rss = sum(_kb(f"/proc/{p}/status", "VmRSS") for p in pids)
-            pss = sum(_kb(f"/proc/{p}/smaps_rollup", "Pss") for p in pids)
-            peak["rss"], peak["pss"] = max(peak["rss"], rss), max(peak["pss"], pss)
-            peak["n"] = max(peak["n"], len(pids))
-            done.wait(every_s)
+        pids = _tree(proc.pid)
+        rss = sum(_kb(f"/proc/{p}/status", "VmRSS") for p in pids)
+        pss = sum(_kb(f"/proc/{p}/smaps_rollup", "Pss") for p in pids)
+        peak["rss"], peak["pss"] = max(peak["rss"], rss), max(peak["pss"], pss)
+        peak["n"] = max(peak["n"], len(pids))
 
-    th = threading.Thread(target=sample, daemon=True)
-    th.start()
-    out, err = proc.communicate()
+    out, err = communicate_sampling(proc, sample, every_s)
     wall = time.perf_counter() - t0
-    done.set()
-    th.join()
     if proc.returncode != 0:
         raise RuntimeError(f"embodmocap {' '.join(args)} failed ({proc.returncode}):\n{out[-2000:]}{err[-4000:]}")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)

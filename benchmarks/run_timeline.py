@@ -27,11 +27,10 @@ import re
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-from _child import _tree
+from _child import _tree, communicate_sampling
 
 _CODE = r"""
 import inspect, logging, sys, time
@@ -81,26 +80,18 @@ def record(session: Path, src: str | None, workers: int, log_path: Path, every: 
     t0 = time.time()
     proc = subprocess.Popen([sys.executable, "-c", _CODE, str(log_path), str(session), str(workers)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    done = threading.Event()
-
     def sample() -> None:
-        while not done.is_set():
-            t = time.time() - t0
-            procs = {}
-            for p in _tree(proc.pid):
-                got = _ticks(p)
-                if got is not None:
-                    procs[p] = got
-            samples.append({"t": t, "machine": _machine(), "procs": {p: v[:2] for p, v in procs.items()},
-                            "cmd": {p: v[2][:200] for p, v in procs.items()}})
-            done.wait(every)
+        t = time.time() - t0
+        procs = {}
+        for p in _tree(proc.pid):
+            got = _ticks(p)
+            if got is not None:
+                procs[p] = got
+        samples.append({"t": t, "machine": _machine(), "procs": {p: v[:2] for p, v in procs.items()},
+                        "cmd": {p: v[2][:200] for p, v in procs.items()}})
 
-    th = threading.Thread(target=sample, daemon=True)
-    th.start()
-    out, _ = proc.communicate()
+    out, _ = communicate_sampling(proc, sample, every)
     wall = time.time() - t0
-    done.set()
-    th.join()
     recs = []
     for line in log_path.read_text(encoding="utf-8").splitlines():
         parts = line.split("\t", 3)
