@@ -18,7 +18,7 @@ STEPS = StageSteps("motion", MotionConfig, (
     Step("fit", after=("triangulate",), reads=("<view>/body_prior.npz", "body model", "<view>/depth.npy", "<view>/masks.npy", "scene mesh"), context=("layout", "gender"),
          settings=("smplify", "use_body_prior", "min_prior_fraction", "min_frame_joints", "max_poor_fraction",
                    "min_valid_joints", "prior_disagree_m", "prefer_keypoints", "prior_limb_disagree_m", "bone_tol", "torso_tol_m", "bone_anchor_torso",
-                   "propagate_limbs", "turn_unplaced", "kp3d_conf", "init_median_frames", "quality", "leg_sides"),
+                   "propagate_limbs", "turn_unplaced", "kp3d_conf", "init_median_frames", "reach_min_conf_one_view", "quality", "leg_sides"),
          writes=(_DIR + "smpl_fit.npz",), doc="world SMPLify on the 3D and 2D keypoints"),
     Step("align", after=("fit",), reads=("<view>/cameras_world.npz",), context=("contacts",),
          settings=("contact", "align_contacts"),
