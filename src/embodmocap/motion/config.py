@@ -312,6 +312,8 @@ class MotionConfig:
     right leg and arm on such points in its first frames (W-MPJPE 161 -> 194 mm, the chunk being
     aligned on its first two frames); with the gate 161 mm, while the hard one-phone seed 3 keeps
     what reaching its confident end points gives (WA 33.3 -> 33.0 mm against 36.0 without reaching).
+    A trade on the hard one-phone seeds 0-4: W c100 -12 % on seed 4, +3-4 % on seeds 0 and 2
+    (PA +3 % on seed 2), WA/PA about even on the mean (history 2026-12-05-s11-onephone).
     Two views: every seen end point, as measured there; 0 = every seen end point here too."""
     prior_disagree_m: float = 0.2
     """A frame whose prior-started body is this much further (median over the triangulated joints)
