@@ -407,9 +407,12 @@ def place_torso(sk: RestSkeleton, b: NDArray, points: NDArray, seen: NDArray[np.
 
 
 def limb_ik(sk: RestSkeleton, b: NDArray, R_local: NDArray, pelvis: NDArray, points: NDArray,
-            seen: NDArray[np.bool_], min_bend_deg: float = 15.0) -> NDArray:
+            seen: NDArray[np.bool_], min_bend_deg: float = 15.0,
+            reach: NDArray[np.bool_] | None = None) -> NDArray:
     """Local rotations (T, 24, 3, 3) with the four limbs' root and hinge joints set by analytic IK
-    (see the module docstring); other joints as given in ``R_local``."""
+    (see the module docstring); other joints as given in ``R_local``. ``reach`` (T, 17): the end
+    points a limb whose middle joint is not seen is bent to reach (:func:`reach_end`; default:
+    every seen one)."""
     R_local = R_local.copy()
     J = sk.joints(b)
     Rw, pos = _fk(sk, b, R_local)
@@ -451,7 +454,7 @@ def limb_ik(sk: RestSkeleton, b: NDArray, R_local: NDArray, pelvis: NDArray, poi
         # End point seen, middle joint not (a wrist lifted from one view's depth, its elbow
         # hidden): the filled limb can be far off, and the fit's robust term then writes the end
         # point off. Reach it instead, bent in the plane of the filled (neighbouring) pose.
-        only_end = seen[:, k_end] & ~ok1
+        only_end = (seen if reach is None else reach)[:, k_end] & ~ok1
         if only_end.any():
             R_local[only_end, root], R_local[only_end, hinge] = reach_end(
                 J[hinge] - J[root], sk.keypoints(b)[k_end] - J[hinge], np.asarray(axis), Rp[only_end],
@@ -490,7 +493,7 @@ def reach_end(b1: NDArray, b2: NDArray, axis: NDArray, R_parent: NDArray, R_root
 
 
 def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_conf: float = 0.1,
-            bone_tol: float | None = None) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
+            bone_tol: float | None = None, reach_min_conf: float = 0.0) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray[np.bool_]]:
     """The whole starting body from triangulated keypoints.
 
     Args:
@@ -500,6 +503,9 @@ def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_c
         conf: (T, 17) their confidence; below ``min_conf`` counts as missing.
         bone_tol: when given, limb points whose bone length is off by more than this fraction
             (:func:`implausible_points`) are not used (interpolated from their neighbours).
+        reach_min_conf: a limb whose middle joint is not seen is bent to reach its seen end point
+            (:func:`reach_end`) only when that point's confidence is at least this; below, the
+            limb keeps the pose filled from its neighbouring frames.
 
     Returns:
         betas (B,), global_orient (T, 3), body_pose (T, 69), transl (T, 3), placed (T,) bool
@@ -523,7 +529,7 @@ def init_ik(model, points: NDArray, conf: NDArray, layout: str = "COCO17", min_c
     R_local[:, 0] = Rotation.from_rotvec(root).as_matrix()
     for j in _SPINE:
         R_local[:, j] = Rotation.from_rotvec(spine).as_matrix()
-    R_local = limb_ik(sk, b, R_local, pelvis, points, seen)
+    R_local = limb_ik(sk, b, R_local, pelvis, points, seen, reach=seen & (np.nan_to_num(conf) >= reach_min_conf))
     rv = Rotation.from_matrix(R_local.reshape(-1, 3, 3)).as_rotvec().reshape(T, 72)
     transl = pelvis - sk.joints(b)[0]
     return b, rv[:, :3], rv[:, 3:], transl, placed

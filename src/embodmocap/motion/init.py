@@ -92,7 +92,8 @@ _I = {n: i for i, n in enumerate(COCO17_NAMES)}
 
 
 def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: float = 30.0,
-                        gender: str = "neutral", min_conf: float = 0.1, layout: str = "COCO17") -> SmplParams:
+                        gender: str = "neutral", min_conf: float = 0.1, layout: str = "COCO17",
+                        reach_min_conf: float = 0.0) -> SmplParams:
     """A posed body on the triangulated keypoints, no regressor needed (:mod:`embodmocap.motion.ik`).
 
     Shape from the observed bone lengths, the root and trunk from a rigid fit of the hips and
@@ -102,11 +103,12 @@ def init_from_keypoints(model: BodyModel, points: NDArray, conf: NDArray, fps: f
         points: (T, 17, 3) COCO-17-ordered keypoints of ``layout`` (whose hip definition,
             :data:`embodmocap.body.joints.HIP_DEFINITIONS`) in the world (Z up), metres (NaN = missing).
         conf: (T, 17) confidences; below ``min_conf`` counts as missing.
+        reach_min_conf: see :func:`embodmocap.motion.ik.init_ik`.
 
     Raises:
         ValueError: bad shapes, or no frame with three of the hips and shoulders.
     """
-    betas, go, pose, transl, _ = init_ik(model, points, conf, layout, min_conf)
+    betas, go, pose, transl, _ = init_ik(model, points, conf, layout, min_conf, reach_min_conf=reach_min_conf)
     return SmplParams(betas=betas, global_orient=go, body_pose=pose, transl=transl, fps=fps, gender=gender)
 
 

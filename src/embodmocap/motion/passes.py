@@ -283,9 +283,12 @@ def keypoint_start(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     from embodmocap.motion.init import init_from_keypoints
 
     cfg = ctx.cfg
+    # One view: an unsure end point was lifted from what its pixel shows (maybe what hides it),
+    # so a hidden limb is bent to reach only a confident one (MotionConfig.reach_min_conf_one_view).
+    reach = cfg.reach_min_conf_one_view if len(ctx.names) == 1 else 0.0
     try:
         kp_init = init_from_keypoints(ctx.model, running_median(ev.points, cfg.init_median_frames), ev.conf, ctx.fps,
-                                      ctx.gender or "neutral", cfg.smplify.min_conf, ctx.layout)
+                                      ctx.gender or "neutral", cfg.smplify.min_conf, ctx.layout, reach_min_conf=reach)
     except ValueError as err:
         if not (cfg.use_body_prior and ctx.priors):
             raise InputError(ctx.source, f"cannot place a starting body in sequence {ctx.label}: {err}",
