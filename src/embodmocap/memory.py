@@ -78,8 +78,4 @@ def release_freed_memory() -> bool:
     (milliseconds for gigabytes). Returns False where the C library has no ``malloc_trim``: nothing
     is released there beyond what the garbage collector frees, and nothing else changes."""
     gc.collect()
-    libc = _glibc()
-    if libc is None:
-        return False
-    libc.malloc_trim(0)
-    return True
+    return trim_heaps()

@@ -76,11 +76,9 @@ INTERRUPT_GRACE_S = 30.0
 def default_workers() -> int:
     """Usable cores (the process's CPU affinity), at most 2: the stages beside each other fill two
     cores; a third worker would find nothing ready on a one-sequence session."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(2, cores))
+    from embodmocap.parallel import usable_cores
+
+    return min(2, usable_cores())
 
 
 @dataclass(frozen=True)
