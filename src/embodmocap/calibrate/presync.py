@@ -88,6 +88,7 @@ def track_pairs_on_clock(views: Mapping[str, ViewInputs], frames: NDArray, resid
     """
     from embodmocap.calibrate import losses as L
     from embodmocap.geometry.interpolate import bracket
+    from embodmocap.geometry.transforms import apply_T, invert_T
     from embodmocap.sequence.subframe import frame_times
 
     v1, v2 = VIEWS
@@ -138,7 +139,7 @@ def track_pairs_on_clock(views: Mapping[str, ViewInputs], frames: NDArray, resid
 
     def vio(k, xy, d):  # view 2's frame-k pixels with depth -> its VIO world
         p = L.backproject(xy, d, c2["K"], behind[ji])
-        return np.einsum("nij,nj->ni", T2[k, :3, :3], p) + T2[k, :3, 3]
+        return apply_T(T2[k], p[:, None])[:, 0]
 
     y = vio(k0[fi], b0[fi, ji, :2], d0)
     if two.any():
@@ -147,6 +148,6 @@ def track_pairs_on_clock(views: Mapping[str, ViewInputs], frames: NDArray, resid
         y = np.where(two[:, None], (1.0 - ww) * y + ww * y1, y)
     f = frames[fi]
     # Back into view 2's frame-f camera: the refinement indexes both views' cameras by one frame.
-    pb = np.einsum("nji,nj->ni", T2[f, :3, :3], y - T2[f, :3, 3])
+    pb = apply_T(invert_T(T2[f]), y[:, None])[:, 0]
     log.debug("track pairs on view %s's clock (view %s %+.3f frames): %d pairs", v1, v2, residual_s * fps, len(f))
     return L.make_track_pairs(VIEWS, f, pa, pb, conf[fi, ji])

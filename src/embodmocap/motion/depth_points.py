@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.geometry.keypoint_depth import JOINT_DEPTH_BEHIND_SURFACE_M, backproject
+from embodmocap.geometry.transforms import apply_T
 from embodmocap.motion.seen_surface import surface_points
 
 #: COCO-17 elbows, wrists, knees, ankles: the joints one view's depth may place.
@@ -130,8 +131,7 @@ def place_one_view_joints(points: NDArray, conf: NDArray, filled: NDArray | None
         if not len(t_idx):
             continue
         cam = backproject(kp2d[t_idx, i, j_idx, :2], zmed[t_idx, j_idx], K[i], behind[j_idx])
-        Tw = T_world_cam[t_idx, i]
-        world = np.einsum("nab,nb->na", Tw[:, :3, :3], cam) + Tw[:, :3, 3]
+        world = apply_T(T_world_cam[t_idx, i], cam[:, None])[:, 0]
         out_p[t_idx, j_idx] = world
         out_c[t_idx, j_idx] = cfg.conf_scale * kp2d[t_idx, i, j_idx, 2]
         out_f[t_idx, j_idx] = False
