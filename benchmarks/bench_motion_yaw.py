@@ -25,7 +25,7 @@ def run(job):
     from embodmocap.io.stage_files import sequence_fps
     from embodmocap.motion import solve as s4
     from embodmocap.motion.floor import scene_floor_z
-    from embodmocap.motion.stage import scene_mesh
+    from embodmocap.motion.stage import _depth_tests, quality_depth, scene_mesh
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.manifest import load_manifest
     ss = stage4_session(s)
@@ -40,7 +40,9 @@ def run(job):
         priors = ctx._priors(mcfg.min_prior_fraction, ss.T) if mcfg.use_body_prior else {}
         floor = scene_floor_z(scene_mesh(mcfg, lay, scene), mcfg.smplify.floor_max_tilt_deg, ss.seq)
         fit = s4.fit_motion(mcfg, ss.model, tri.file, ss.cams, ss.kps, ss.T, sequence_fps(ctx.sl), priors, ss.layout,
-                            ss.gender, label=ss.seq, floor_z=floor)
+                            ss.gender, label=ss.seq, floor_z=floor,
+                            # as Stage IV: the views' depth for the one-view joints and the quality's tests
+                            depth=quality_depth(ctx.sl, list(ss.cams)) if _depth_tests(mcfg) else None)
         took = time.process_time() - t0
         J = ctx.joints(fit.params)
         e = scored(J, np.arange(len(fit.params)), ss.truth, fit.valid, fit.quality.suspect)
