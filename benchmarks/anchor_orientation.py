@@ -33,13 +33,16 @@ from pathlib import Path
 import numpy as np
 
 def torso_frames(joints: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) torso rotations (columns: left, up, forward in the world) of SMPL joints (T, 24, 3):
-    the frame Stage IV's orientation term smooths (:func:`embodmocap.motion.orientation.torso_frames`)."""
-    import torch
-
-    from embodmocap.motion.orientation import torso_frames as frames
-
-    return frames(torch.as_tensor(np.asarray(joints, dtype=np.float64))).numpy()
+    """(..., 3, 3) torso rotations (columns: the body's left, up and forward in the world) of SMPL
+    joints (..., 24, 3): left = the mean of the hips' and the shoulders' right -> left directions,
+    up = pelvis -> neck made orthogonal to it, forward = left x up (the heading the hip and
+    shoulder keypoints give)."""
+    j = np.asarray(joints, dtype=np.float64)
+    unit = lambda v: v / np.clip(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9, None)  # noqa: E731
+    left = unit(unit(j[..., 1, :] - j[..., 2, :]) + unit(j[..., 16, :] - j[..., 17, :]))
+    up = j[..., 12, :] - j[..., 0, :]
+    up = unit(up - (up * left).sum(-1, keepdims=True) * left)
+    return np.stack([left, up, np.cross(left, up)], -1)
 
 
 def yaw_tilt_deg(R: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

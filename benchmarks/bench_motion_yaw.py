@@ -1,7 +1,7 @@
 """Stage IV re-run in memory on processed sessions under MotionConfig variants, as Stage IV runs it
 (Stage I floor term, body priors, sub-frame sync), scored like ``evaluate``; sessions in parallel.
 
-    OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_motion_yaw.py '{"main": {}, "x": {"smplify.w_orient_acc": 0}}' SESSION ...
+    OMP_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_motion_yaw.py '{"main": {}, "x": {"smplify.w_joint_acc": 45}}' SESSION ...
 
 NPROC (default 2) worker processes; SAVE=DIR writes each fit's joints and parameters. Prints one
 RESULT line per session and variant, then a table of the medians (issue 29: W c100, the anchors)."""

@@ -92,10 +92,11 @@ def test_a_body_on_the_true_floor_is_left_alone(body, motion):
     params, joints, coco = motion
     on_floor = _fit(body, params, coco, [], 0.0)
     without = _fit(body, params, coco, [], None)
-    # Adam's path may brush the floor on the way (a few mm on a joint no keypoint pins); the fit
-    # ends where it would have without it.
+    # Adam's path may brush the floor on the way (on a joint no keypoint pins: the right foot of
+    # frames 52-59 ends 7 mm higher with the start as given, 15 mm from the start smoothed through
+    # time, the default); the fit ends where it would have without it.
     d = np.linalg.norm(on_floor - without, axis=-1)
-    assert d.mean() < 0.001 and d.max() < 0.01
+    assert d.mean() < 0.001 and d.max() < 0.02
     err = [np.linalg.norm(f - joints, axis=-1).mean() for f in (on_floor, without)]
     assert abs(err[0] - err[1]) < 0.0005
 

@@ -189,11 +189,12 @@ def test_ik_start_then_fit_beats_noisy_keypoints_without_a_prior(body, motion):
     assert hips(res.params) < hips(wrong.params)
 
 
-def test_a_smoothed_start_lets_strong_smoothing_converge(body, motion):
-    """The noisy fit above with the smoothing weights of session 10 (joint acceleration 45, torso
-    orientation 10): from the IK start, which jitters with the keypoints, 150 steps end far from the
-    truth (the smoothness terms' large gradients there slow Adam for the rest of the fit); from the
-    same start smoothed through time (``init_smooth_frames``) they end closer than the default fit."""
+def test_a_smoothed_start_lets_strong_smoothing_converge_and_the_filters_help(body, motion):
+    """The noisy fit above, both filters off, with a stronger joint acceleration weight (45 instead
+    of 30): from the IK start, which jitters with the keypoints, 150 steps end farther from the
+    truth than the plain fit (the smoothness term's large gradients there slow Adam for the rest of
+    the fit); from the same start smoothed through time (``init_smooth_frames``) closer. The
+    defaults (the start smoothed, the output filtered: ``output_smooth_frames``) end closer still."""
     params, _, kp = motion
     rng = np.random.default_rng(1)
     noisy = kp["BODY_25"] + rng.normal(size=kp["BODY_25"].shape) * 0.025
@@ -201,14 +202,17 @@ def test_a_smoothed_start_lets_strong_smoothing_converge(body, motion):
     out = rng.random(conf.shape) < 0.03
     noisy[out] += rng.normal(size=(out.sum(), 3)) * 0.3
     init = init_from_keypoints(body, noisy, conf, layout="BODY_25")
+    off = {"init_smooth_frames": 0.0, "output_smooth_frames": 0.0}
     err = {}
-    for name, over in {"default": {}, "strong": {"w_joint_acc": 45.0, "w_orient_acc": 10.0},
-                       "strong_smoothed": {"w_joint_acc": 45.0, "w_orient_acc": 10.0, "init_smooth_frames": 1.0}}.items():
+    for name, over in {"plain": off, "strong": {**off, "w_joint_acc": 45.0},
+                       "strong_smoothed": {**off, "w_joint_acc": 45.0, "init_smooth_frames": 1.0},
+                       "default": {}}.items():
         cfg = SmplifyConfig(device="cpu", phase2_iterations=150, **over)
         res = fit_world_smpl(body, noisy, conf, [], init, None, cfg, layout="BODY_25")
         err[name] = np.median(np.linalg.norm(_coco(body, res.params, "BODY_25") - kp["BODY_25"], axis=-1))
-    assert err["strong"] > 1.3 * err["default"]  # measured 32.1 against 19.3 mm
-    assert err["strong_smoothed"] < 0.95 * err["default"]  # 17.2 mm
+    assert err["strong"] > 1.1 * err["plain"]  # measured 22.5 against 19.3 mm
+    assert err["strong_smoothed"] < 0.95 * err["plain"]  # 17.7 mm
+    assert err["default"] < 0.9 * err["plain"]  # 15.6 mm
 
 
 def test_a_body_model_without_face_vertices_fits_without_the_face(body, motion, caplog):

@@ -52,28 +52,15 @@ class SmplifyConfig:
     default: it biases every real movement towards standing still; acceleration smooths without
     that bias."""
     w_joint_acc: float = 30.0
-    """Weight of the joint acceleration term (per m^2 of second difference per frame^2). 45 with
-    ``w_orient_acc`` 10 lowered WA/PA by about 1 mm on the ten hard studio seeds but made a plain
-    noisy-keypoint fit (tests/test_motion_ik.py, 150 phase-2 steps) 66 % worse: kept at 30
-    (see ``w_orient_acc``; ``init_smooth_frames`` removes that slowness, session 11)."""
+    """Weight of the joint acceleration term (per m^2 of second difference per frame^2). 45 lowered
+    WA/PA on the hard studio seeds by about 1 mm but moved W-MPJPE c100 by -6..+11 mm per seed
+    (its two anchor frames) and slowed a plain noisy-keypoint fit from the IK start (tests/
+    test_motion_ik.py: 19.3 -> 22.5 mm at 150 phase-2 steps): kept at 30
+    (benchmarks/history/2026-12-06-s12-yaw.md)."""
     w_transl_vel: float = 0.0
     """Weight of the translation velocity term (per m^2)."""
     w_transl_acc: float = 30.0
     """Weight of the translation acceleration term (per m^2)."""
-    w_orient_acc: float = 0.0
-    """Weight of the torso orientation term (per rad^2 of angular acceleration per frame^2 of the
-    torso frame of the hips, shoulders, pelvis and neck, :mod:`embodmocap.motion.orientation`):
-    the heading the hip and shoulder keypoints give wobbles by several degrees from frame to frame
-    with their jitter, which the joint acceleration term (weighing a turn by the squared lever of
-    the joints it moves) barely resists. 0 = off (the default). Session 10 (``w_joint_acc`` 30 -> 45
-    with it): W-MPJPE c100 median over ten hard studio seeds 37.1 -> 33.7 mm, WA 22.1 -> 21.1, PA
-    19.5 -> 18.6, but off because a plain noisy-keypoint fit (150 phase-2 steps) converged slowly
-    (32.1 mm from the truth against 19.3). Session 11: with ``init_smooth_frames`` 1 that fit ends
-    at 17.2 mm, and with ``output_smooth_frames`` 0.6 too W c100 / WA / PA fell on all eight hard
-    seeds measured, but RTE rose on seed 6 (0.527 -> 0.657 %: frames beside a gap of unplaced frames
-    pulled along) and seed 9 (0.358 -> 0.364): still off. Larger weights (30-300) slow the fit's
-    convergence and raise RTE by 10-140 % (benchmarks/history/2026-12-05-s10-yaw.md,
-    2026-12-05-s11-yaw2.md)."""
     w_edge_vel: float = 100.0
     """Weight of the edge velocity term (per m^2 of frame-to-frame displacement of the joints
     relative to the pelvis, mean over joints and over all of the sequence's frame differences,
@@ -157,7 +144,7 @@ class SmplifyConfig:
     """Iterations of the limbs stage (between the torso and phase 2); 0 = skipped (see above)."""
     stage_pose_lr: float = 0.03
     """Adam learning rate of the pose in the torso and limbs stages."""
-    init_smooth_frames: float = 0.0
+    init_smooth_frames: float = 1.0
     """Std (frames) of a Gaussian through time applied to the start's rotations (per joint, as
     quaternions) and translation before the fit, within each run of placeable frames
     (:func:`embodmocap.motion.smplify.smooth_motion`); 0 = off. Why: a start built frame by frame
@@ -166,31 +153,22 @@ class SmplifyConfig:
     fit converges slowly, the more so the stronger the smoothing. A plain noisy-keypoint fit
     (tests/test_motion_ik.py: 4 s, 2.5 cm noise, 3 % outliers, 150 phase-2 steps; three noise
     draws): 19.3 / 19.6 / 21.5 mm from the truth -> 17.8 / 17.5 / 17.9 with the start smoothed; with
-    ``w_joint_acc`` 45 and ``w_orient_acc`` 10: 32.1 / 27.0 / 39.0 -> 17.2 / 17.0 / 17.3
-    (session 11). Off by default: alone it changed W-MPJPE c100 by -0.5..+1.4 mm on the hard seeds
-    (the anchors' two frames); it is what makes the stronger smoothing weights usable."""
-    acc_cut_unplaced: bool = False
-    """True: the joint and torso-orientation acceleration terms (``w_joint_acc``,
-    ``w_orient_acc``) leave out the second differences whose three frames mix placeable and
-    unplaceable ones, so the smoothing does not pull the placed frames beside a gap towards the
-    unplaced frames' (one-view, often wrong) bodies; the velocity terms still join them. Why: with
-    ``w_joint_acc`` 45 and ``w_orient_acc`` 10 the root error of hard seed 6 beside its gap of
-    unplaced frames (140-159) doubled (RTE 0.527 -> 0.657 %). Off by default: with those weights
-    and both filters (session 11, Stage IV in memory, hard seeds 0-7 and 9) it halved that rise
-    (0.586 %, still 11 % over) but raised W-MPJPE c100 on seed 1 (28.8 -> 33.9 mm; 28.7 without
-    the cut)."""
-    output_smooth_frames: float = 0.0
+    ``w_joint_acc`` 45: 22.5 -> 17.7 (seed 1). On since session 12 with ``output_smooth_frames``
+    (see there for the hard studio seeds)."""
+    output_smooth_frames: float = 0.6
     """Std (frames) of a Gaussian through time applied to the fitted rotations and translation
     after the fit, within each run of placeable frames (the frames flagged unplaceable left as
     fitted); 0 = off. The fitted joints keep a frame-to-frame jitter that the keypoints' noise
     drives and the acceleration terms only partly resist (0.7-1.4e-2 rad^2/frame^2 of trunk
     angular acceleration against 1e-4 in the studio's truth); a filter this narrow (half power at
-    about 9 Hz at 30 fps) removes it and leaves a person's movements alone. Session 11, Stage IV
-    in memory on the hard studio seeds, with ``w_joint_acc`` 45, ``w_orient_acc`` 10,
-    ``init_smooth_frames`` 1: 0.6 lowered WA-MPJPE by 0.7-0.9 mm and PA by 0.6-0.8 mm more on every
-    seed; 1.0 by 1.4-1.8 / 1.2-1.6 mm but raised W-MPJPE c100 on one seed (27.9 -> 30.7 mm). Off by
-    default: alone (1.0) it raised W c100 on seed 5 (42.0 -> 47.8 mm), and the combination above
-    raised RTE on seeds 6 and 9 (benchmarks/history/2026-12-05-s11-yaw2.md)."""
+    about 6.6 Hz at 30 fps) removes it and leaves a person's movements alone. Session 12, Stage IV
+    in memory on the ten hard studio seeds, both filters on (1 and 0.6) against both off:
+    WA-MPJPE median 20.16 -> 18.98 mm and PA 17.47 -> 16.45, lower on all ten seeds; RTE 0.444 ->
+    0.434 %, lower on nine; W-MPJPE c100 with a chunk at every start (median per seed) lower on
+    nine, median 33.6 -> 31.4; W-MPJPE c100 itself (set by each chunk's first two frames: one
+    anchor per seed here) moved -2.3..+3.7 mm per seed, median 30.9 -> 31.7, worst 37.1 -> 34.9;
+    first five frames / median frame worst 1.39 -> 1.41. 1.0 lowered WA / PA by another mm but
+    raised one seed's W c100 by 10.5 mm (29.6 -> 40.2): benchmarks/history/2026-12-06-s12-yaw.md."""
     phase2_iterations: int = 300
     """Iterations of phase 2 (200 was tried for issue 30: W-MPJPE of one of three sessions 58 ->
     96 mm, so kept at 300)."""

@@ -62,7 +62,6 @@ from embodmocap.motion import terms as TM
 from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with the stage's settings)
 from embodmocap.motion.fit_workers import run_pieces, start_workers
 from embodmocap.motion.floor import floor_term
-from embodmocap.motion.orientation import torso_acc_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
 from embodmocap.parallel import usable_cores
 from embodmocap.progress import progress
@@ -245,13 +244,11 @@ class _Data:
     prior_conf: torch.Tensor | None  # (T,)
     edge: torch.Tensor | None = None  # (T, 24, 1 + V) or (T,) edge velocity weights (TM.edge_hold_weights)
     floor: torch.Tensor | None = None  # () the scene's floor height (motion.floor), None = no floor term
-    placed: torch.Tensor | None = None  # (T,) 1 placeable frame, 0 not (cfg.acc_cut_unplaced), None = no cut
 
     def slice(self, idx: slice | torch.Tensor) -> "_Data":
         cut = lambda x: None if x is None else x[idx]  # noqa: E731
         return _Data(cut(self.kp3d), cut(self.conf3d), self.K, cut(self.T_world_cam), cut(self.kp2d),
-                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge), self.floor,
-                     cut(self.placed))
+                     cut(self.conf2d), cut(self.prior), cut(self.prior_conf), cut(self.edge), self.floor)
 
 
 def _check_inputs(kp3d, kp3d_conf, views: Sequence[ViewObservations], init: SmplParams, prior, model_betas: int) -> int:
@@ -353,12 +350,9 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
-        # d.placed (cfg.acc_cut_unplaced): the differences spanning a placed / unplaced boundary count 0
-        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints, d.placed)
+        out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
         out["transl_vel"] = cfg.w_transl_vel * TM.velocity_term(s.transl)
         out["transl_acc"] = cfg.w_transl_acc * TM.acceleration_term(s.transl)
-        if cfg.w_orient_acc > 0:  # the torso's heading held smooth (motion.orientation)
-            out["orient_acc"] = cfg.w_orient_acc * torso_acc_term(joints, d.placed)
         if d.edge is not None:
             out["edge_vel"] = cfg.w_edge_vel * TM.edge_velocity_term(joints, d.edge, d.T_world_cam[..., :3, 3])
     out["shape_prior"] = cfg.w_shape_prior * TM.shape_prior_term(s.betas)
@@ -454,8 +448,7 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
 
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
-        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor,
-                  d.placed)
+        fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor)
         dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
         def total(phase):
@@ -636,8 +629,6 @@ def _fit_world_smpl(model, kp3d, kp3d_conf, views, init, prior_body_pose, cfg, l
         data = _Data(data.kp3d, data.conf3d, data.K, data.T_world_cam, data.kp2d, data.conf2d, data.prior,
                      data.prior_conf * torch.as_tensor(np.asarray(prior_weight, dtype=np.float64), dtype=dtype, device=device),
                      data.edge)
-    if cfg.acc_cut_unplaced and valid is not None:
-        data = replace(data, placed=torch.as_tensor(np.asarray(valid, dtype=np.float64), dtype=dtype, device=device))
     if floor_z is not None:
         data = replace(data, floor=torch.as_tensor(float(floor_z), dtype=dtype, device=device))
     tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731

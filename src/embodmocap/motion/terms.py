@@ -215,26 +215,11 @@ def edge_velocity_term(joints: torch.Tensor, weight: torch.Tensor, centres: torc
     return cost.mean()
 
 
-def same_run_triples(placed: torch.Tensor) -> torch.Tensor:
-    """(T - 2,) 1 where the frames t, t+1, t+2 of ``placed`` (T,) (1 placeable, 0 not) are all
-    placeable or all not, 0 where they mix: the second differences that span a boundary between
-    placed frames and unplaced ones (``SmplifyConfig.acc_cut_unplaced``)."""
-    p = placed
-    hi = torch.maximum(torch.maximum(p[2:], p[1:-1]), p[:-2])
-    lo = torch.minimum(torch.minimum(p[2:], p[1:-1]), p[:-2])
-    return 1.0 - (hi - lo)
-
-
-def acceleration_term(x: torch.Tensor, placed: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean squared norm of the second frame difference of ``x`` (T, ..., D); 0 for T < 3.
-    ``placed`` (T,): the differences that span a placed / unplaced boundary count 0
-    (:func:`same_run_triples`; the mean is still over all of them)."""
+def acceleration_term(x: torch.Tensor) -> torch.Tensor:
+    """Mean squared norm of the second frame difference of ``x`` (T, ..., D); 0 for T < 3."""
     if x.shape[0] < 3:
         return x.sum() * 0.0
-    d2 = ((x[2:] - 2.0 * x[1:-1] + x[:-2]) ** 2).sum(-1)  # (T-2, ...)
-    if placed is not None:
-        d2 = d2 * same_run_triples(placed).reshape(-1, *([1] * (d2.ndim - 1)))
-    return d2.mean()
+    return ((x[2:] - 2.0 * x[1:-1] + x[:-2]) ** 2).sum(-1).mean()
 
 
 def pose_prior_term(body_pose: torch.Tensor, prior: torch.Tensor, conf: torch.Tensor | None = None) -> torch.Tensor:
