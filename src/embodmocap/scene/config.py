@@ -72,13 +72,12 @@ class SfmConfig:
     seed: int = 0
     """Seed of COLMAP's random generator (RANSAC), so that runs repeat exactly."""
     refine_poses: bool = True
-    """Correct the capture's VIO drift in the key frames after the triangulation: a bundle
+    """Correct the capture's VIO drift in the key frames before the final triangulation: a bundle
     adjustment with the VIO's relative motion between consecutive key frames as a prior and the
     first key frame fixed (:mod:`embodmocap.scene.adjust`), used only when the evidence below
-    holds; the model then takes the corrected poses and the adjusted points (filtered again as the
-    triangulation filters them; no second triangulation), and Stage I fuses its mesh with the same
-    correction (interpolated between key frames). Needs the key frames' times (``times_s``) and at
-    least 4 key frames."""
+    holds; the points are then triangulated again with the corrected poses held fixed, and Stage I
+    fuses its mesh with the same correction (interpolated between key frames). Needs the key
+    frames' times (``times_s``) and at least 4 key frames."""
     drift_m_per_10s: float = 0.01
     """``refine_poses``: spread of the VIO's translation drift after 10 s, metres (a random walk:
     it grows as the square root of time). Phones' VIO drifts about 1 cm over 10 s indoors."""
