@@ -58,16 +58,12 @@ class DriftCorrection:
         reason: why it was not accepted ("" when it was).
         figures: ``rms_before_px``, ``rms_after_px``, ``gain``, ``prior_rms``, ``prior_max``, ``median_change_m``,
             ``max_change_m``, ``max_change_deg``, ``observations``, ``iterations``, ``seconds``.
-        point3D_ids: (P,) int64 the model's points the adjustment moved, and ``xyz`` (P, 3) their
-            adjusted positions (world metres) beside the corrected poses; empty when not accepted.
     """
 
     T_world_cam: NDArray[np.float64]
     accepted: bool
     reason: str = ""
     figures: dict = field(default_factory=dict)
-    point3D_ids: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    xyz: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def apply_correction(params: NDArray, T: NDArray, p0: NDArray) -> NDArray[np.float64]:
@@ -81,8 +77,7 @@ def apply_correction(params: NDArray, T: NDArray, p0: NDArray) -> NDArray[np.flo
 
 
 def _observations(rec, ids: list[int]):
-    """(image index (N,), point index (N,), xy (N, 2) COLMAP pixels, points (P, 3), PINHOLE params,
-    point ids (P,))."""
+    """(image index (N,), point index (N,), xy (N, 2) COLMAP pixels, points (P, 3), PINHOLE params)."""
     pid_index: dict[int, int] = {}
     img, pt, xy = [], [], []
     for k, image_id in enumerate(ids):
@@ -96,7 +91,7 @@ def _observations(rec, ids: list[int]):
         X[j] = rec.point3D(pid).xyz
     cam = rec.cameras[rec.image(ids[0]).camera_id]
     return (np.asarray(img, np.int64), np.asarray(pt, np.int64), np.asarray(xy, np.float64).reshape(-1, 2), X,
-            np.asarray(cam.params, dtype=np.float64)[:4], np.fromiter(pid_index, dtype=np.int64, count=len(pid_index)))
+            np.asarray(cam.params, dtype=np.float64)[:4])
 
 
 def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArray, cfg: SfmConfig) -> DriftCorrection:
@@ -114,7 +109,7 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
     t0 = time.perf_counter()
     T_prior = np.asarray(T_prior, dtype=np.float64)
     n = len(ids)
-    img, pt, xy, X0, (fx, fy, cx, cy), pids = _observations(rec, ids)
+    img, pt, xy, X0, (fx, fy, cx, cy) = _observations(rec, ids)
     p0 = T_prior[0, :3, 3].copy()
     R0, c0 = T_prior[:, :3, :3], T_prior[:, :3, 3]
     dt = np.maximum(np.diff(np.asarray(times_s, dtype=np.float64)), 1e-3)
@@ -189,7 +184,7 @@ def adjust_with_vio_prior(rec, ids: list[int], T_prior: NDArray, times_s: NDArra
     log.info("sparse model: drift correction of the key frames %.2f cm median, %.2f cm max, reprojection %.3f -> "
              "%.3f px (%.1f s)", 100 * figures["median_change_m"], 100 * figures["max_change_m"], rms0, rms1,
              figures["seconds"])
-    return DriftCorrection(T_adj, True, "", figures, pids, X)
+    return DriftCorrection(T_adj, True, "", figures)
 
 
 _HUBER = 2.0  # observations beyond this many reprojection sigmas count linearly

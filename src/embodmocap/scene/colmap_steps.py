@@ -126,25 +126,6 @@ def _triangulate(pycolmap, root: Path, names: list[str], ids: list[int], cam_id:
 
 
 
-def _move_model(pycolmap, rec, ids: list[int], T: NDArray, point3D_ids: NDArray, xyz: NDArray, cfg: SfmConfig) -> None:
-    """Put the drift adjustment's result into the triangulated model ``rec`` in place: the key
-    frames at their corrected poses ``T`` (K, 4, 4) camera-to-world, the points it moved at ``xyz``
-    (P, 3); then the triangulation's filters once more (observations reprojecting beyond
-    ``max_reproj_error_px``, points under ``min_tri_angle_deg``, points behind a camera). The
-    adjustment already refined every point with the poses, so this replaces a second
-    triangulation from the matches (the same tracks, ~1 s less)."""
-    for image_id, P in zip(ids, invert_T(np.asarray(T, dtype=np.float64))):
-        frame = rec.frame(rec.image(image_id).frame_id)
-        frame.rig_from_world = pycolmap.Rigid3d(P[:3, :4])  # one camera per frame: rig = camera
-    points = rec.points3D
-    for pid, x in zip(np.asarray(point3D_ids, dtype=np.int64).tolist(), np.asarray(xyz, dtype=np.float64)):
-        points[pid].xyz = x
-    manager = pycolmap.ObservationManager(rec)
-    manager.filter_observations_with_negative_depth()
-    manager.filter_all_points3D(cfg.max_reproj_error_px, cfg.min_tri_angle_deg)
-    rec.update_point_3d_errors()
-
-
 def _drop_short_tracks(rec, min_track_length: int) -> None:
     # pycolmap exposes points one by one; a model holds at most ~1e5 points, so this loop is cheap.
     short = [pid for pid, p in rec.points3D.items() if p.track.length() < min_track_length]

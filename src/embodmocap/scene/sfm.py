@@ -45,8 +45,7 @@ from embodmocap.io.atomic import atomic_dir, write_json, write_text
 from embodmocap.io.colmap import intrinsics_from_colmap
 from embodmocap.scene.adjust import adjust_with_vio_prior, correction_of
 from embodmocap.scene.colmap_steps import (  # noqa: F401 (sfm_disk_estimate: public here)
-    _check_free_space, _drop_short_tracks, _extract, _match, _move_model, _quiet_colmap, _triangulate,
-    sfm_disk_estimate,
+    _check_free_space, _drop_short_tracks, _extract, _match, _quiet_colmap, _triangulate, sfm_disk_estimate,
 )
 from embodmocap.scene.config import SfmConfig
 from embodmocap.progress import step
@@ -264,8 +263,8 @@ def build_sparse_model(
         if cfg.refine_poses and times_s is not None and rec.num_points3D() > 0 and len(ids) >= 4:
             with _timer(seconds, "adjust"):
                 drift = adjust_with_vio_prior(rec, ids, T, np.asarray(times_s, dtype=np.float64)[sel], cfg)
-                if drift.accepted:  # the model moved to the corrected poses and points, then filtered again
-                    _move_model(pycolmap, rec, ids, drift.T_world_cam, drift.point3D_ids, drift.xyz, cfg)
+                if drift.accepted:  # triangulated again with the corrected poses held fixed
+                    rec = _triangulate(pycolmap, tmp, names, ids, cam_id, drift.T_world_cam, cfg)
         with _timer(seconds, "finish"):
             _drop_short_tracks(rec, cfg.min_track_length)
             if rec.num_points3D() == 0:
