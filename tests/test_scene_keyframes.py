@@ -105,6 +105,25 @@ def test_blur_scores_rank_a_blurred_frame_lowest_and_read_each_frame_once():
     scores = blur_scores(cap, [3, 1, 0, 2])
     assert np.argmin(scores) == 1  # input order kept
     assert cap.frames.reads == [0, 1, 2, 3]  # each read once, in increasing order
+    keep: dict = {}
+    np.testing.assert_array_equal(blur_scores(cap, [3, 1], keep=keep), scores[[0, 1]])
+    assert sorted(keep) == [1, 3] and all(np.array_equal(keep[i], images[i]) for i in keep)
+
+
+def test_choose_keyframes_keeps_exactly_the_chosen_key_frames_pixels():
+    from embodmocap.scene.keyframes import choose_keyframes
+
+    cfg = SceneConfig(min_keyframes=2)
+    n = 300
+    images = [_texture(i) for i in range(n)]
+    images[40] = cv2.GaussianBlur(images[40], (0, 0), 3.0)
+    cap = _capture(images, _traj(_walk(n)))
+    keep: dict = {}
+    sel = choose_keyframes(cap, cfg, True, keep=keep)
+    assert len(sel.dropped_blurry) > 0
+    assert sorted(keep) == sorted(int(i) for i in sel.frame_ids)  # the dropped blurry ones are not kept
+    assert all(np.array_equal(keep[i], images[i]) for i in keep)
+    assert len(cap.frames.reads) == len(set(cap.frames.reads))  # every frame decoded once
 
 
 def test_select_keyframes_drops_the_blurred_key_frame():

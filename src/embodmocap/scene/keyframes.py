@@ -84,15 +84,21 @@ def sharpness(rgb: NDArray[np.uint8], long_side_px: int = 320) -> float:
     return float(cv2.Laplacian(grey, cv2.CV_32F).var())
 
 
-def blur_scores(capture: Capture, frame_ids: Sequence[int], long_side_px: int = 320) -> NDArray[np.float64]:
+def blur_scores(capture: Capture, frame_ids: Sequence[int], long_side_px: int = 320,
+                keep: dict[int, NDArray[np.uint8]] | None = None) -> NDArray[np.float64]:
     """(N,) sharpness of the given frames (higher = sharper), in the order given.
 
     Each frame is read once, in increasing frame order, so a video decoder only ever runs forward.
+    ``keep``, when given, receives every frame read (frame index -> RGB), for a later step that
+    needs some of the same frames (the sparse model's key frames) without decoding them again.
     """
     ids = np.asarray(frame_ids, dtype=np.int64)
     out = np.full(len(ids), np.nan)
     for i in np.argsort(ids, kind="stable"):
-        out[i] = sharpness(capture.frames.rgb(int(ids[i])), long_side_px)
+        rgb = capture.frames.rgb(int(ids[i]))
+        out[i] = sharpness(rgb, long_side_px)
+        if keep is not None:
+            keep[int(ids[i])] = rgb
     return out
 
 
@@ -277,15 +283,22 @@ def select_keyframes(trajectory: CameraTrajectory, blur: NDArray | None, cfg: Sc
     return sel
 
 
-def choose_keyframes(capture: Capture, cfg: SceneConfig, indoor: bool) -> KeyframeSelection:
+def choose_keyframes(capture: Capture, cfg: SceneConfig, indoor: bool,
+                     keep: dict[int, NDArray[np.uint8]] | None = None) -> KeyframeSelection:
     """Key frames of a scene capture: jumps excluded, motion steps, blurriest of each group dropped.
 
-    Only the motion key frames are decoded (once each) to measure their sharpness.
+    Only the motion key frames are decoded (once each) to measure their sharpness; ``keep``, when
+    given, receives the chosen key frames' RGB (frame index -> (H, W, 3) uint8) from that decoding.
     """
     traj = capture.trajectory
     excluded = detect_jumps(traj, capture.fps, cfg)
     rows = motion_keyframes(traj, cfg, indoor, excluded)
     blur = np.full(len(traj), np.nan)
     if cfg.blur_window > 1 and len(rows):
-        blur[rows] = blur_scores(capture, traj.frame_ids[rows], cfg.blur_long_side_px)
-    return select_keyframes(traj, blur, cfg, indoor, excluded, capture_path=capture.path)
+        blur[rows] = blur_scores(capture, traj.frame_ids[rows], cfg.blur_long_side_px, keep)
+    sel = select_keyframes(traj, blur, cfg, indoor, excluded, capture_path=capture.path)
+    if keep is not None:  # only the chosen ones stay (the blurriest of each group are dropped)
+        chosen = set(int(i) for i in sel.frame_ids)
+        for i in [i for i in keep if i not in chosen]:
+            del keep[i]
+    return sel

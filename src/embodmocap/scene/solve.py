@@ -12,7 +12,8 @@ and :func:`sfm_images` is its pure part (which key frames, with which poses).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,23 +39,27 @@ class Keyframes:
         record: ``version``, ``indoor``, ``frame_ids`` (K,), ``T_world_cam`` (K, 4, 4),
             ``sharpness`` (K,) (-1 where unknown), ``dropped_blurry``, ``excluded_jumps``.
         figures: the stage manifest's figures.
+        frames: frame index -> (H, W, 3) uint8 RGB of the key frames decoded while choosing them
+            (for :func:`sfm_images`; empty when the blur test did not run).
     """
 
     record: dict
     figures: dict
+    frames: dict = field(default_factory=dict)
 
 
 def select_keyframes(capture, cfg: SceneConfig, indoor: bool) -> Keyframes:
     """Key frames by camera motion, the blurriest of each small group dropped, frames around
     tracking jumps excluded."""
-    sel = choose_keyframes(capture, cfg, indoor)
+    frames: dict = {}
+    sel = choose_keyframes(capture, cfg, indoor, keep=frames)
     T = capture.trajectory.T_world_cam[sel.rows]
     record = {"version": KEYFRAMES_VERSION, "indoor": indoor, "frame_ids": sel.frame_ids, "T_world_cam": T,
               "sharpness": np.nan_to_num(sel.sharpness, nan=-1.0), "dropped_blurry": sel.dropped_blurry,
               "excluded_jumps": sel.excluded_jumps}
     figures = {"keyframes": len(sel), "keyframes_dropped_blurry": len(sel.dropped_blurry),
                "frames_excluded_jumps": len(sel.excluded_jumps)}
-    return Keyframes(record, figures)
+    return Keyframes(record, figures, frames)
 
 
 @dataclass(frozen=True)
@@ -115,14 +120,18 @@ def simplified(vertices: NDArray, faces: NDArray, colors: NDArray, cfg: SceneCon
     return Mesh(vs, fs, cs, {"simplified_vertices": st["vertices"], "simplified_faces": st["faces"]})
 
 
-def sfm_images(capture, frame_ids: NDArray, T_world_cam: NDArray, cfg: SceneConfig) -> tuple[list, NDArray, NDArray]:
+def sfm_images(capture, frame_ids: NDArray, T_world_cam: NDArray, cfg: SceneConfig,
+               decoded: Mapping[int, NDArray] | None = None) -> tuple[list, NDArray, NDArray]:
     """The sparse model's images: up to ``cfg.sfm.max_images`` key frames spread evenly, as
     ``[(name, (H, W, 3) uint8 RGB)]``, their (N, 4, 4) capture poses (held fixed by the model
     unless its drift correction is on) and their (N,) capture times in seconds (the correction's
-    VIO prior and how it is carried over to the frames between key frames)."""
+    VIO prior and how it is carried over to the frames between key frames). Frames found in
+    ``decoded`` (frame index -> RGB, e.g. :attr:`Keyframes.frames`) are not read again."""
     pick = evenly(len(frame_ids), cfg.sfm.max_images)
     names = [f"kf_{int(i):06d}" for i in frame_ids[pick]]
-    images = [(n, capture.frames.rgb(int(i))) for n, i in zip(names, frame_ids[pick])]
+    decoded = decoded or {}
+    images = [(n, decoded[int(i)] if int(i) in decoded else capture.frames.rgb(int(i)))
+              for n, i in zip(names, frame_ids[pick])]
     times = np.interp(frame_ids[pick], capture.trajectory.frame_ids, capture.trajectory.timestamps_s)
     return images, T_world_cam[pick], times
 

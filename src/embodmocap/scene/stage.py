@@ -85,9 +85,11 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     # 1. Key frames.
     fp_kf = STEPS.fingerprint("keyframes", cfg, reads={"scene capture": Path(entry.capture)},
                               context={"indoor": indoor})
+    decoded: dict = {}  # the key frames as the blur test decoded them, for the sparse model's images
     with sm.step("keyframes", fp_kf, force=force, label=label) as step:
         if step.run:
             kf = solve.select_keyframes(capture, cfg, indoor)
+            decoded = kf.frames
             rec = kf.record
             write_keyframes(out.keyframes, {"version": rec["version"], "capture": str(entry.capture),
                                        **{k: x for k, x in rec.items() if k != "version"}})
@@ -99,7 +101,7 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
     fp_sfm = STEPS.fingerprint("sfm", cfg, after={"keyframes": fp_kf})
     with sm.step("sfm", fp_sfm, force=force, label=label) as step:
         if step.run:
-            images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg)
+            images, poses, times = solve.sfm_images(capture, frame_ids, T_kf, cfg, decoded)
             # The mesh step after this one needs Open3D, whose import is seconds of CPU: done on the
             # other core while COLMAP (native, GIL released) builds the model on this one.
             import_in_background("embodmocap.io.open3d_core")
@@ -110,6 +112,8 @@ def run(cfg: SceneConfig, session: str | Path, scene: str | None = None, *, forc
                 "sfm_mean_track_length": round(model.mean_track_length, 3),
                 "sfm_mean_reproj_error_px": round(model.mean_reproj_error_px, 4),
             })
+            del images  # not held through the mesh's fusion
+    decoded = {}
 
     # 3. TSDF fusion + clean-up.
     fp_mesh = STEPS.fingerprint("mesh", cfg, after={"keyframes": fp_kf, "sfm": fp_sfm if cfg.sfm.refine_poses else None})
