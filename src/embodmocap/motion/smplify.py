@@ -155,7 +155,12 @@ class KeypointBody:
         self.J_dirs = tt(np.einsum("jv,vcb->jcb", Jr, a["shapedirs"]))  # (24, 3, B)
         self.f_template = tt(a["v_template"][ids])  # (5, 3)
         self.f_dirs = tt(a["shapedirs"][ids])  # (5, 3, B)
-        self.f_posedirs = tt(a["posedirs"][ids])  # (5, 3, 207)
+        # Pose blend shapes of the face vertices: only the joints whose rotation moves them (an
+        # exactly-zero block of posedirs adds nothing; fewer features per frame and step).
+        pd = np.asarray(a["posedirs"][ids]).reshape(len(ids), 3, 23, 9)
+        blend = np.flatnonzero(np.abs(pd).sum((0, 1, 3)) > 0)
+        self.pose_joints = torch.as_tensor(blend + 1, device=device)  # rows of the (T, 24) rotations
+        self.f_posedirs = tt(pd[:, :, blend].reshape(len(ids), 3, 9 * len(blend)))  # (5, 3, 9 P)
         self.f_weights = tt(a["weights"][ids])  # (5, 24)
         A = coco17_matrix(layout)
         if not self.has_face:
@@ -204,26 +209,82 @@ class KeypointBody:
         offset = torch.cat([J_rest[:1], bone], 0)[self.inner]  # (n, 3) local translation of each inner joint
         # World rotation and position of each level's joints from their parents' (rows in level
         # order: every parent's row comes before its children's).
-        R_in = R_local[:, self.inner]  # (T, n, 3, 3)
+        # Gathers along the joint axis by index_select: its backward adds into the source's rows
+        # (index_add) instead of advanced indexing's sorted, accumulating index_put.
+        R_in = R_local.index_select(1, self.inner)  # (T, n, 3, 3)
         Rs, ts = [R_in[:, :1]], [offset[:1].expand(T, 1, 3)]
         for lo, hi, par in self.levels:
-            Rp = Rs[-1][:, par]
+            Rp = Rs[-1].index_select(1, par)
             Rs.append(Rp @ R_in[:, lo:hi])
-            ts.append((Rp @ offset[lo:hi, :, None])[..., 0] + ts[-1][:, par])
+            ts.append((Rp @ offset[lo:hi, :, None])[..., 0] + ts[-1].index_select(1, par))
         R, t = torch.cat(Rs, 1), torch.cat(ts, 1)
         # Every joint's position from its parent's world transform (the inner joints' equal ``t``).
-        pos = torch.cat([t[:, :1], (R[:, self.parent_slot] @ bone[..., None])[..., 0] + t[:, self.parent_slot]], 1)
+        pos = torch.cat([t[:, :1], (R.index_select(1, self.parent_slot) @ bone[..., None])[..., 0]
+                         + t.index_select(1, self.parent_slot)], 1)
         # Face vertices: shape + pose blend shapes, then linear blend skinning by the joints that
         # carry weight on them.
-        feat = (R_local[:, 1:] - torch.eye(3, dtype=R_local.dtype, device=R_local.device)).reshape(T, 207)
-        v_posed = self.f_template + self.f_dirs @ b + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
+        v_posed = (self.f_template + self.f_dirs @ b).expand(T, -1, -1)
+        if len(self.pose_joints):
+            eye = torch.eye(3, dtype=R_local.dtype, device=R_local.device)
+            feat = (R_local.index_select(1, self.pose_joints) - eye).reshape(T, -1)
+            v_posed = v_posed + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
         local = v_posed[:, :, None, :] - J_rest[self.face_joints]  # (T, 5, F, 3) vertex relative to each rest joint
-        moved = torch.einsum("tjab,tvjb->tvja", R[:, self.face_slot], local) + pos[:, None, self.face_joints]
+        moved = (torch.einsum("tjab,tvjb->tvja", R.index_select(1, self.face_slot), local)
+                 + pos.index_select(1, self.face_joints)[:, None])
         face = (self.f_weights[None, :, :, None] * moved).sum(2)
         joints = pos + transl[:, None]
         face = face + transl[:, None]
         coco = torch.einsum("kj,tjc->tkc", self.coco, torch.cat([joints, face], 1))
         return joints, coco
+
+
+class HeldPoseBody:
+    """:class:`KeypointBody` while the body pose is held (phase 1: only betas, the root's
+    orientation and the translation move), without its forward kinematics at every step.
+
+    With the joints' local rotations fixed, the body in its root's frame is an affine function of
+    the betas (rest joints, bones and face vertices are linear in them; the kinematic chain and
+    the skinning are linear in those), and the world body is that rotated by the root and moved:
+    ``X = J0(b) + R(global_orient) (E0 + D (b - b0)) + transl``. :meth:`rest` evaluates ``E0`` and
+    ``D`` once (the full body at ``b0`` and at ``b0`` plus each unit beta, root at identity); a
+    call is then one small product per frame instead of the whole chain. Equal to the keypoint
+    body up to rounding (``tests/test_smplify.py``).
+    """
+
+    def __init__(self, body: KeypointBody, betas0: torch.Tensor) -> None:
+        self.body, self.b0 = body, betas0.detach()
+        self.rows = body.coco.sum(1)[:, None]  # (17, 1) weight of the root offset in each keypoint (1 for every layout)
+
+    def _root(self, betas: torch.Tensor) -> torch.Tensor:
+        b = torch.nn.functional.pad(betas, (0, self.body.num_betas - betas.shape[-1]))
+        return self.body.J_template[0] + self.body.J_dirs[0] @ b  # (3,) the root joint at rest
+
+    @torch.no_grad()
+    def rest(self, pose: torch.Tensor) -> torch.Tensor:
+        """(T, 41, 3, 1 + B): the 24 joints and 17 keypoints relative to the root joint, root
+        orientation identity and no translation, at ``b0`` (last axis 0) and their change per unit
+        of each beta, for the held body pose (T, 69)."""
+        T, B = pose.shape[0], self.b0.shape[0]
+        zero = torch.zeros(T, 3, dtype=pose.dtype, device=pose.device)
+        steps = torch.cat([torch.zeros(1, B, dtype=pose.dtype, device=pose.device),
+                           torch.eye(B, dtype=pose.dtype, device=pose.device)]) + self.b0
+        out = []
+        for b in steps:
+            joints, coco = self.body(b, zero, pose, zero)
+            J0 = self._root(b)
+            out.append(torch.cat([joints - J0, coco - self.rows * J0], 1))
+        X = torch.stack(out, -1)
+        return torch.cat([X[..., :1], X[..., 1:] - X[..., :1]], -1)
+
+    def __call__(self, betas: torch.Tensor, global_orient: torch.Tensor, rest: torch.Tensor,
+                 transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joints (T, 24, 3) and COCO-17 keypoints (T, 17, 3) like :class:`KeypointBody`, with
+        :meth:`rest` in the body pose's place."""
+        local = rest[..., 0] + rest[..., 1:] @ (betas - self.b0)  # (T, 41, 3)
+        R = axis_angle_to_matrix(global_orient)  # (T, 3, 3)
+        moved = local @ R.transpose(-1, -2) + transl[:, None]
+        J0 = self._root(betas)
+        return moved[:, :24] + J0, moved[:, 24:] + self.rows * J0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -451,23 +512,31 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     if not free_betas:
         s.betas.requires_grad_(False)
     gnc = {"k": 1.0, "w3d": cfg.w_kp3d_start if cfg.w_kp3d > 0 else 0.0}  # w_kp3d = 0: no 3D term at all
-    total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
+    # total(phase): the loss of the state s; with ``bd`` (HeldPoseBody) its ``rest`` in the pose's
+    # place (phase 1: the terms there do not read the pose itself).
+    def total(phase, bd=body, pose=None):
+        return lambda: sum(_terms(bd, _State(s.betas, s.go, s.pose if pose is None else pose, s.transl), d, cfg,
+                                  phase, names, smooth, gnc["k"], gnc["w3d"]).values())
 
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
         fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor,
                   d.placed)
         dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
-        def total(phase):
+        def total(phase, bd=body, pose=None):
             def one(go, pose, transl, *dd):
-                return sum(_terms(body, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
+                return sum(_terms(bd, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
                                   gnc["k"], gnc["w3d"]).values())
             vm = torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
-            return lambda: vm(s.go, s.pose, s.transl, *fields).sum()
+            return lambda: vm(s.go, s.pose if pose is None else pose, s.transl, *fields).sum()
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
     lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
-    _optimise(p1, lr1, total(1.25), cfg.phase1_iterations, cfg)
+    if cfg.phase1_iterations > 0:  # the pose is held: the body's pose-dependent part once (HeldPoseBody)
+        held = HeldPoseBody(body, s.betas)
+        rest = held.rest(s.pose.detach().reshape(-1, s.pose.shape[-1]))
+        _optimise(p1, lr1, total(1.25, held, rest.reshape(s.pose.shape[:-1] + rest.shape[1:])),
+                  cfg.phase1_iterations, cfg)
     # Torso, then limbs: the pose is free only on those joints (zeroed gradients elsewhere: with a
     # fresh Adam per stage, a zero gradient moves nothing).
     for joints, iters, phase in ((TORSO_JOINTS, cfg.torso_iterations, 1.25), (LIMB_JOINTS, cfg.limbs_iterations, 1.5)):
