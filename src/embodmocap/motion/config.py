@@ -194,6 +194,11 @@ class SmplifyConfig:
     phase2_iterations: int = 300
     """Iterations of phase 2 (200 was tried for issue 30: W-MPJPE of one of three sessions 58 ->
     96 mm, so kept at 300)."""
+    phase2_stop_tol: float = 0.0
+    """Phase 2 of a window (and of the shape fit) ends early once the window's own loss fell by
+    less than this fraction of itself over the last 10 steps, checked once its objective is fixed
+    (after the first ``gnc_fraction`` of the iterations); 0 = always ``phase2_iterations``. Each
+    window stops on its own loss, so the answer does not depend on ``workers``."""
     phase2_lr: float = 0.03
     """Adam learning rate of phase 2."""
     lr_final_ratio: float = 0.02

@@ -252,7 +252,7 @@ class HeldPoseBody:
     """
 
     def __init__(self, body: KeypointBody, betas0: torch.Tensor) -> None:
-        self.body, self.b0 = body, betas0.detach()
+        self.body, self.b0 = body, betas0.detach().clone()  # a copy: the fit steps the betas in place
         self.rows = body.coco.sum(1)[:, None]  # (17, 1) weight of the root offset in each keypoint (1 for every layout)
 
     def _root(self, betas: torch.Tensor) -> torch.Tensor:
@@ -476,6 +476,64 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
         opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
 
 
+#: Steps over which phase 2's early stop measures a window's progress (SmplifyConfig.phase2_stop_tol).
+STOP_SPAN = 10
+
+
+def _optimise_windows(params: list[torch.Tensor], lrs: list[float],
+                      loss_fn: Callable[[list[torch.Tensor], torch.Tensor | None], torch.Tensor], iterations: int,
+                      cfg: SmplifyConfig, on_step: Callable[[int], None], fixed_from: int) -> list[int]:
+    """Adam with cosine decay like :func:`_optimise`, each window stopped on its own progress;
+    returns the steps each window took.
+
+    ``params`` hold the windows on axis 0 (or are one window's, betas included: then it only
+    stops); ``loss_fn(cur, rows)`` gives the (k,) losses of the windows ``rows`` (None = all) for
+    their parameters ``cur``. From step ``fixed_from + STOP_SPAN`` (the objective no longer
+    changes: the 3D weight and the robust scales have reached their set values) a window whose
+    loss fell by less than ``cfg.phase2_stop_tol`` of itself over the last ``STOP_SPAN`` steps
+    keeps its parameters and leaves the batch. A window's steps and its stop depend on its own
+    loss only (Adam is elementwise, the losses are per window), so the answer does not depend on
+    how the windows are grouped into batches or processes.
+    """
+    cur, rows, steps = list(params), None, None
+    opt = _Adam(cur)
+    hist: list[torch.Tensor] = []
+    for it in progress(range(iterations), "SMPL fit pass", unit="step"):
+        on_step(it)
+        frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
+        for p in cur:
+            p.grad = None
+        losses = loss_fn(cur, rows)
+        losses.sum().backward()
+        opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
+        if steps is None:
+            steps = [iterations] * len(losses)
+        hist = (hist + [losses.detach()])[-(STOP_SPAN + 1):]
+        if it < fixed_from + STOP_SPAN or it == iterations - 1:
+            continue
+        done = hist[0] - hist[-1] < cfg.phase2_stop_tol * hist[-1].abs()
+        if not bool(done.any()):
+            continue
+        idx = torch.arange(len(done), device=done.device) if rows is None else rows
+        for k in idx[done].tolist():
+            steps[k] = it + 1
+        if bool(done.all()):
+            break
+        keep = ~done
+        with torch.no_grad():  # the stopped windows' results into the full tensors
+            for full, c in zip(params, cur):
+                full[idx[done]] = c[done]
+        rows = idx[keep]
+        cur = [c.detach()[keep].clone().requires_grad_(True) for c in cur]
+        opt.params, opt.m, opt.v = cur, [m[keep] for m in opt.m], [v[keep] for v in opt.v]
+        hist = [h[keep] for h in hist]
+    if rows is not None:
+        with torch.no_grad():
+            for full, c in zip(params, cur):
+                full[rows] = c
+    return steps or []
+
+
 class _Adam:
     """Adam (default betas 0.9 / 0.999, eps 1e-8, no weight decay) with one learning rate per
     parameter given at each step: the arithmetic of ``torch.optim.Adam``'s single-tensor path op for
@@ -518,17 +576,37 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
         return lambda: sum(_terms(bd, _State(s.betas, s.go, s.pose if pose is None else pose, s.transl), d, cfg,
                                   phase, names, smooth, gnc["k"], gnc["w3d"]).values())
 
+    # window_losses(phase): (params in phase 2's order, rows of the windows still fitted or None for
+    # all) -> (k,) each window's own loss (phase 2's early stop, _optimise_windows).
+    def window_losses(phase):
+        f = total(phase)
+        return lambda cur, rows: f().reshape(1)  # one window: never split
+
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
         fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor,
                   d.placed)
         dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
-        def total(phase, bd=body, pose=None):
+        def per_window(phase, bd=body):
             def one(go, pose, transl, *dd):
                 return sum(_terms(bd, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
                                   gnc["k"], gnc["w3d"]).values())
-            vm = torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
+            return torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
+
+        def total(phase, bd=body, pose=None):
+            vm = per_window(phase, bd)
             return lambda: vm(s.go, s.pose if pose is None else pose, s.transl, *fields).sum()
+
+        def window_losses(phase):
+            vm, cut = per_window(phase), {}
+
+            def f(cur, rows):  # cur: go, transl, pose of the windows ``rows`` (None: all)
+                key = None if rows is None else tuple(rows.tolist())
+                if key not in cut:  # the data of the windows still fitted, sliced once per change
+                    cut.clear()
+                    cut[key] = fields if rows is None else tuple(x if dm is None else x[rows] for x, dm in zip(fields, dims))
+                return vm(cur[0], cur[2], cur[1], *cut[key])
+            return f
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
     lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
@@ -557,7 +635,10 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
         gnc["k"] = cfg.gnc_factor ** left if cfg.gnc_factor > 1 else 1.0
         gnc["w3d"] = cfg.w_kp3d * (cfg.w_kp3d_start / cfg.w_kp3d) ** left if cfg.w_kp3d > 0 else 0.0
 
-    _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
+    if cfg.solver == "adam" and cfg.phase2_stop_tol > 0:
+        _optimise_windows(p2, lr2, window_losses(2), cfg.phase2_iterations, cfg, schedule, n_gnc)
+    else:
+        _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
     gnc["k"], gnc["w3d"] = 1.0, cfg.w_kp3d
     t2 = time.perf_counter()
     timing[f"{label}phase1"] = timing.get(f"{label}phase1", 0.0) + t1 - t0
