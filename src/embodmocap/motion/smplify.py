@@ -25,7 +25,9 @@ without the five face keypoints (warned).
 Speed: the body is evaluated by :class:`KeypointBody`, SMPL restricted to what the terms see
 (24 joints by forward kinematics and the 5 face vertices COCO-17 needs), which equals
 :class:`~embodmocap.body.model.BodyModel` exactly but skips skinning the 6,890 vertices; all frames
-of a window are one batch. Adam (or L-BFGS, ``cfg.solver``) runs each phase.
+of a window are one batch. Adam (or L-BFGS, ``cfg.solver``) runs each phase. In phase 1 the pose
+is held, so the body comes from :class:`HeldPoseBody` (its pose-dependent part built once); phase 2
+of each window ends when that window's own loss stops falling (``cfg.phase2_stop_tol``).
 
 Long sequences are cut into overlapping windows (``window_frames`` / ``overlap_frames``). Betas
 must be shared, so with more than one window they are fitted first by both phases on
