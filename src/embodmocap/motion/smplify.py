@@ -638,7 +638,8 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
         gnc["w3d"] = cfg.w_kp3d * (cfg.w_kp3d_start / cfg.w_kp3d) ** left if cfg.w_kp3d > 0 else 0.0
 
     if cfg.solver == "adam" and cfg.phase2_stop_tol > 0:
-        _optimise_windows(p2, lr2, window_losses(2), cfg.phase2_iterations, cfg, schedule, n_gnc)
+        steps = _optimise_windows(p2, lr2, window_losses(2), cfg.phase2_iterations, cfg, schedule, n_gnc)
+        log.debug("smplify %sphase 2: steps per window %s of %d", label, steps, cfg.phase2_iterations)
     else:
         _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
     gnc["k"], gnc["w3d"] = 1.0, cfg.w_kp3d
