@@ -298,7 +298,7 @@ class HeldPoseBody:
 class _Data:
     """All observations as tensors, frames on axis 0 (sliceable into windows)."""
 
-    kp3d: torch.Tensor  # (T, 17, 3), NaN-free
+    kp3d: torch.Tensor  # (T, 17, 3), finite (0 where missing; kp2d likewise)
     conf3d: torch.Tensor  # (T, 17)
     K: torch.Tensor  # (V, 3, 3)
     T_world_cam: torch.Tensor  # (T, V, 4, 4)
@@ -366,7 +366,9 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
     on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # edge weights per frame (and joint), sliced with the windows
     edge = TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)
     edge = tt(TM.edge_hold_weights(edge, c2 > 0, cfg.edge_hold)) if on else None
-    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
+    # Targets finite (0 where missing, their confidence 0): the terms need not clean them at every step.
+    fin = lambda x: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
+    return _Data(tt(fin(kp3d)), tt(conf3), tt(K), tt(Twc), tt(fin(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 
 def smooth_motion(go: NDArray, pose: NDArray, transl: NDArray, sigma: float,
@@ -413,7 +415,7 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     conf3d = d.conf3d
     if phase == 1.25:  # global and torso stages: the limbs, still at their start, must not tilt the trunk
         conf3d = conf3d * torch.as_tensor(_TRUNK_KEYPOINTS, dtype=conf3d.dtype, device=conf3d.device)
-    out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
+    out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m, clean=False)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
         # d.placed (cfg.acc_cut_unplaced): the differences spanning a placed / unplaced boundary count 0
@@ -435,7 +437,7 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         return out
     if names:  # one projection into every view, one term per view
         per_view = TM.reproj_view_terms(coco, d.K, d.T_world_cam, d.kp2d, d.conf2d, cfg.reproj_kernel,
-                                        gnc * cfg.reproj_scale_px)
+                                        gnc * cfg.reproj_scale_px, clean=False)
         for v, name in enumerate(names):
             out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * per_view[v]
     if d.prior is not None:
