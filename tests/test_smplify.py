@@ -13,7 +13,7 @@ from embodmocap.io.body_prior import BodyPriorSeq
 from embodmocap.motion import terms as TM
 from embodmocap.motion.init import init_from_keypoints, init_from_prior
 from embodmocap.motion.smplify import (
-    KeypointBody, SmplifyConfig, ViewObservations, _blend_weights, fit_world_smpl, window_ranges,
+    HeldPoseBody, KeypointBody, SmplifyConfig, ViewObservations, _blend_weights, fit_world_smpl, window_ranges,
 )
 from embodmocap.synth.motion import script_motion
 from embodmocap.synth.scene import build_scene
@@ -101,6 +101,26 @@ def test_keypoint_body_equals_the_body_model(body):
     joints, coco = KeypointBody(body)(t(b), t(go), t(pose), t(tr))
     assert torch.allclose(joints, ref.joints, atol=1e-7)
     assert torch.allclose(coco, ref.coco17, atol=1e-7)
+
+
+
+def test_held_pose_body_equals_the_body_model_for_any_betas_root_and_translation(body):
+    """Phase 1's body (pose held, its pose-dependent part evaluated once at other betas) gives the
+    body model's joints and keypoints at new betas, root orientations and translations."""
+    rng = np.random.default_rng(1)
+    T = 6
+    b0, pose = rng.normal(size=10), 0.4 * rng.normal(size=(T, 69))
+    t = lambda x: torch.as_tensor(x)  # noqa: E731
+    betas = t(b0.copy())
+    held = HeldPoseBody(KeypointBody(body), betas)
+    rest = held.rest(t(pose))
+    for _ in range(3):
+        betas += t(rng.normal(size=10))  # in place, as the fit's optimiser steps them
+        go, tr = rng.normal(size=(T, 3)), rng.normal(size=(T, 3))
+        ref = body.forward(betas.numpy(), go, pose, tr, dtype=torch.float64)
+        joints, coco = held(betas, t(go), rest, t(tr))
+        assert torch.allclose(joints, ref.joints, atol=1e-7)
+        assert torch.allclose(coco, ref.coco17, atol=1e-7)
 
 
 # ------------------------------------------------------------------------------- terms

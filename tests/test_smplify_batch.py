@@ -56,6 +56,51 @@ def test_batched_windows_equal_windows_one_by_one():
         assert float((st.pose - start.pose[ranges[k][0]:ranges[k][1]]).abs().max()) > 1e-3
 
 
+
+def test_windows_stopped_early_on_their_own_loss_fit_as_alone_and_near_the_full_fit(monkeypatch):
+    """``phase2_stop_tol``: each window leaves the batch when its own loss stops falling, at its
+    own step; a window in the batch then gets exactly what it gets fitted alone (so the answer
+    does not depend on how the windows are shared between processes), and the early stop lands
+    within a few millimetres of the full schedule's fit."""
+    body, params, coco, init, views, kp3d = _noisy_problem(3.0, 0)
+    T = len(coco)
+    body_k = S.KeypointBody(body, torch.float64, "cpu")
+    tt = lambda x: torch.as_tensor(np.array(x, dtype=np.float64))  # noqa: E731
+    start = S._State(tt(init.betas), tt(init.global_orient), tt(init.body_pose), tt(init.transl))
+    steps = []
+    real = S._optimise_windows
+    monkeypatch.setattr(S, "_optimise_windows", lambda *a: steps.append(real(*a)) or steps[-1])
+    fits = {}
+    for tol in (0.0, 2e-3):
+        cfg = S.SmplifyConfig(device="cpu", window_frames=40, overlap_frames=10, phase1_iterations=20,
+                              phase2_iterations=120, phase2_stop_tol=tol)
+        data = S._to_data(kp3d, np.ones((T, 17)), views, None, cfg, torch.float64, "cpu")
+        ranges = S.window_ranges(T, cfg.window_frames, cfg.overlap_frames)
+        names = [v.name for v in views]
+        idx = torch.as_tensor(np.stack([np.arange(s, e) for s, e in ranges]))
+        steps.clear()
+        fits[tol] = S._fit_window(body_k, data.slice(idx), S._State(start.betas, start.go[idx], start.pose[idx],
+                                                                    start.transl[idx]), cfg, names, False, True, {},
+                                  batched=True)
+        if tol == 0:
+            assert not steps  # the plain schedule
+            continue
+        batch_steps = steps[0]
+        assert len(batch_steps) == len(ranges) >= 3 and max(batch_steps) < 120 and len(set(batch_steps)) > 1, batch_steps
+        for k, (s, e) in enumerate(ranges):
+            alone = S._fit_window(body_k, data.slice(slice(s, e)), S._State(start.betas, start.go[s:e], start.pose[s:e],
+                                                                         start.transl[s:e]), cfg, names, False, True, {})
+            assert steps[-1] == [batch_steps[k]]
+            for a, b in ((alone.go, fits[tol].go[k]), (alone.pose, fits[tol].pose[k]), (alone.transl, fits[tol].transl[k])):
+                assert torch.allclose(a, b, atol=1e-9, rtol=0), float((a - b).abs().max())
+    for k, (s, e) in enumerate(ranges):
+        state = [S._State(start.betas, fits[t].go[k], fits[t].pose[k], fits[t].transl[k]) for t in (0.0, 2e-3)]
+        c_full, c_stop = (body_k(x.betas, x.go, x.pose, x.transl)[1].numpy() for x in state)
+        gap = np.linalg.norm(c_stop - c_full, axis=-1)
+        err = np.linalg.norm(c_stop - coco[s:e], axis=-1).mean()
+        assert 0 < gap.max() < 0.005 and err < 0.03, (gap.max(), err)
+
+
 def test_float32_fit_lands_where_the_float64_fit_does():
     """The fit's default dtype is float32 (issue 30: faster on the CPU): on a perturbed start with
     noisy keypoints it lands within a millimetre of the float64 fit, both near the truth, and

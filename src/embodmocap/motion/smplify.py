@@ -25,7 +25,9 @@ without the five face keypoints (warned).
 Speed: the body is evaluated by :class:`KeypointBody`, SMPL restricted to what the terms see
 (24 joints by forward kinematics and the 5 face vertices COCO-17 needs), which equals
 :class:`~embodmocap.body.model.BodyModel` exactly but skips skinning the 6,890 vertices; all frames
-of a window are one batch. Adam (or L-BFGS, ``cfg.solver``) runs each phase.
+of a window are one batch. Adam (or L-BFGS, ``cfg.solver``) runs each phase. In phase 1 the pose
+is held, so the body comes from :class:`HeldPoseBody` (its pose-dependent part built once); phase 2
+of each window ends when that window's own loss stops falling (``cfg.phase2_stop_tol``).
 
 Long sequences are cut into overlapping windows (``window_frames`` / ``overlap_frames``). Betas
 must be shared, so with more than one window they are fitted first by both phases on
@@ -154,7 +156,12 @@ class KeypointBody:
         self.J_dirs = tt(np.einsum("jv,vcb->jcb", Jr, a["shapedirs"]))  # (24, 3, B)
         self.f_template = tt(a["v_template"][ids])  # (5, 3)
         self.f_dirs = tt(a["shapedirs"][ids])  # (5, 3, B)
-        self.f_posedirs = tt(a["posedirs"][ids])  # (5, 3, 207)
+        # Pose blend shapes of the face vertices: only the joints whose rotation moves them (an
+        # exactly-zero block of posedirs adds nothing; fewer features per frame and step).
+        pd = np.asarray(a["posedirs"][ids]).reshape(len(ids), 3, 23, 9)
+        blend = np.flatnonzero(np.abs(pd).sum((0, 1, 3)) > 0)
+        self.pose_joints = torch.as_tensor(blend + 1, device=device)  # rows of the (T, 24) rotations
+        self.f_posedirs = tt(pd[:, :, blend].reshape(len(ids), 3, 9 * len(blend)))  # (5, 3, 9 P)
         self.f_weights = tt(a["weights"][ids])  # (5, 24)
         A = coco17_matrix(layout)
         if not self.has_face:
@@ -203,26 +210,82 @@ class KeypointBody:
         offset = torch.cat([J_rest[:1], bone], 0)[self.inner]  # (n, 3) local translation of each inner joint
         # World rotation and position of each level's joints from their parents' (rows in level
         # order: every parent's row comes before its children's).
-        R_in = R_local[:, self.inner]  # (T, n, 3, 3)
+        # Gathers along the joint axis by index_select: its backward adds into the source's rows
+        # (index_add) instead of advanced indexing's sorted, accumulating index_put.
+        R_in = R_local.index_select(1, self.inner)  # (T, n, 3, 3)
         Rs, ts = [R_in[:, :1]], [offset[:1].expand(T, 1, 3)]
         for lo, hi, par in self.levels:
-            Rp = Rs[-1][:, par]
+            Rp = Rs[-1].index_select(1, par)
             Rs.append(Rp @ R_in[:, lo:hi])
-            ts.append((Rp @ offset[lo:hi, :, None])[..., 0] + ts[-1][:, par])
+            ts.append((Rp @ offset[lo:hi, :, None])[..., 0] + ts[-1].index_select(1, par))
         R, t = torch.cat(Rs, 1), torch.cat(ts, 1)
         # Every joint's position from its parent's world transform (the inner joints' equal ``t``).
-        pos = torch.cat([t[:, :1], (R[:, self.parent_slot] @ bone[..., None])[..., 0] + t[:, self.parent_slot]], 1)
+        pos = torch.cat([t[:, :1], (R.index_select(1, self.parent_slot) @ bone[..., None])[..., 0]
+                         + t.index_select(1, self.parent_slot)], 1)
         # Face vertices: shape + pose blend shapes, then linear blend skinning by the joints that
         # carry weight on them.
-        feat = (R_local[:, 1:] - torch.eye(3, dtype=R_local.dtype, device=R_local.device)).reshape(T, 207)
-        v_posed = self.f_template + self.f_dirs @ b + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
+        v_posed = (self.f_template + self.f_dirs @ b).expand(T, -1, -1)
+        if len(self.pose_joints):
+            eye = torch.eye(3, dtype=R_local.dtype, device=R_local.device)
+            feat = (R_local.index_select(1, self.pose_joints) - eye).reshape(T, -1)
+            v_posed = v_posed + torch.einsum("vck,tk->tvc", self.f_posedirs, feat)
         local = v_posed[:, :, None, :] - J_rest[self.face_joints]  # (T, 5, F, 3) vertex relative to each rest joint
-        moved = torch.einsum("tjab,tvjb->tvja", R[:, self.face_slot], local) + pos[:, None, self.face_joints]
+        moved = (torch.einsum("tjab,tvjb->tvja", R.index_select(1, self.face_slot), local)
+                 + pos.index_select(1, self.face_joints)[:, None])
         face = (self.f_weights[None, :, :, None] * moved).sum(2)
         joints = pos + transl[:, None]
         face = face + transl[:, None]
         coco = torch.einsum("kj,tjc->tkc", self.coco, torch.cat([joints, face], 1))
         return joints, coco
+
+
+class HeldPoseBody:
+    """:class:`KeypointBody` while the body pose is held (phase 1: only betas, the root's
+    orientation and the translation move), without its forward kinematics at every step.
+
+    With the joints' local rotations fixed, the body in its root's frame is an affine function of
+    the betas (rest joints, bones and face vertices are linear in them; the kinematic chain and
+    the skinning are linear in those), and the world body is that rotated by the root and moved:
+    ``X = J0(b) + R(global_orient) (E0 + D (b - b0)) + transl``. :meth:`rest` evaluates ``E0`` and
+    ``D`` once (the full body at ``b0`` and at ``b0`` plus each unit beta, root at identity); a
+    call is then one small product per frame instead of the whole chain. Equal to the keypoint
+    body up to rounding (``tests/test_smplify.py``).
+    """
+
+    def __init__(self, body: KeypointBody, betas0: torch.Tensor) -> None:
+        self.body, self.b0 = body, betas0.detach().clone()  # a copy: the fit steps the betas in place
+        self.rows = body.coco.sum(1)[:, None]  # (17, 1) weight of the root offset in each keypoint (1 for every layout)
+
+    def _root(self, betas: torch.Tensor) -> torch.Tensor:
+        b = torch.nn.functional.pad(betas, (0, self.body.num_betas - betas.shape[-1]))
+        return self.body.J_template[0] + self.body.J_dirs[0] @ b  # (3,) the root joint at rest
+
+    @torch.no_grad()
+    def rest(self, pose: torch.Tensor) -> torch.Tensor:
+        """(T, 41, 3, 1 + B): the 24 joints and 17 keypoints relative to the root joint, root
+        orientation identity and no translation, at ``b0`` (last axis 0) and their change per unit
+        of each beta, for the held body pose (T, 69)."""
+        T, B = pose.shape[0], self.b0.shape[0]
+        zero = torch.zeros(T, 3, dtype=pose.dtype, device=pose.device)
+        steps = torch.cat([torch.zeros(1, B, dtype=pose.dtype, device=pose.device),
+                           torch.eye(B, dtype=pose.dtype, device=pose.device)]) + self.b0
+        out = []
+        for b in steps:
+            joints, coco = self.body(b, zero, pose, zero)
+            J0 = self._root(b)
+            out.append(torch.cat([joints - J0, coco - self.rows * J0], 1))
+        X = torch.stack(out, -1)
+        return torch.cat([X[..., :1], X[..., 1:] - X[..., :1]], -1)
+
+    def __call__(self, betas: torch.Tensor, global_orient: torch.Tensor, rest: torch.Tensor,
+                 transl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Joints (T, 24, 3) and COCO-17 keypoints (T, 17, 3) like :class:`KeypointBody`, with
+        :meth:`rest` in the body pose's place."""
+        local = rest[..., 0] + rest[..., 1:] @ (betas - self.b0)  # (T, 41, 3)
+        R = axis_angle_to_matrix(global_orient)  # (T, 3, 3)
+        moved = local @ R.transpose(-1, -2) + transl[:, None]
+        J0 = self._root(betas)
+        return moved[:, :24] + J0, moved[:, 24:] + self.rows * J0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +297,7 @@ class KeypointBody:
 class _Data:
     """All observations as tensors, frames on axis 0 (sliceable into windows)."""
 
-    kp3d: torch.Tensor  # (T, 17, 3), NaN-free
+    kp3d: torch.Tensor  # (T, 17, 3), finite (0 where missing; kp2d likewise)
     conf3d: torch.Tensor  # (T, 17)
     K: torch.Tensor  # (V, 3, 3)
     T_world_cam: torch.Tensor  # (T, V, 4, 4)
@@ -300,7 +363,9 @@ def _to_data(kp3d, kp3d_conf, views, prior, cfg: SmplifyConfig, dtype, device, v
     on = cfg.w_edge_vel > 0 and cfg.edge_frames > 0  # edge weights per frame (and joint), sliced with the windows
     edge = TM.edge_weights(np.ones(T, dtype=bool) if valid is None else valid, cfg.edge_frames)
     edge = tt(TM.edge_hold_weights(edge, c2 > 0, cfg.edge_hold)) if on else None
-    return _Data(tt(np.nan_to_num(kp3d)), tt(conf3), tt(K), tt(Twc), tt(np.nan_to_num(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
+    # Targets finite (0 where missing, their confidence 0): the terms need not clean them at every step.
+    fin = lambda x: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
+    return _Data(tt(fin(kp3d)), tt(conf3), tt(K), tt(Twc), tt(fin(kp[..., :2])), tt(c2), prior_t, prior_c, edge)
 
 
 def smooth_motion(go: NDArray, pose: NDArray, transl: NDArray, sigma: float,
@@ -347,7 +412,7 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
     conf3d = d.conf3d
     if phase == 1.25:  # global and torso stages: the limbs, still at their start, must not tilt the trunk
         conf3d = conf3d * torch.as_tensor(_TRUNK_KEYPOINTS, dtype=conf3d.dtype, device=conf3d.device)
-    out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m)}
+    out = {"kp3d": (cfg.w_kp3d if w3d is None else w3d) * gnc ** 2 * TM.kp3d_term(coco, d.kp3d, conf3d, cfg.kp3d_kernel, gnc * cfg.kp3d_scale_m, clean=False)}
     if smooth:
         out["joint_vel"] = cfg.w_joint_vel * TM.velocity_term(joints)
         out["joint_acc"] = cfg.w_joint_acc * TM.acceleration_term(joints)
@@ -366,7 +431,7 @@ def _terms(body: KeypointBody, s: _State, d: _Data, cfg: SmplifyConfig, phase: f
         return out
     if names:  # one projection into every view, one term per view
         per_view = TM.reproj_view_terms(coco, d.K, d.T_world_cam, d.kp2d, d.conf2d, cfg.reproj_kernel,
-                                        gnc * cfg.reproj_scale_px)
+                                        gnc * cfg.reproj_scale_px, clean=False)
         for v, name in enumerate(names):
             out[f"reproj/{name}"] = cfg.w_reproj * gnc ** 2 * per_view[v]
     if d.prior is not None:
@@ -409,6 +474,64 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
         opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
 
 
+#: Steps over which phase 2's early stop measures a window's progress (SmplifyConfig.phase2_stop_tol).
+STOP_SPAN = 10
+
+
+def _optimise_windows(params: list[torch.Tensor], lrs: list[float],
+                      loss_fn: Callable[[list[torch.Tensor], torch.Tensor | None], torch.Tensor], iterations: int,
+                      cfg: SmplifyConfig, on_step: Callable[[int], None], fixed_from: int) -> list[int]:
+    """Adam with cosine decay like :func:`_optimise`, each window stopped on its own progress;
+    returns the steps each window took.
+
+    ``params`` hold the windows on axis 0 (or are one window's, betas included: then it only
+    stops); ``loss_fn(cur, rows)`` gives the (k,) losses of the windows ``rows`` (None = all) for
+    their parameters ``cur``. From step ``fixed_from + STOP_SPAN`` (the objective no longer
+    changes: the 3D weight and the robust scales have reached their set values) a window whose
+    loss fell by less than ``cfg.phase2_stop_tol`` of itself over the last ``STOP_SPAN`` steps
+    keeps its parameters and leaves the batch. A window's steps and its stop depend on its own
+    loss only (Adam is elementwise, the losses are per window), so the answer does not depend on
+    how the windows are grouped into batches or processes.
+    """
+    cur, rows, steps = list(params), None, None
+    opt = _Adam(cur)
+    hist: list[torch.Tensor] = []
+    for it in progress(range(iterations), "SMPL fit pass", unit="step"):
+        on_step(it)
+        frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
+        for p in cur:
+            p.grad = None
+        losses = loss_fn(cur, rows)
+        losses.sum().backward()
+        opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
+        if steps is None:
+            steps = [iterations] * len(losses)
+        hist = (hist + [losses.detach()])[-(STOP_SPAN + 1):]
+        if it < fixed_from + STOP_SPAN or it == iterations - 1:
+            continue
+        done = hist[0] - hist[-1] < cfg.phase2_stop_tol * hist[-1].abs()
+        if not bool(done.any()):
+            continue
+        idx = torch.arange(len(done), device=done.device) if rows is None else rows
+        for k in idx[done].tolist():
+            steps[k] = it + 1
+        if bool(done.all()):
+            break
+        keep = ~done
+        with torch.no_grad():  # the stopped windows' results into the full tensors
+            for full, c in zip(params, cur):
+                full[idx[done]] = c[done]
+        rows = idx[keep]
+        cur = [c.detach()[keep].clone().requires_grad_(True) for c in cur]
+        opt.params, opt.m, opt.v = cur, [m[keep] for m in opt.m], [v[keep] for v in opt.v]
+        hist = [h[keep] for h in hist]
+    if rows is not None:
+        with torch.no_grad():
+            for full, c in zip(params, cur):
+                full[rows] = c
+    return steps or []
+
+
 class _Adam:
     """Adam (default betas 0.9 / 0.999, eps 1e-8, no weight decay) with one learning rate per
     parameter given at each step: the arithmetic of ``torch.optim.Adam``'s single-tensor path op for
@@ -445,22 +568,50 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
     if not free_betas:
         s.betas.requires_grad_(False)
     gnc = {"k": 1.0, "w3d": cfg.w_kp3d_start if cfg.w_kp3d > 0 else 0.0}  # w_kp3d = 0: no 3D term at all
-    total = lambda phase: lambda: sum(_terms(body, s, d, cfg, phase, names, smooth, gnc["k"], gnc["w3d"]).values())  # noqa: E731
+    # total(phase): the loss of the state s; with ``bd`` (HeldPoseBody) its ``rest`` in the pose's
+    # place (phase 1: the terms there do not read the pose itself).
+    def total(phase, bd=body, pose=None):
+        return lambda: sum(_terms(bd, _State(s.betas, s.go, s.pose if pose is None else pose, s.transl), d, cfg,
+                                  phase, names, smooth, gnc["k"], gnc["w3d"]).values())
+
+    # window_losses(phase): (params in phase 2's order, rows of the windows still fitted or None for
+    # all) -> (k,) each window's own loss (phase 2's early stop, _optimise_windows).
+    def window_losses(phase):
+        f = total(phase)
+        return lambda cur, rows: f().reshape(1)  # one window: never split
 
     if batched:  # (n, W, ...) windows: one loss per window through vmap, summed (gradients stay per window)
         fields = (d.kp3d, d.conf3d, d.K, d.T_world_cam, d.kp2d, d.conf2d, d.prior, d.prior_conf, d.edge, d.floor)
         dims = tuple(None if x is None or x is d.K or x is d.floor else 0 for x in fields)
 
-        def total(phase):
+        def per_window(phase, bd=body):
             def one(go, pose, transl, *dd):
-                return sum(_terms(body, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
+                return sum(_terms(bd, _State(s.betas, go, pose, transl), _Data(*dd), cfg, phase, names, smooth,
                                   gnc["k"], gnc["w3d"]).values())
-            vm = torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
-            return lambda: vm(s.go, s.pose, s.transl, *fields).sum()
+            return torch.func.vmap(one, in_dims=(0, 0, 0) + dims)
+
+        def total(phase, bd=body, pose=None):
+            vm = per_window(phase, bd)
+            return lambda: vm(s.go, s.pose if pose is None else pose, s.transl, *fields).sum()
+
+        def window_losses(phase):
+            vm, cut = per_window(phase), {}
+
+            def f(cur, rows):  # cur: go, transl, pose of the windows ``rows`` (None: all)
+                key = None if rows is None else tuple(rows.tolist())
+                if key not in cut:  # the data of the windows still fitted, sliced once per change
+                    cut.clear()
+                    cut[key] = fields if rows is None else tuple(x if dm is None else x[rows] for x, dm in zip(fields, dims))
+                return vm(cur[0], cur[2], cur[1], *cut[key])
+            return f
     t0 = time.perf_counter()
     p1 = ([s.betas] if free_betas else []) + [s.go, s.transl]
     lr1 = ([cfg.phase1_lr * cfg.betas_lr_scale] if free_betas else []) + [cfg.phase1_lr] * 2
-    _optimise(p1, lr1, total(1.25), cfg.phase1_iterations, cfg)
+    if cfg.phase1_iterations > 0:  # the pose is held: the body's pose-dependent part once (HeldPoseBody)
+        held = HeldPoseBody(body, s.betas)
+        rest = held.rest(s.pose.detach().reshape(-1, s.pose.shape[-1]))
+        _optimise(p1, lr1, total(1.25, held, rest.reshape(s.pose.shape[:-1] + rest.shape[1:])),
+                  cfg.phase1_iterations, cfg)
     # Torso, then limbs: the pose is free only on those joints (zeroed gradients elsewhere: with a
     # fresh Adam per stage, a zero gradient moves nothing).
     for joints, iters, phase in ((TORSO_JOINTS, cfg.torso_iterations, 1.25), (LIMB_JOINTS, cfg.limbs_iterations, 1.5)):
@@ -481,7 +632,11 @@ def _fit_window(body: KeypointBody, d: _Data, init: _State, cfg: SmplifyConfig, 
         gnc["k"] = cfg.gnc_factor ** left if cfg.gnc_factor > 1 else 1.0
         gnc["w3d"] = cfg.w_kp3d * (cfg.w_kp3d_start / cfg.w_kp3d) ** left if cfg.w_kp3d > 0 else 0.0
 
-    _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
+    if cfg.solver == "adam" and cfg.phase2_stop_tol > 0:
+        steps = _optimise_windows(p2, lr2, window_losses(2), cfg.phase2_iterations, cfg, schedule, n_gnc)
+        log.debug("smplify %sphase 2: steps per window %s of %d", label, steps, cfg.phase2_iterations)
+    else:
+        _optimise(p2, lr2, total(2), cfg.phase2_iterations, cfg, on_step=schedule)
     gnc["k"], gnc["w3d"] = 1.0, cfg.w_kp3d
     t2 = time.perf_counter()
     timing[f"{label}phase1"] = timing.get(f"{label}phase1", 0.0) + t1 - t0

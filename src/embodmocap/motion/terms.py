@@ -50,7 +50,7 @@ def _clean(target: torch.Tensor, conf: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 def kp3d_term(pred: torch.Tensor, target: torch.Tensor, conf: torch.Tensor, kind: str = "geman_mcclure",
-              scale: float = 0.05) -> torch.Tensor:
+              scale: float = 0.05, clean: bool = True) -> torch.Tensor:
     """3D keypoint term.
 
     Args:
@@ -58,8 +58,11 @@ def kp3d_term(pred: torch.Tensor, target: torch.Tensor, conf: torch.Tensor, kind
         target: (T, J, 3) triangulated keypoints, metres (NaN where missing).
         conf: (T, J) confidence >= 0 (0 = ignore).
         kind, scale: robust kernel and its scale in metres.
+        clean: False when ``target`` is known to be finite with 0 confidence where missing (the
+            fit's data, cleaned once instead of at every step).
     """
-    target, conf = _clean(target, conf)
+    if clean:
+        target, conf = _clean(target, conf)
     s = ((pred - target) ** 2).sum(-1)
     return _weighted_robust_mean(s, conf, kind, scale)
 
@@ -88,10 +91,12 @@ def project(points: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor,
 
 def reproj_view_terms(pred: torch.Tensor, K: torch.Tensor, T_world_cam: torch.Tensor, kp2d: torch.Tensor,
                       conf: torch.Tensor, kind: str = "geman_mcclure", scale: float = 20.0,
-                      min_depth: float = 0.05) -> torch.Tensor:
+                      min_depth: float = 0.05, clean: bool = True) -> torch.Tensor:
     """:func:`reproj_term` of each view separately, from one projection into all of them: (V,)
-    (the same arguments; what ``reproj_term`` gives for the views one at a time)."""
-    kp2d, conf = _clean(kp2d, conf)
+    (the same arguments; what ``reproj_term`` gives for the views one at a time; ``clean`` as in
+    :func:`kp3d_term`)."""
+    if clean:
+        kp2d, conf = _clean(kp2d, conf)
     uv, z = project(pred, K, T_world_cam)
     conf = torch.where(z.detach() > min_depth, conf, torch.zeros_like(conf))
     rho = robust_rho(((uv - kp2d) ** 2).sum(-1), kind, scale)  # (T, V, J)
