@@ -92,12 +92,8 @@ class RefineConfig:
     """Robust scale of the Chamfer term, metres (LiDAR noise plus mesh error)."""
     reproj_kernel: str = "huber"
     """Robust kernel of the reprojection term."""
-    reproj_scale_px: float = 1.5
-    """Robust scale of the reprojection term, pixels: about twice the registered matches' median
-    residual (0.4-0.8 px), so the most precise of the three terms is not written off as outliers.
-    On the 10 hard random-phase studio seeds, 3 -> 1.5 took the view centres from 1.06 / 1.75 /
-    1.76 cm (median / p95 / worst) to 0.86 / 1.58 / 1.64, WA / PA / RTE unchanged; on two hard-VIO
-    sessions each frame 0.32 -> 0.38 cm (benchmarks/history/2026-12-06-s12-place.md)."""
+    reproj_scale_px: float = 3.0
+    """Robust scale of the reprojection term, pixels."""
     solver: Solver = "lm"
     """Which solver(s) to run: "adam", "lm" or "both" (keeps the lower final loss). LM by default:
     on the benchmark seeds it ends within 0.01 % of Adam's loss (or below it) in 10-20 iterations,
