@@ -467,11 +467,17 @@ def _optimise(params: list[torch.Tensor], lrs: list[float], loss_fn: Callable[[]
     for it in progress(range(iterations), "SMPL fit pass", unit="step"):
         if on_step is not None:
             on_step(it)
-        frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
         for p in params:
             p.grad = None
         loss_fn().backward()
-        opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
+        opt.step(_cosine_lrs(lrs, it, iterations, cfg))
+
+
+def _cosine_lrs(lrs: list[float], it: int, iterations: int, cfg: SmplifyConfig) -> list[float]:
+    """Each parameter's learning rate at step ``it`` of ``iterations``: cosine decay from ``lrs`` to
+    ``cfg.lr_final_ratio`` of them."""
+    frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
+    return [lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs]
 
 
 #: Steps over which phase 2's early stop measures a window's progress (SmplifyConfig.phase2_stop_tol).
@@ -498,12 +504,11 @@ def _optimise_windows(params: list[torch.Tensor], lrs: list[float],
     hist: list[torch.Tensor] = []
     for it in progress(range(iterations), "SMPL fit pass", unit="step"):
         on_step(it)
-        frac = 0.5 * (1.0 + math.cos(math.pi * it / max(iterations - 1, 1)))
         for p in cur:
             p.grad = None
         losses = loss_fn(cur, rows)
         losses.sum().backward()
-        opt.step([lr * (cfg.lr_final_ratio + (1.0 - cfg.lr_final_ratio) * frac) for lr in lrs])
+        opt.step(_cosine_lrs(lrs, it, iterations, cfg))
         if steps is None:
             steps = [iterations] * len(losses)
         hist = (hist + [losses.detach()])[-(STOP_SPAN + 1):]
