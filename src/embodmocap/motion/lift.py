@@ -19,7 +19,9 @@ What one view cannot give, and what takes its place:
   and the fit follows the 2D keypoint, smoothness and the prior there;
 - a joint outside the mask or hidden by furniture has no depth: no 3D point (short gaps are
   interpolated as the triangulation's are);
-- no second view undoes a left/right swap of the detector: only each view's own label tracking.
+- no second view undoes a left/right swap of the detector: only the view's own label tracking
+  (its trajectories, and the side of the body its depth puts each arm on:
+  :attr:`~embodmocap.motion.label_track.LabelTrackConfig.depth_side_m`).
 
 So one view is less accurate than two (the figures are in BENCHMARKS.md, session 7).
 """

@@ -103,6 +103,8 @@ class PassContext:
         quality_of: fitted params -> their :class:`~embodmocap.motion.quality.FrameQuality`.
         depth: view -> ``(depth_mm, (width, height), masks)``, the views' depth and person masks
             (:func:`embodmocap.motion.stage.quality_depth`; None: not read).
+        lift: one view: its (T, 17, 3) keypoints -> (T, 17, 3) world points lifted with its depth
+            (:func:`embodmocap.motion.solve.lift_view`; None: no depth, or two views).
     """
 
     cfg: MotionConfig
@@ -120,6 +122,7 @@ class PassContext:
     cameras: Mapping | None = None
     quality_of: Callable | None = None
     depth: Mapping | None = None
+    lift: Callable | None = None
 
 
 @dataclass(frozen=True)
@@ -174,7 +177,8 @@ def label_track(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     """Each view's left/right limb labels tracked through time (:mod:`embodmocap.motion.label_track`)."""
     from embodmocap.motion.label_track import TRACKED_GROUPS, track_labels
 
-    kp, tracked = track_labels(ev.keypoints2d, ctx.cfg.label_track, P=ctx.P)  # P None: one view, time alone
+    # P None: one view, its trajectories and (with ctx.lift) the side its depth puts each arm on
+    kp, tracked = track_labels(ev.keypoints2d, ctx.cfg.label_track, P=ctx.P, lift=ctx.lift)
     return replace(ev, keypoints2d=kp), {"labels_tracked": {
         f"{v}_{g}": int(tracked[:, i, k].sum()) for i, v in enumerate(ctx.names) for k, g in enumerate(TRACKED_GROUPS)}}
 

@@ -110,10 +110,14 @@ def lift_view(cfg: MotionConfig, cams: Mapping[str, Mapping], kps: Mapping[str, 
     kp = np.asarray(kps[v][:T], dtype=np.float64)[:, None]  # (T, 1, 17, 3)
     K, T_wc = np.asarray(cams[v]["K"]), np.asarray(cams[v]["T_world_cam"])[:T]
     # The same keypoint passes as before a triangulation (the swap check needs two views).
-    ev, reports = run_passes("keypoints", Evidence(kp, np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), dtype=bool)),
-                             PassContext(cfg, (v,), K[None], T_wc[:, None], label=label))
-    kp = ev.keypoints2d
     min_conf = cfg.triangulation.min_conf
+    # The label tracking judges the side each arm is on with the depth (LabelTrackConfig.depth_side_m):
+    # the detections lifted as labelled, before the lower-bound rule (which reads the labels).
+    plain = replace(cfg.lift, behind_occluder=False)
+    ev, reports = run_passes("keypoints", Evidence(kp, np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), dtype=bool)),
+                             PassContext(cfg, (v,), K[None], T_wc[:, None], label=label, lift=lambda k: lift_keypoints(
+                                 k, K, T_wc, depth_at, rgb_size, plain, min_conf, 0).points))
+    kp = ev.keypoints2d
     lifted = lift_keypoints(kp[:, 0], K, T_wc, depth_at, rgb_size, cfg.lift, min_conf, cfg.triangulation.max_gap_frames)
     file = Keypoints3DFile(version=np.int64(KEYPOINTS3D_VERSION), points=lifted.points, conf=lifted.conf,
                            reproj_err_px=reprojection_px(lifted.points, K, T_wc, kp[:, 0]), filled=lifted.filled,

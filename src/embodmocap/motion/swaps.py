@@ -112,20 +112,23 @@ def _mislabelled(points: NDArray, group: str) -> NDArray[np.bool_]:
         return ~(side > 0)
 
 
-def limb_side_score(points: NDArray, group: str) -> NDArray:
+def limb_side_score(points: NDArray, group: str, ends: bool = False) -> NDArray:
     """(T,) metres: how much nearer each elbow (knee) is to the shoulder (hip) of its own side
     than to the other's, summed over the sides seen (positive: labelled the right way round; NaN
     where no side can be told). One seen side is enough (the other limb is often occluded).
 
     Args:
-        points: (T, 17, 3) COCO-17 points (NaN = missing); group: ``arms`` or ``legs``.
+        points: (T, 17, 3) COCO-17 points (NaN = missing); group: ``arms`` or ``legs``;
+        ends: judge the wrists (ankles) against the shoulders (hips) too.
     """
     (l_end, r_end), (l_root, r_root) = (((_L_ELBOW, _R_ELBOW), (_L_SHOULDER, _R_SHOULDER)) if group == "arms"
                                         else ((_L_KNEE, _R_KNEE), (_L_HIP, _R_HIP)))
+    pairs = [(l_end, r_end)] + ([(9, 10) if group == "arms" else (15, 16)] if ends else [])
+
     def d(a, b):  # noqa: E306
         return np.linalg.norm(points[:, a] - points[:, b], axis=-1)
 
-    votes = np.stack([d(l_end, r_root) - d(l_end, l_root), d(r_end, l_root) - d(r_end, r_root)])
+    votes = np.stack([v for lft, rgt in pairs for v in (d(lft, r_root) - d(lft, l_root), d(rgt, l_root) - d(rgt, r_root))])
     seen = np.isfinite(votes).any(axis=0)
     return np.where(seen, np.nansum(votes, axis=0), np.nan)
 
