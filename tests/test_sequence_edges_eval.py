@@ -126,6 +126,38 @@ def test_a_limb_far_from_both_views_is_suspect_a_wrong_detection_is_not():
     assert not frame_quality(fitted, Ks, Twc, used, raw, truth, None, ("v1", "v2")).suspect.any()
 
 
+def test_a_wrong_start_and_the_frames_beside_a_flagged_run_are_suspect():
+    """Issue 29 (hard studio seed 3, one phone): the right wrist 66 cm off its detection's ray in
+    frame 0, undetected in frame 1, off again from frame 2: the two-frame rule (the frame and a
+    neighbour) let frames 0 and 1 pass, and the frames after the flagged run whose arm each
+    contradicted a different detection. At the sequence's edges the nearest judged frame is the
+    neighbour; a suspect run grows over contradicted frames beside it (two at most). In the middle
+    of the sequence a one-frame blunder still does not count."""
+    from dataclasses import replace
+
+    T = 30
+    truth = _walk(T, J=17, seed=3)
+    Ks, Twc, kp = _two_views(truth)
+    Ks, Twc, kp = Ks[:1], Twc[:, :1], kp[:, :1]  # one phone
+    side = np.cross(truth[0, 10] - Twc[0, 0, :3, 3], [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    fitted = truth.copy()
+    fitted[:7, 10] += 0.3 * side  # right wrist 30 cm off the view's ray in frames 0-6
+    fitted[[20, 22, 23], 10] += 0.3 * side  # and in frames 20, 22, 23
+    for t, j in ((7, 7), (8, 14), (9, 15)):  # then the left elbow, the right knee, the left ankle
+        fitted[t, j] += 0.3 * side
+    kp[[1, 21], 0, 10, 2] = 0.0  # the view does not detect the right wrist in frames 1 and 21
+
+    def flagged(cfg):
+        return np.flatnonzero(frame_quality(fitted, Ks, Twc, kp, kp, truth, None, ("v1",), cfg).suspect).tolist()
+
+    old = QualityConfig(edge_gap_frames=0, grow_frames=0)  # the frame and a neighbour
+    assert flagged(old) == [2, 3, 4, 5, 6, 22, 23]
+    assert flagged(replace(old, edge_gap_frames=4)) == [0, 1, 2, 3, 4, 5, 6, 22, 23]
+    assert flagged(replace(old, grow_frames=2)) == [2, 3, 4, 5, 6, 7, 8, 22, 23]
+    assert flagged(QualityConfig()) == [0, 1, 2, 3, 4, 5, 6, 7, 8, 22, 23]
+
+
 def test_quality_round_trips_through_the_motion_file_and_the_exports(tmp_path):
     from embodmocap.io.amass import write_amass
     from embodmocap.export.csv_joints import write_joints_csv

@@ -30,6 +30,11 @@ frame of the fitted motion:
   joint, seen by a view on its ray, more than ``front_m`` in front of the surface that view measured
   around it, in the frame and a neighbour.
 
+"In the frame and a neighbour" is the two-frame rule every test shares; at a sequence's first and
+last frames (``edge_gap_frames``) the neighbour is the nearest frame where the view judged that
+joint (a frame without its detection does not break a wrong start), and a suspect run grows over
+the contradicted frames beside it (``grow_frames``).
+
 Ray distances are metric where pixels are not (a limb 3 m from the camera is half as many pixels
 off as at 1.5 m), and a view says nothing about depth along its own ray, which is why a joint is
 judged by the view it is closest to.
@@ -105,6 +110,24 @@ class QualityConfig:
     front_window_px: int = 7
     """The depth-pixel neighbourhood whose person pixels' median depth bounds a joint from the
     front (5 flagged 4 right frames of studio seed 9 that 7 does not)."""
+    edge_gap_frames: int = 4
+    """In the first and last this many frames of a sequence, a column (a joint's ray, a limb
+    part's free space, a detection's surface or front) off in a frame counts when it is off in the
+    nearest frame before or after where it was judged, at most this many frames away, and the frames
+    between two such frames where it was not judged count too (elsewhere: the frame and a
+    neighbour). At an edge a frame has one neighbour, and one frame without a detection let a
+    wrong start pass: hard studio seed 3 with one phone (issue 29), the right wrist 66 cm off its
+    detection's ray in frame 0, undetected in frame 1 (31 cm off), off again from frame 2.
+    Everywhere (not only at the edges) it flagged 3-frame runs around one-frame holes in
+    mid-sequence on four of the ten hard seeds (two phones: right frames flagged 3.0 -> 3.6 %).
+    0 = the frame and a neighbour everywhere."""
+    grow_frames: int = 2
+    """A suspect run grows by up to this many frames at each end over frames that each have a
+    contradicted column (any test, in that frame alone): a wrong limb beside a flagged run is not
+    let through because each of its frames is contradicted by a different column. Seed 3 with one
+    phone: frames 20-21 (the arms 15-22 cm off after the flagged run 2-19) were let through; grown
+    without a limit the run took frames 22-23 too (4-9 cm off, each with another detector
+    blunder). 0 = off."""
     repair_frames: int = 0
     """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
     views takes the local rotations of the first frame within this many where it is not, when
@@ -197,23 +220,52 @@ def frame_quality(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: 
     joint = joint_offsets(fitted_kp, K, T_world_cam, used2d, raw2d, cfg.min_conf)
     per_joint = joint[:, list(LIMB_JOINTS)]
     limb = np.where(np.isfinite(per_joint).any(-1), np.nanmax(np.nan_to_num(per_joint, nan=-1.0), axis=-1), np.nan)
-    off = np.nan_to_num(per_joint, nan=0.0) > cfg.suspect_m  # (T, 12) contradicted
-    suspect = _lasting(off)
+    # Each test: (T, K) figures (NaN: not judged there) and the threshold above which a column is off.
+    tests = [(per_joint, cfg.suspect_m)]
     if free_space is not None:
-        suspect = suspect | _lasting(np.nan_to_num(free_space, nan=0.0) > cfg.free_space_share)
+        tests.append((free_space, cfg.free_space_share))
     if surface is not None and cfg.surface_m > 0:
-        suspect = suspect | _lasting(np.nan_to_num(surface, nan=0.0).reshape(T, -1) > cfg.surface_m)
+        tests.append((np.reshape(surface, (T, -1)), cfg.surface_m))
     if front is not None and cfg.front_m > 0:
-        suspect = suspect | _lasting(np.nan_to_num(front, nan=0.0).reshape(T, -1) > cfg.front_m)
+        tests.append((np.reshape(front, (T, -1)), cfg.front_m))
+    suspect = np.zeros(T, dtype=bool)
+    off_any = np.zeros(T, dtype=bool)
+    for fig, limit in tests:
+        judged = np.isfinite(fig)
+        off = judged & (np.nan_to_num(fig, nan=0.0) > limit)
+        suspect |= _lasting(off, judged, cfg.edge_gap_frames)
+        off_any |= off.any(-1)
+    for _ in range(cfg.grow_frames):  # suspect runs grown over contradicted frames beside them
+        suspect = suspect | (off_any & (np.concatenate([[False], suspect[:-1]]) | np.concatenate([suspect[1:], [False]])))
     return FrameQuality(reproj, kp3d, limb, suspect, tuple(views), joint, free_space, surface, front)
 
 
-def _lasting(off: NDArray) -> NDArray:
-    """(T,) frames where some column of ``off`` (T, K) bool holds in the frame and a neighbour
-    (a drifting limb stays off; a one-frame blunder of a detector or a depth map does not count)."""
+def _lasting(off: NDArray, judged: NDArray | None = None, edge: int = 0) -> NDArray:
+    """(T,) frames where some column of ``off`` (T, K) bool holds in the frame and a neighbour (a
+    drifting limb stays off; a one-frame blunder of a detector or a depth map does not count).
+    In the first and last ``edge`` frames, the neighbour is the nearest frame before or after
+    where that column was judged (``judged`` (T, K) bool; None: every frame), at most ``edge``
+    frames away, and frames where it was not judged that lie between two of its off frames there
+    count too (:attr:`QualityConfig.edge_gap_frames`)."""
+    T = len(off)
+    judged = np.ones(off.shape, dtype=bool) if judged is None else np.asarray(judged, dtype=bool)
+    off = off & judged
     before = np.concatenate([np.zeros_like(off[:1]), off[:-1]])
     after = np.concatenate([off[1:], np.zeros_like(off[:1])])
-    return (off & (before | after)).any(-1)
+    out = (off & (before | after)).any(-1)
+    if edge <= 0 or T < 2:
+        return out
+    t = np.arange(T)[:, None]
+    last = np.maximum.accumulate(np.where(judged, t, -1), axis=0)  # last judged frame <= t
+    first = np.minimum.accumulate(np.where(judged, t, T)[::-1], axis=0)[::-1]  # next judged frame >= t
+    prev = np.concatenate([np.full((1, off.shape[1]), -1), last[:-1]])  # last judged frame < t
+    nxt = np.concatenate([first[1:], np.full((1, off.shape[1]), T)])  # next judged frame > t
+    col = np.arange(off.shape[1])[None]
+    prev_off = (prev >= 0) & (t - prev <= edge) & off[np.clip(prev, 0, T - 1), col]
+    next_off = (nxt < T) & (nxt - t <= edge) & off[np.clip(nxt, 0, T - 1), col]
+    between = ~judged & (nxt - prev <= edge) & prev_off & next_off
+    at_edge = (np.arange(T) < edge) | (np.arange(T) >= T - edge)
+    return out | (at_edge & ((off & (prev_off | next_off)) | between).any(-1))
 
 
 def joint_offsets(fitted_kp: NDArray, K: NDArray, T_world_cam: NDArray, used2d: NDArray, raw2d: NDArray,
