@@ -119,15 +119,17 @@ class QualityConfig:
     wrong start pass: hard studio seed 3 with one phone (issue 29), the right wrist 66 cm off its
     detection's ray in frame 0, undetected in frame 1 (31 cm off), off again from frame 2.
     Everywhere (not only at the edges) it flagged 3-frame runs around one-frame holes in
-    mid-sequence on four of the ten hard seeds (two phones: right frames flagged 3.0 -> 3.6 %).
-    0 = the frame and a neighbour everywhere."""
+    mid-sequence on four of the ten hard two-phone seeds (right frames flagged 3.4 -> 4.2 %, 4.5 %
+    with 4); at the edges only it flags none of their frames
+    (benchmarks/history/2026-12-06-s13-onephone.md). 0 = the frame and a neighbour everywhere."""
     grow_frames: int = 2
     """A suspect run grows by up to this many frames at each end over frames that each have a
     contradicted column (any test, in that frame alone): a wrong limb beside a flagged run is not
     let through because each of its frames is contradicted by a different column. Seed 3 with one
     phone: frames 20-21 (the arms 15-22 cm off after the flagged run 2-19) were let through; grown
     without a limit the run took frames 22-23 too (4-9 cm off, each with another detector
-    blunder). 0 = off."""
+    blunder). On the ten hard two-phone seeds: right frames flagged 53 -> 58 of 1550 (none of
+    their frames is wrong and unflagged either way). 0 = off."""
     repair_frames: int = 0
     """At the edges of each run of placeable frames, a limb further than ``suspect_m`` from the
     views takes the local rotations of the first frame within this many where it is not, when
