@@ -153,12 +153,13 @@ class LabelTrackConfig:
     seen) by more than ``depth_side_margin_m`` cost the frame that excess over this many metres,
     in torso lengths (at most one a frame). One view's trajectories cannot say which side of a
     jump had the labels right: on the hard studio seed 3 (one phone) the detector had the arms
-    exchanged in frames 2-6 and right from frame 7; the chain kept 0-6 and exchanged 7-21 (the
+    exchanged in frames 0-6 and right from frame 7; the chain kept 0-6 and exchanged 7-21 (the
     longer run at ``flip_cost``), the lifted right wrist on the left one, 45 cm behind its
     shoulder, and the fitted arms 30-40 cm off. The depth tells: over the ten hard studio seeds'
     20 views (each lifted on its own) the summed vote was below -0.1 m in 204 of 222 frames with
     the arms exchanged and in 10 of 1394 with them right (single frames). On: seed 3's one phone
-    W-MPJPE c100 145.3 -> 96.5 mm (two phones 59.7), WA 29.7 -> 22.3, PA 28.2 -> 20.1 mm; seeds 0
+    W-MPJPE c100 145.3 -> 96.5 mm (two phones 59.7), WA 29.7 -> 22.3, PA 28.2 -> 20.1 mm; seed 4
+    161.7 -> 157.9 (its arms exchanged in frames 156-176 put right, WA 54.6 -> 49.3); seeds 0, 1
     and 2 unchanged (benchmarks/history/2026-12-06-s13-onephone.md). The legs are not
     judged: the hips are too close (below -0.1 m in 88 of 250 exchanged frames and 37 of 1646
     right ones). 0 = off (one view's labels tracked by its trajectories alone)."""
