@@ -45,8 +45,12 @@ def offset(yaw_deg, t):
     return make_T(rot_z(np.radians(yaw_deg)), np.asarray(t, dtype=np.float64))
 
 
-def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=None, n=40, drift=None):
+def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=None, n=40, drift=None, phase=None):
     """ViewData of perturbed views, the scene, the track pairs and the true corrections.
+
+    ``phase``: view 2 films this many frames later than view 1 (its track points are the
+    performer's that much later) and the pairs carry each point's identity; None: same instants,
+    no identities.
 
     ``drift``: view -> (T, 4, 4) a VIO error that changes frame by frame (world side, on top of
     the rigid one): the views' cameras are then ``inv(truth) @ inv(drift[t]) @ T_true[t]``."""
@@ -86,19 +90,23 @@ def make_world(noise=0.0, outliers=0.0, seed=0, views=("v1", "v2"), reproj_true=
         )
     tracks = None
     if len(views) == 2:
+        def performer(s):
+            centre = np.stack([0.2 + 0.3 * np.sin(3 * s), 0.3 * np.cos(3 * s), 1.0 + 0 * s], -1)
+            return (centre[:, None] + body[None]).reshape(-1, 3)  # (T * 12, 3)
+
         s = np.linspace(0, 1, n)
-        centre = np.stack([0.2 + 0.3 * np.sin(3 * s), 0.3 * np.cos(3 * s), 1.0 + 0 * s], -1)
         body = rng.normal(0, 0.25, (12, 3))
-        pts = centre[:, None] + body[None]  # (T, 12, 3)
         frames = np.repeat(np.arange(n), 12)
-        pw = pts.reshape(-1, 3)
+        pw = performer(s)
+        pw_b = pw if phase is None else performer(s + phase * (s[1] - s[0]))
         pa = np.einsum("nji,nj->ni", T_true["v1"][frames, :3, :3], pw - T_true["v1"][frames, :3, 3])
-        pb = np.einsum("nji,nj->ni", T_true["v2"][frames, :3, :3], pw - T_true["v2"][frames, :3, 3])
+        pb = np.einsum("nji,nj->ni", T_true["v2"][frames, :3, :3], pw_b - T_true["v2"][frames, :3, 3])
         pa += noise * rng.standard_normal(pa.shape)
         pb += noise * rng.standard_normal(pb.shape)
         bad = rng.random(len(pa)) < outliers
         pa[bad] += rng.normal(0, 0.5, (int(bad.sum()), 3))
-        tracks = L.make_track_pairs(("v1", "v2"), frames, pa, pb, np.full(len(frames), 0.9))
+        ids = None if phase is None else np.tile(np.arange(12), n)
+        tracks = L.make_track_pairs(("v1", "v2"), frames, pa, pb, np.full(len(frames), 0.9), ids)
     return out, scene, tracks, {k: truth[k] for k in views}
 
 
@@ -225,6 +233,34 @@ def test_drift_knots_follow_a_vio_error_that_grows_along_the_view():
     o = knots.views["v1"]
     D = drift_transforms(o.knot_frames, o.knots, o.pivot, n)
     np.testing.assert_allclose(o.T_world_cam, D @ views["v1"].T_world_cam, atol=1e-12)
+
+
+def test_track_phase_is_fitted_instead_of_moving_the_views():
+    # View 2 films 0.45 frame after view 1 (the performer moves ~2 cm a frame). With only the
+    # cross-view tracks and view 1's terms to place it, a frame-paired track term shifts view 2 by
+    # the performer's motion over that fraction; fitting the phase keeps it where it belongs.
+    views, scene, tracks, truth = make_world(seed=8, phase=0.45)
+    views = {"v1": views["v1"], "v2": replace(views["v2"], background=None, matches=None)}
+    cfg = RefineConfig(solver="lm", drift_knot_frames=0, track_phase=True)
+    off = refine_offsets(views, replace(cfg, track_phase=False), scene=scene, tracks=tracks)
+    on = refine_offsets(views, cfg, scene=scene, tracks=tracks)
+    assert off.phase_frames is None and on.phase_frames == pytest.approx(0.45, abs=0.02)
+    (dt_off, yaw_off), (dt_on, yaw_on) = errors(off, truth), errors(on, truth)
+    assert dt_off > 0.002 and yaw_off > 0.3, (dt_off, yaw_off)
+    assert dt_on < 0.001 and yaw_on < 0.1, (dt_on, yaw_on)
+    # With drift knots (the phase's own column of the knot Jacobian) the knots take up the slow part
+    # of the performer's motion, so less of the phase is seen, but it still helps.
+    knots = {p: refine_offsets(views, replace(cfg, drift_knot_frames=15, track_phase=p), scene=scene, tracks=tracks)
+             for p in (False, True)}
+    assert 0.1 < knots[True].phase_frames < 0.5
+    assert errors(knots[True], truth)[0] < 0.7 * errors(knots[False], truth)[0]
+
+
+def test_track_steps_link_each_point_to_its_neighbouring_frames():
+    frames = np.array([0, 0, 1, 3, 3, 1])
+    track = np.array([0, 1, 0, 0, 1, 2])
+    st = L.track_steps(frames, track)
+    assert st.tolist() == [[-1, 2], [-1, 4], [0, 3], [2, -1], [1, -1], [-1, -1]]
 
 
 def test_knot_frames_and_basis():

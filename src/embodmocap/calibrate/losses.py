@@ -121,6 +121,8 @@ class Correspondences:
     behind_surface_m: (N,) float, how far behind the depth-map surface the point lies along the
         viewing ray, metres (0 for surface tracks such as a dense tracker's; joint radii for
         skeleton keypoints).
+    track: (N,) int or None: which point each pair is (the same value in two frames is the same
+        point of the performer, e.g. the joint index), so that its motion between frames is known.
     """
 
     frames: NDArray[np.int64]
@@ -128,6 +130,7 @@ class Correspondences:
     xy_b: NDArray[np.float64]
     weight: NDArray[np.float64]
     behind_surface_m: NDArray[np.float64]
+    track: NDArray[np.int64] | None = None
 
 
 class CorrespondenceSource(Protocol):
@@ -175,6 +178,7 @@ class KeypointCorrespondences:
             xy_b=kb[t_idx, j_idx, :2],
             weight=conf[t_idx, j_idx],
             behind_surface_m=behind[j_idx],
+            track=j[j_idx],
         )
 
 
@@ -184,6 +188,8 @@ class TrackPairs:
 
     view_a, view_b: the two views' names. frames: (N,) sequence frame (indexes both views'
     cameras). p_a, p_b: (N, 3) camera-space points, metres. weight: (N,) confidences.
+    steps: (N, 2) int or None: the index of the same point's pair in the nearest earlier and later
+        frame that has it (-1: none), from which the refinement takes the point's motion.
     """
 
     view_a: str
@@ -192,6 +198,7 @@ class TrackPairs:
     p_a: torch.Tensor
     p_b: torch.Tensor
     weight: torch.Tensor
+    steps: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.frames.shape[0])
@@ -216,15 +223,33 @@ def track_pairs_from_depth(
     log.debug("track pairs: %d of %d have valid depth in both views", int(ok.sum()), len(ok))
     pa = backproject(corr.xy_a[ok], da[ok], K[0], corr.behind_surface_m[ok])
     pb = backproject(corr.xy_b[ok], db[ok], K[1], corr.behind_surface_m[ok])
-    return make_track_pairs(views, corr.frames[ok], pa, pb, corr.weight[ok])
+    track = None if corr.track is None else np.asarray(corr.track)[ok]
+    return make_track_pairs(views, corr.frames[ok], pa, pb, corr.weight[ok], track)
 
 
-def make_track_pairs(views: tuple[str, str], frames, p_a, p_b, weight=None) -> TrackPairs:
-    """Build :class:`TrackPairs` from numpy arrays (frames (N,), p_a/p_b (N, 3), weight (N,))."""
+def make_track_pairs(views: tuple[str, str], frames, p_a, p_b, weight=None, track=None) -> TrackPairs:
+    """Build :class:`TrackPairs` from numpy arrays (frames (N,), p_a/p_b (N, 3), weight (N,);
+    track (N,): each pair's point identity, see :class:`Correspondences`, which gives ``steps``)."""
     f = torch.as_tensor(np.asarray(frames, dtype=np.int64))
     w = np.ones(len(f)) if weight is None else np.asarray(weight, dtype=np.float64)
     as64 = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64).reshape(-1, 3))  # noqa: E731
-    return TrackPairs(views[0], views[1], f, as64(p_a), as64(p_b), torch.as_tensor(w))
+    steps = None if track is None else torch.as_tensor(track_steps(np.asarray(frames), np.asarray(track)))
+    return TrackPairs(views[0], views[1], f, as64(p_a), as64(p_b), torch.as_tensor(w), steps)
+
+
+def track_steps(frames: NDArray, track: NDArray) -> NDArray[np.int64]:
+    """(N, 2) for each pair the index of the same track's pair in its nearest earlier and later
+    frame (-1 where there is none). ``frames``, ``track``: (N,) ints."""
+    frames = np.asarray(frames, dtype=np.int64)
+    track = np.asarray(track, dtype=np.int64)
+    out = np.full((len(frames), 2), -1, dtype=np.int64)
+    order = np.lexsort((frames, track))  # by track, then frame
+    same = track[order][1:] == track[order][:-1]
+    later = frames[order][1:] > frames[order][:-1]
+    link = same & later
+    out[order[1:][link], 0] = order[:-1][link]
+    out[order[:-1][link], 1] = order[1:][link]
+    return out
 
 
 def track_residuals(params_a, params_b, cams_a: Cameras, cams_b: Cameras, pairs: TrackPairs) -> torch.Tensor:

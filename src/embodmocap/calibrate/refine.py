@@ -112,6 +112,8 @@ class RefineResult:
     solver: the solver whose result is kept; iterations: its iterations; runs: every run.
     diverged: the loss did not decrease, is not finite, or the update exceeds the thresholds;
     message: why (empty if not diverged). warnings: other findings (terms that disagree).
+    phase_frames: the track term's estimate of how much later view b films than view a within a
+    frame, sequence frames (None without it: ``track_phase`` off, no track pairs or no motion).
     """
 
     views: dict[str, ViewOffset]
@@ -127,6 +129,7 @@ class RefineResult:
     diverged: bool
     message: str
     warnings: tuple[str, ...]
+    phase_frames: float | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -200,11 +203,18 @@ class _Problem:
         # fixed points instead of a per-point gather of camera matrices (same values, far less work).
         self._world: dict[str, torch.Tensor] = {}
         self._frames: dict[str, torch.Tensor] = {}  # each key's observation frames (drift knots)
+        self.phase_index: int | None = None
+        self._motion: torch.Tensor | None = None
         if self.tracks is not None:
             tr = self.tracks
             self._world["track_a"] = _to_world(self.cams[tr.view_a], tr.frames, tr.p_a)
             self._world["track_b"] = _to_world(self.cams[tr.view_b], tr.frames, tr.p_b)
             self._frames["track_a"] = self._frames["track_b"] = tr.frames
+            if cfg.track_phase:
+                self._motion = _track_motion(tr, self._world["track_a"], self._world["track_b"])
+            if self._motion is not None:
+                self.phase_index = self.num_params
+                self.num_params += 1
         for v in self.chamfer_views:
             bg = views[v].background
             self._world[f"chamfer/{v}"] = _to_world(self.cams[v], bg.frames, bg.p_cam)
@@ -250,7 +260,7 @@ class _Problem:
         cfg, p = self.cfg, self.params(x)
         out = []
         if data:
-            out += self._data_blocks(p, nbrs)
+            out += self._data_blocks(p, nbrs, None if self.phase_index is None else x[self.phase_index])
         for v in self.names:
             if len(self.knot_frames[v]) > 1:
                 # Smoothness prior: neighbouring knots differ by about drift_sigma (a Gaussian prior).
@@ -259,12 +269,15 @@ class _Problem:
                 out.append(_Block(f"drift/{v}", dX / sig, torch.ones(len(dX), dtype=dX.dtype), "l2", 1.0, cfg.w_drift))
         return out
 
-    def _data_blocks(self, p: dict[str, torch.Tensor], nbrs: dict[str, torch.Tensor]) -> list[_Block]:
+    def _data_blocks(self, p: dict[str, torch.Tensor], nbrs: dict[str, torch.Tensor], phase: torch.Tensor | None) -> list[_Block]:
         cfg = self.cfg
         out = []
         if self.tracks is not None:
             a, b = self.tracks.view_a, self.tracks.view_b
             r = self._moved(p[a], a, "track_a") - self._moved(p[b], b, "track_b")
+            if phase is not None:
+                # view b's frame shows the performer ``phase`` frames later than view a's
+                r = r + phase * self._motion
             out.append(_Block("track", r, self.tracks.weight, cfg.track_kernel, cfg.track_scale_m, cfg.w_track))
         for v in self.chamfer_views:
             pw = self._moved(p[v], v, f"chamfer/{v}")
@@ -298,6 +311,34 @@ class _Problem:
             for k, n in norms.items()
         }
         return sum(terms.values()), terms, stats
+
+
+def _track_motion(tr: L.TrackPairs, world_a: torch.Tensor, world_b: torch.Tensor, half_span: int = 5,
+                  max_span: int = 12) -> torch.Tensor | None:
+    """(N, 3) each track pair's motion per sequence frame in the world: the mean of the two views'
+    points, differenced between the same point's pairs at least ``half_span`` frames before and
+    after (the nearest such; a wider span than one frame each side damps the keypoints' noise,
+    which would otherwise shrink the fitted phase), both within ``max_span`` frames of each
+    other; 0 where there are none. None without such neighbours (``tr.steps`` None, or fewer than
+    10 pairs with them)."""
+    if tr.steps is None:
+        return None
+    f = tr.frames
+    ends = []
+    for side, sign in ((0, -1), (1, 1)):
+        i = torch.arange(len(f))
+        for _ in range(max(half_span, 1)):
+            nxt = tr.steps[i, side]
+            short = (sign * (f[i] - f) < half_span) & (nxt >= 0)
+            i = torch.where(short, nxt, i)
+        ends.append(i)
+    i0, i1 = ends
+    span = (f[i1] - f[i0]).to(world_a.dtype)
+    ok = (f - f[i0] >= min(half_span, 1)) & (f[i1] - f >= min(half_span, 1)) & (span <= max_span)
+    if int(ok.sum()) < 10:
+        return None
+    w = 0.5 * (world_a + world_b)
+    return torch.where(ok[:, None], (w[i1] - w[i0]) / span.clamp(min=1.0)[:, None], torch.zeros_like(w))
 
 
 def _to_world(cams: L.Cameras, frames: torch.Tensor, p_cam: torch.Tensor) -> torch.Tensor:
@@ -398,6 +439,10 @@ def _knot_jacobian(prob: _Problem, resid, x: torch.Tensor, nbrs, irls, step: flo
         data = [b for b in blocks if not b.name.startswith("drift/")]
         m_data = sum(b.r.numel() for b in data)
         J = torch.zeros(len(resid(x)), prob.num_params, dtype=x.dtype)
+        if prob.phase_index is not None:  # the track phase: one column, differenced directly
+            e = torch.zeros_like(x)
+            e[prob.phase_index] = step
+            J[:m_data, prob.phase_index] = (resid(x + e)[:m_data] - resid(x - e)[:m_data]) / (2.0 * step)
         for v in prob.names:
             sl = prob.slices[v]
             # (m_data, K) hat weights of each data row on this view's knots (0: rows of other views)
@@ -509,6 +554,7 @@ def refine_offsets(
         diverged=diverged,
         message=message,
         warnings=tuple(warns),
+        phase_frames=None if prob.phase_index is None else float(best.x[prob.phase_index]),
     )
 
 

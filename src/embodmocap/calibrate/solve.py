@@ -249,7 +249,8 @@ def track_pairs(views: Mapping[str, ViewInputs], max_frames: int = 0, residual_s
     if 0 < max_frames < n:
         keep = np.isin(corr.frames, np.unique(np.linspace(0, n - 1, max_frames).round().astype(np.int64)))
         corr = replace(corr, frames=corr.frames[keep], xy_a=corr.xy_a[keep], xy_b=corr.xy_b[keep],
-                       weight=corr.weight[keep], behind_surface_m=corr.behind_surface_m[keep])
+                       weight=corr.weight[keep], behind_surface_m=corr.behind_surface_m[keep],
+                       track=None if corr.track is None else corr.track[keep])
     if len(corr.frames) == 0:
         return None
     return L.track_pairs_from_depth(
@@ -447,6 +448,7 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
             "loss_after": result.loss_after, "terms_before": result.terms_before, "terms_after": result.terms_after,
             "residuals_before": result.stats_before, "residuals_after": result.stats_after,
             "diverged": result.diverged, "message": result.message,
+            **({"phase_frames": round(result.phase_frames, 4)} if result.phase_frames is not None else {}),
             "solvers": {k: {"loss": r.loss_final, "iterations": r.iterations, "seconds": round(r.seconds, 3)}
                         for k, r in result.runs.items()},
         }
