@@ -14,6 +14,9 @@ there through a seen surface) and the rule before it (``old``: the closest face'
   end), in the same placed Stage I mesh: seated, leaning and lying truth the session's own 6 s may
   not hold.
 
+The depth is measured, like ``sim check``, on Stage I's full-resolution mesh near the vertices the
+simplified mesh finds inside (rule ``simplified_depth``: on the simplified mesh, before session 13).
+
 Targets: max penetration <= 3 cm on every truth row, <= 5 cm on the fit. The residual force is not
 computed (``residual=False``): penetration and contact do not depend on it.
 
@@ -39,12 +42,17 @@ WALKING = ("idle", "turn", "walk", "step_away", "step_back")
 
 
 def placed_stage1_mesh(session: Path):
-    """Our Stage I mesh (what ``sim check`` reads) in the studio's scene frame (true T_scene_vio)."""
+    """Our Stage I meshes (what ``sim check`` reads: the simplified one and the full-resolution one
+    it measures depth on) in the studio's scene frame (true T_scene_vio): the fit, then keyword
+    arguments of :class:`SimSequence` for the truth rows."""
     from embodmocap.sim.session import load_sequence
 
-    fit = load_sequence(session)
+    fit = load_sequence(session, detail=True)
     T = np.load(session / "ground_truth" / "scene_scene0_device.npz")["T_scene_vio"]
-    return fit, fit.scene_vertices @ T[:3, :3].T + T[:3, 3], fit.scene_faces
+    placed = {"scene_vertices": fit.scene_vertices @ T[:3, :3].T + T[:3, 3], "scene_faces": fit.scene_faces}
+    if fit.detail_vertices is not None:
+        placed.update(detail_vertices=fit.detail_vertices @ T[:3, :3].T + T[:3, 3], detail_faces=fit.detail_faces)
+    return fit, placed
 
 
 def truth_params(session: Path):
@@ -88,19 +96,20 @@ def rows_for(session: Path, interactions: tuple[str, ...], kinds: tuple[str, ...
     from embodmocap.sim.config import SimCheckConfig
     from embodmocap.sim.session import SimSequence
 
-    fit, v, f = placed_stage1_mesh(session)
+    fit, mesh = placed_stage1_mesh(session)
     truth = truth_params(session)
-    cases = [("truth", SimSequence(session, "truth", truth, np.arange(len(truth)), fit.body_model, v, f), None),
+    cases = [("truth", SimSequence(session, "truth", truth, np.arange(len(truth)), fit.body_model, **mesh), None),
              ("fit", fit, None)]
     cases = [c for c in cases if c[0] in kinds]
     for name in (interactions if "truth" in kinds else ()):
         got = interaction_params(session, fit.body_model, name)
         if got is not None:
             p, moves = got
-            cases.append((f"truth_{name}", SimSequence(session, name, p, np.arange(len(p)), fit.body_model, v, f), moves))
+            cases.append((f"truth_{name}", SimSequence(session, name, p, np.arange(len(p)), fit.body_model, **mesh), moves))
     rows = []
     for kind, sq, moves in cases:
-        for rule, cfg in (("through_surface", SimCheckConfig()), ("old", SimCheckConfig(through_surface=False))):
+        for rule, cfg in (("through_surface", SimCheckConfig()), ("old", SimCheckConfig(through_surface=False)),
+                          ("simplified_depth", SimCheckConfig(full_resolution_depth=False))):
             if rule not in rules:
                 continue
             s = plausibility(sq, cfg, residual=False)["summary"]
@@ -115,13 +124,15 @@ def rows_for(session: Path, interactions: tuple[str, ...], kinds: tuple[str, ...
 
 def check_time_60s(session: Path) -> dict:
     """Seconds of ``plausibility`` (residual included, as ``sim check`` runs it) on the session's fit
-    tiled to 60 s, with ``through_surface`` and without, vertex strides 1 and 4, one process."""
+    tiled to 60 s, with ``through_surface`` and without, with the depth on the simplified mesh (the
+    rule before session 13) and on the full one, vertex strides 1 and 4, one process."""
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_sim_side import check_time_60s as timed
 
-    return timed(session, (("old", {"through_surface": False}), ("through_surface", {})))
+    return timed(session, (("old", {"through_surface": False}), ("simplified_depth", {"full_resolution_depth": False}),
+                           ("through_surface", {})))
 
 
 def main() -> None:
@@ -131,7 +142,10 @@ def main() -> None:
     ap.add_argument("--interactions", nargs="*", default=list(INTERACTIONS), choices=INTERACTIONS)
     ap.add_argument("--kinds", nargs="+", default=["truth", "fit"], choices=["truth", "fit"],
                     help="rows: the truth (and its interactions) and/or our fit")
-    ap.add_argument("--rules", nargs="+", default=["through_surface", "old"], choices=["through_surface", "old"])
+    ap.add_argument("--rules", nargs="+", default=["through_surface", "old"],
+                    choices=["through_surface", "old", "simplified_depth"],
+                    help="through_surface: today's check; old: without through_surface (before session 7); "
+                         "simplified_depth: depth on the simplified mesh (before session 13)")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
     if a.time:
@@ -145,7 +159,7 @@ def main() -> None:
         if a.json:
             a.json.write_text(json.dumps(res, indent=1))
     summary = {}
-    for rule in ("through_surface", "old"):
+    for rule in ("through_surface", "old", "simplified_depth"):
         for group in ("truth", "fit"):
             sel = [r for r in res["rows"] if r["rule"] == rule and r["kind"].split("_")[0] == group]
             if sel:

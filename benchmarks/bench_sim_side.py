@@ -92,12 +92,13 @@ def check_time_60s(session: Path, variants: tuple[tuple[str, dict], ...] = (
     from embodmocap.sim.config import SimCheckConfig
     from embodmocap.sim.session import load_sequence
 
-    sq = load_sequence(session)
+    sq = load_sequence(session, detail=True)  # as `sim check` reads it
     p = sq.params
     idx = np.tile(np.arange(len(p)), int(np.ceil(60.0 * p.fps / len(p))))[: int(round(60.0 * p.fps))]
     long = sq.with_params(dataclasses.replace(p, global_orient=p.global_orient[idx], body_pose=p.body_pose[idx],
                                               transl=p.transl[idx]))
-    out = {"session": session.name, "frames": int(len(idx)), "scene_faces": int(len(sq.scene_faces))}
+    out = {"session": session.name, "frames": int(len(idx)), "scene_faces": int(len(sq.scene_faces)),
+           "detail_faces": int(len(sq.detail_faces)) if sq.detail_faces is not None else 0}
     for stride in (1, 4):
         for name, settings in variants:
             t0 = time.perf_counter()

@@ -31,7 +31,12 @@ penetrating or touching: a scanned mesh has holes, and there the closest surface
 whose normal says nothing. A scan sees each surface from one side only (no seat has an underside
 in it), so a vertex behind its closest face penetrates only when the body went through a seen
 surface to get there (:func:`entered_through_surface`); feet tucked under a seat lie on the sheet's
-unseen side and read as outside (``SimCheckConfig.through_surface``). The summary gives the max and mean over frames of each figure and the fraction of frames in
+unseen side and read as outside (``SimCheckConfig.through_surface``). These decisions are taken on
+the simplified scene mesh (Stage I's ``mesh_simplified.ply``, smooth enough for the side votes);
+how deep a vertex found inside is, is then measured on the full-resolution mesh it was made from
+(``mesh_raw.ply``, its faces near the vertex only, :func:`detail_signed_distance`), since the
+clustering moves the surface by up to a cell (``SimCheckConfig.full_resolution_depth``).
+The summary gives the max and mean over frames of each figure and the fraction of frames in
 contact per part. Contact and the residual use the fitted mesh; the inverse dynamics use the
 MuJoCo model of :mod:`embodmocap.sim.model` (masses from its geoms).
 """
@@ -206,6 +211,60 @@ class SceneQuery:
         p = np.asarray(points, np.float32).reshape(-1, 3)
         rays = np.concatenate([p, np.tile(np.float32([0, 0, -1]), (len(p), 1))], axis=1)
         return self.scene.cast_rays(self._o3d.core.Tensor(rays))["t_hit"].numpy()
+
+
+#: A penetrating vertex's full-resolution depth is read from the detail mesh's faces within its
+#: simplified depth plus this (metres): the simplified surface lies within about a clustering cell
+#: (5 cm, its diagonal 8.7 cm) of the surface it was made from.
+DETAIL_REACH_M = 0.1
+
+
+def detail_signed_distance(vertices: NDArray, faces: NDArray, points: NDArray, normals: NDArray,
+                           reach_m: NDArray) -> NDArray[np.float64]:
+    """(N,) signed distance (negative inside) of ``points`` (N, 3) to a full-resolution mesh
+    (``vertices`` (M, 3), ``faces`` (F, 3)), read from its faces near the points only; NaN where it
+    has no surface within ``reach_m`` (N,) of the point.
+
+    The closest face's side is its own normal turned to agree with ``normals`` (N, 3), the outward
+    normal the simplified mesh voted at the point (:meth:`SceneQuery.face_side`): a scanned mesh at
+    full resolution has single faces turned over in its noise. Inside is, as in
+    :meth:`SceneQuery.signed_distance`, the closest point lying inside a face, straight behind it."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.full(len(p), np.nan)
+    reach = np.broadcast_to(np.asarray(reach_m, np.float64), (len(p),))
+    v, f = np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(p) == 0 or len(f) == 0:
+        return out
+    # The faces with a vertex within reach (+ an edge length's margin) of some point, from a
+    # box around the points first.
+    r = float(reach.max()) + 0.05
+    box = np.flatnonzero(np.all((v >= p.min(axis=0) - r) & (v <= p.max(axis=0) + r), axis=1))
+    seeds = np.unique(np.round(p / 0.01).astype(np.int64), axis=0) * 0.01  # the points to 1 cm
+    d, _ = cKDTree(seeds).query(v[box], distance_upper_bound=r + 0.01)
+    near_v = np.zeros(len(v), dtype=bool)
+    near_v[box[np.isfinite(d)]] = True
+    sel = f[near_v[f].any(axis=1)]
+    if len(sel) == 0:
+        return out
+    used, local = np.unique(sel, return_inverse=True)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v[used].astype(np.float32)),
+                        o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
+    res = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+    q = res["points"].numpy().astype(np.float64)
+    tri = v[sel[res["primitive_ids"].numpy().astype(np.int64)]]  # (N, 3, 3)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n *= np.where(np.einsum("nc,nc->n", n, np.asarray(normals, np.float64).reshape(-1, 3)) < 0, -1.0, 1.0)[:, None]
+    diff = p - q
+    dist = np.linalg.norm(diff, axis=1)
+    inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
+    ok = dist <= reach
+    out[ok] = np.where(inside, -dist, dist)[ok]
+    return out
 
 
 def mesh_edges(faces: NDArray) -> NDArray[np.int64]:
@@ -406,6 +465,21 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
         unseen = _unseen_side(query, verts_all, sd, normals, stride, sq.body_model.faces, cfg.max_depth_m)
         # On the unseen side of an open sheet: outside it, facing its far side.
         sd, normals = np.where(unseen, -sd, sd), np.where(unseen[..., None], -normals, normals)
+    if cfg.full_resolution_depth and sq.detail_vertices is not None:
+        # How deep the vertices the simplified mesh calls inside are, on the full mesh around them.
+        cand = (sd < 0) & near
+        if cand.any():
+            sd_full = detail_signed_distance(sq.detail_vertices, sq.detail_faces, verts[cand], normals[cand],
+                                             -sd[cand] + DETAIL_REACH_M)
+            ok = np.isfinite(sd_full)
+            sd_c = sd[cand].astype(np.float64)
+            sd_c[ok] = sd_full[ok]
+            out_now = sd_c >= 0  # outside on the full mesh: its distance bounds the gap
+            g = gap[cand]
+            g[out_now] = np.minimum(g[out_now], sd_c[out_now])
+            sd = sd.astype(np.float64)
+            sd[cand], gap[cand] = sd_c, g
+            near[cand] = sd_c > -cfg.max_depth_m  # deeper than that on the full mesh: a hole there
     gap = np.where((sd < 0) & near, 0.0, gap)  # inside a solid: no gap
     pen = np.clip(-np.where(near, sd, np.inf).min(axis=1), 0.0, None)
     import warnings
@@ -509,7 +583,7 @@ def sim_check(session: str | Path, seq: str | None = None, cfg: SimCheckConfig =
     from embodmocap.io.layout import SessionLayout
     from embodmocap.io.stage_manifest import StageManifest, fingerprint, path_fingerprint
 
-    sq = load_sequence(session, seq)
+    sq = load_sequence(session, seq, detail=cfg.full_resolution_depth)
     path = SessionLayout(sq.session).sequence(sq.name).sim_check
     path.parent.mkdir(parents=True, exist_ok=True)
     sm = StageManifest(path.parent / "manifest.json", "sim", {"check": asdict(cfg), "repair": repair},

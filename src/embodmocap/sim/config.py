@@ -112,6 +112,16 @@ class SimCheckConfig:
     sheet (a calf under a chair seat whose underside the scan never saw) and reads as outside,
     its distance to the sheet as a gap. False = the closest face's side alone decides (the rule
     before session 7)."""
+    full_resolution_depth: bool = True
+    """How deep a body vertex is inside the scene is measured on the full-resolution mesh (Stage
+    I's ``mesh_raw.ply``, faces near the vertex only) rather than on the simplified mesh, which
+    still decides which vertices are behind a seen surface (its side vote and ``through_surface``
+    need the simplified mesh's smoothness): vertex clustering moves the surface by up to a cell,
+    filling concave corners and spreading a lone vertex of the scan's noise over its neighbours'
+    5 cm faces (a standing foot beside one read 3.4 cm inside the ground). The full mesh's side is
+    taken from the simplified mesh's voted normal there (a few of its triangles face the wrong
+    way). A vertex with no full-resolution surface within its simplified depth plus 10 cm keeps
+    the simplified reading. No effect where the scene mesh read is itself the full one."""
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,8 @@
 
 Reads, through :class:`SessionLayout` only, ``sequences/<seq>/smpl_world.npz``, the session
 manifest (scene and body model) and the scene mesh (``mesh_simplified.ply`` when Stage I wrote it,
-else ``mesh_raw.ply``), like the other exports.
+else ``mesh_raw.ply``), like the other exports; for ``sim check`` also ``mesh_raw.ply`` beside the
+simplified mesh, the full-resolution mesh it was made from (penetration depth is measured on it).
 """
 
 from __future__ import annotations
@@ -40,6 +41,9 @@ class SimSequence:
         scene_vertices: (N, 3), scene_faces: (F, 3) the scene mesh, world metres.
         inputs: the files it was read from (motion, scene mesh, body model), for fingerprints;
             empty for a sequence made in memory.
+        detail_vertices: (N', 3), detail_faces: (F', 3) the full-resolution mesh the scene mesh
+            was simplified from (Stage I's ``mesh_raw.ply``), world metres; None when the scene
+            mesh is itself full resolution (or none was given).
     """
 
     session: Path
@@ -50,6 +54,8 @@ class SimSequence:
     scene_vertices: NDArray
     scene_faces: NDArray
     inputs: tuple[Path, ...] = ()
+    detail_vertices: NDArray | None = None
+    detail_faces: NDArray | None = None
 
     @property
     def rest_joints(self) -> NDArray[np.float64]:
@@ -59,11 +65,15 @@ class SimSequence:
     def with_params(self, params: SmplParams) -> "SimSequence":
         """The same sequence and scene with other motion (e.g. a constructed or repaired one)."""
         return SimSequence(self.session, self.name, params, np.arange(len(params)), self.body_model,
-                           self.scene_vertices, self.scene_faces)
+                           self.scene_vertices, self.scene_faces, detail_vertices=self.detail_vertices,
+                           detail_faces=self.detail_faces)
 
 
-def load_sequence(session: str | Path, seq: str | None = None) -> SimSequence:
-    """Read sequence ``seq`` (or the session's only one) of ``session``; InputError names what is missing."""
+def load_sequence(session: str | Path, seq: str | None = None, *, detail: bool = False) -> SimSequence:
+    """Read sequence ``seq`` (or the session's only one) of ``session``; InputError names what is missing.
+
+    With ``detail``, also the full-resolution mesh (``mesh_raw.ply``) when the scene mesh read is
+    the simplified one (:attr:`SimSequence.detail_vertices`)."""
     from embodmocap.body.model import load_body_model
     from embodmocap.io.amass import read_amass
     from embodmocap.io.manifest import load_manifest
@@ -81,9 +91,15 @@ def load_sequence(session: str | Path, seq: str | None = None) -> SimSequence:
     if not mesh.is_file():
         raise InputError(mesh, "no scene mesh", f"run `embodmocap scene {layout.root}` first")
     v, f, _ = read_mesh_ply(mesh)
+    dv = df = None
+    detail = scene.mesh_raw if detail and mesh != scene.mesh_raw and scene.mesh_raw.is_file() else None
+    if detail is not None:
+        dv, df, _ = read_mesh_ply(detail)
+        dv, df = np.asarray(dv, dtype=np.float64), np.asarray(df, dtype=np.int64)
     return SimSequence(layout.root, entry.name, params, np.asarray(frames), load_body_model(manifest.body_model),
                        np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64),
-                       inputs=tuple(Path(x) for x in (sl.smpl_world, mesh, manifest.body_model) if x is not None))
+                       inputs=tuple(Path(x) for x in (sl.smpl_world, mesh, detail, manifest.body_model) if x is not None),
+                       detail_vertices=dv, detail_faces=df)
 
 
 def body_vertices(body_model, params: SmplParams, chunk: int = 512) -> NDArray[np.float32]:
