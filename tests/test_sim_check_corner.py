@@ -137,14 +137,13 @@ def test_a_foot_pushed_into_the_box_penetrates_by_the_depth(corner, into_m):
 
 def test_detail_signed_distance_against_a_reference():
     # A unit-square floor at z = 0 in 1 cm triangles, one of them turned over (a scan's noise);
-    # points above, below and beside it, sided by an up normal (the simplified mesh's vote).
+    # points above, below and beside it.
     v, f = _grid(0.0, 1.0, 0.0, 1.0, 0.0, 0.01)
     f = f.copy()
     f[7] = f[7][[0, 2, 1]]
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(-0.2, 1.2, 400), rng.uniform(-0.2, 1.2, 400), rng.uniform(-0.1, 0.1, 400)])
-    up = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
-    got = detail_signed_distance(v, f, pts, up, np.full(len(pts), 0.15))
+    got = detail_signed_distance(v, f, pts, np.full(len(pts), 0.15))
     # Reference: distance to the square; inside (negative) where the way out of it points mostly
     # down (straight below the square, or below its rim by more than 30 degrees).
     q = np.column_stack([pts[:, 0].clip(0, 1), pts[:, 1].clip(0, 1), np.zeros(len(pts))])

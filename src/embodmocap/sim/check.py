@@ -219,17 +219,18 @@ class SceneQuery:
 DETAIL_REACH_M = 0.1
 
 
-def detail_signed_distance(vertices: NDArray, faces: NDArray, points: NDArray, normals: NDArray,
-                           reach_m: NDArray) -> NDArray[np.float64]:
+def detail_signed_distance(vertices: NDArray, faces: NDArray, points: NDArray, reach_m: NDArray,
+                           side_radius_m: float = 0.3, side_sheet_m: float = 0.01) -> NDArray[np.float64]:
     """(N,) signed distance (negative inside) of ``points`` (N, 3) to a full-resolution mesh
     (``vertices`` (M, 3), ``faces`` (F, 3)), read from its faces near the points only; NaN where it
     has no surface within ``reach_m`` (N,) of the point.
 
-    The closest face's side is its own normal turned to agree with ``normals`` (N, 3), the outward
-    normal the simplified mesh voted at the point (:meth:`SceneQuery.face_side`): a scanned mesh at
-    full resolution has single faces turned over in its noise. Inside is, as in
-    :meth:`SceneQuery.signed_distance`, the closest point lying inside a face, straight behind it."""
-    import open3d as o3d
+    The rule of :meth:`SceneQuery.signed_distance` on those faces: the closest face's side voted
+    over its own sheet of the full mesh (``side_radius_m``, ``side_sheet_m``: a scanned mesh at full
+    resolution has single faces turned over in its noise), inside = the closest point lying inside
+    a face, straight behind it. (Not the simplified mesh's normal there: near a small feature, the
+    side of a spike of the scan, the simplified surface faces another way than the face beside
+    the point, and turning the face to agree with it reads the outside of the feature as inside.)"""
     from scipy.spatial import cKDTree
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
@@ -238,9 +239,9 @@ def detail_signed_distance(vertices: NDArray, faces: NDArray, points: NDArray, n
     v, f = np.asarray(vertices, np.float64).reshape(-1, 3), np.asarray(faces, np.int64).reshape(-1, 3)
     if len(p) == 0 or len(f) == 0:
         return out
-    # The faces with a vertex within reach (+ an edge length's margin) of some point, from a
-    # box around the points first.
-    r = float(reach.max()) + 0.05
+    # The faces with a vertex within reach (+ an edge length's margin, + the side vote's radius)
+    # of some point, from a box around the points first.
+    r = float(reach.max()) + 0.05 + max(float(side_radius_m), 0.0)
     box = np.flatnonzero(np.all((v >= p.min(axis=0) - r) & (v <= p.max(axis=0) + r), axis=1))
     seeds = np.unique(np.round(p / 0.01).astype(np.int64), axis=0) * 0.01  # the points to 1 cm
     d, _ = cKDTree(seeds).query(v[box], distance_upper_bound=r + 0.01)
@@ -250,20 +251,9 @@ def detail_signed_distance(vertices: NDArray, faces: NDArray, points: NDArray, n
     if len(sel) == 0:
         return out
     used, local = np.unique(sel, return_inverse=True)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v[used].astype(np.float32)),
-                        o3d.core.Tensor(local.reshape(-1, 3).astype(np.uint32)))
-    res = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-    q = res["points"].numpy().astype(np.float64)
-    tri = v[sel[res["primitive_ids"].numpy().astype(np.int64)]]  # (N, 3, 3)
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    n *= np.where(np.einsum("nc,nc->n", n, np.asarray(normals, np.float64).reshape(-1, 3)) < 0, -1.0, 1.0)[:, None]
-    diff = p - q
-    dist = np.linalg.norm(diff, axis=1)
-    inside = np.einsum("nc,nc->n", diff, n) < -0.5 * dist
-    ok = dist <= reach
-    out[ok] = np.where(inside, -dist, dist)[ok]
+    sd, _ = SceneQuery(v[used], local.reshape(-1, 3), side_radius_m, side_sheet_m).signed_distance(p)
+    ok = np.abs(sd) <= reach
+    out[ok] = sd[ok]
     return out
 
 
@@ -469,8 +459,8 @@ def plausibility(sq: SimSequence, cfg: SimCheckConfig = SimCheckConfig(), *, res
         # How deep the vertices the simplified mesh calls inside are, on the full mesh around them.
         cand = (sd < 0) & near
         if cand.any():
-            sd_full = detail_signed_distance(sq.detail_vertices, sq.detail_faces, verts[cand], normals[cand],
-                                             -sd[cand] + DETAIL_REACH_M)
+            sd_full = detail_signed_distance(sq.detail_vertices, sq.detail_faces, verts[cand], -sd[cand] + DETAIL_REACH_M,
+                                             cfg.side_radius_m, cfg.side_sheet_m)
             ok = np.isfinite(sd_full)
             sd_c = sd[cand].astype(np.float64)
             sd_c[ok] = sd_full[ok]

@@ -119,8 +119,8 @@ class SimCheckConfig:
     need the simplified mesh's smoothness): vertex clustering moves the surface by up to a cell,
     filling concave corners and spreading a lone vertex of the scan's noise over its neighbours'
     5 cm faces (a standing foot beside one read 3.4 cm inside the ground). The full mesh's side is
-    taken from the simplified mesh's voted normal there (a few of its triangles face the wrong
-    way). A vertex with no full-resolution surface within its simplified depth plus 10 cm keeps
+    voted over its own sheet like the simplified one's (``side_radius_m``, ``side_sheet_m``: a few
+    of its triangles face the wrong way). A vertex with no full-resolution surface within its simplified depth plus 10 cm keeps
     the simplified reading. No effect where the scene mesh read is itself the full one."""
 
 
