@@ -23,6 +23,14 @@ its mesh (about as long: :data:`REGISTER_AFTER`), then the rest of Stage III bes
 ``floor`` and ``simplify`` (:data:`CALIBRATE_AFTER`), so the run's wall time is about Stage I's
 key frames, sparse model and mesh + the rest of Stage III + Stage IV.
 
+After Stage I and II the chain (registration, the rest of Stage III, Stage IV) is all that is left
+of a one-sequence session, and the second worker would idle: a job that starts when no other job
+runs and every job left waits for it is lent every worker's core (:func:`cores_for`; the worker
+runs it inside :func:`embodmocap.parallel.lend_cores`). Stage IV then fits its windows in two
+processes (:mod:`embodmocap.motion.smplify`: the windows are independent, the answer is the one
+process's); the registration already uses both cores (its frames on a thread pool, the views'
+frames decoded beside the scene index: :mod:`embodmocap.calibrate.stage`).
+
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
 (its imports are paid once), preferably the next job of its own scene or sequence; it waits idle
@@ -118,6 +126,30 @@ def plan_jobs(scenes, sequences) -> list[Job]:
                  Job("calibrate", q, (f"scene/{s}#{CALIBRATE_AFTER}", f"register/{q}"), s),
                  Job("motion", q, (f"scene/{s}", f"calibrate/{q}"), s)]
     return jobs
+
+
+def _upstream(key: str, by_key: dict[str, Job]) -> set[str]:
+    """The keys of the jobs that job ``key`` waits for, directly or not."""
+    seen: set[str] = set()
+    todo = [n.split("#")[0] for n in by_key[key].needs]
+    while todo:
+        k = todo.pop()
+        if k not in seen:
+            seen.add(k)
+            todo += [n.split("#")[0] for n in by_key[k].needs]
+    return seen
+
+
+def cores_for(key: str, jobs: list[Job], state: dict[str, str], workers: int) -> int:
+    """The cores job ``key`` may use as it starts: every worker's when no other job runs and every
+    job left (``pending``) waits for it, directly or not (the other workers would idle until it
+    ends), else one. ``state``: each job's key -> ``pending``, ``running``, ``ok``, ``failed``, ...
+    (see :data:`LEND_IDLE_CORES`)."""
+    others = [k for k, s in state.items() if k != key and s in ("pending", "running")]
+    if not LEND_IDLE_CORES or any(state[k] == "running" for k in others):
+        return 1
+    by_key = {j.key: j for j in jobs}
+    return workers if all(key in _upstream(k, by_key) for k in others) else 1
 
 
 def _call(job: Job, cfg, session: Path, force: bool) -> None:
@@ -388,24 +420,6 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
         key = need.split("#")[0]
         return state[key] == "ok" or need in steps
 
-    def upstream(key: str) -> set[str]:
-        """The jobs ``key`` waits for, directly or not."""
-        seen: set[str] = set()
-        todo = [n.split("#")[0] for n in by_key[key].needs]
-        while todo:
-            k = todo.pop()
-            if k not in seen:
-                seen.add(k)
-                todo += [n.split("#")[0] for n in by_key[k].needs]
-        return seen
-
-    def cores_for(key: str) -> int:
-        """Every worker's core when no other job runs and every job left waits for ``key`` (the
-        other workers would idle until it ends), else one (see :data:`LEND_IDLE_CORES`)."""
-        others = [k for k, s in state.items() if k != key and s in ("pending", "running")]
-        if not LEND_IDLE_CORES or any(state[k] == "running" for k in others):
-            return 1
-        return workers if all(key in upstream(k) for k in others) else 1
 
     def drop_after(key: str) -> None:
         """The jobs that need ``key`` (directly or not) will not run; a failed scene's sequences
@@ -457,7 +471,7 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
             for kind in PRIORITY:
                 for j in jobs:
                     if pool.idle() > 0 and j.kind == kind and state[j.key] == "pending" and all(map(met, j.needs)):
-                        cores = cores_for(j.key)
+                        cores = cores_for(j.key, jobs, state, workers)
                         state[j.key] = "running"
                         say(f"{j.target}: {STAGE_OF[j.kind]} ...")
                         pool.start(j, digests, cores)
