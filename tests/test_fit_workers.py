@@ -18,18 +18,28 @@ from embodmocap.motion.fit_workers import run_pieces, start_workers
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_smplify_batch import _noisy_problem  # noqa: E402
 
-def test_two_worker_processes_fit_the_windows_as_one_process_does():
+def test_two_worker_processes_fit_the_windows_as_one_process_does(caplog):
+    """Also with the second core lent by `embodmocap run`'s scheduler (``parallel.lend_cores``):
+    ``workers`` 1, two processes, the same answer."""
+    from embodmocap.parallel import lend_cores, usable_cores
+
     body, _, coco, init, views, kp3d = _noisy_problem(4.0, 2)
     T = len(coco)
     fits = {}
-    for workers in (1, 2):
+    for workers, lent in ((1, 1), (2, 1), (1, 2)):
         cfg = S.SmplifyConfig(device="cpu", window_frames=40, overlap_frames=10, shape_frames=30,
                               phase1_iterations=30, phase2_iterations=120, workers=workers)
-        res = S.fit_world_smpl(body, kp3d, np.ones((T, 17)), views, init, None, cfg)
+        caplog.clear()
+        with lend_cores(lent), caplog.at_level("DEBUG", logger="embodmocap.motion.smplify"):
+            res = S.fit_world_smpl(body, kp3d, np.ones((T, 17)), views, init, None, cfg)
         assert len(res.windows) >= 3
-        fits[workers] = res.params
+        batches = 1 if (workers, lent) == (1, 1) else min(2, usable_cores())
+        assert f"fitted in {batches} batch(es)" in caplog.text
+        fits[workers, lent] = res.params
     for k in ("betas", "global_orient", "body_pose", "transl"):
-        np.testing.assert_array_equal(getattr(fits[1], k), getattr(fits[2], k))
+        np.testing.assert_array_equal(getattr(fits[1, 1], k), getattr(fits[2, 1], k))
+        np.testing.assert_array_equal(getattr(fits[1, 1], k), getattr(fits[1, 2], k))
+    fits[2] = fits[2, 1]
     fitted = body.from_params(fits[2], dtype=torch.float64).coco17.numpy()
     start = body.from_params(init, dtype=torch.float64).coco17.numpy()
     err, err0 = (np.linalg.norm(x - coco, axis=-1).mean() for x in (fitted, start))

@@ -117,3 +117,33 @@ def test_partial_stage_is_not_accepted_downstream_but_its_steps_are(tmp_path):
     out.write_text("another model")
     with pytest.raises(InputError, match="changed since it was written"):
         require_step(up, "sfm")
+
+
+def test_a_job_is_lent_the_idle_cores_only_when_every_job_left_waits_for_it():
+    """The scheduler lends a job every worker's core only where the other workers would idle until
+    it ends: no other job runs and every job left needs it, directly or not (Stage III and IV of a
+    session's last sequence); the stage reads the loan through ``parallel.lent_cores``."""
+    from embodmocap import parallel
+    from embodmocap.schedule import cores_for, plan_jobs
+
+    jobs = plan_jobs(["s"], [("q1", "s"), ("q2", "s")])
+    state = {j.key: "pending" for j in jobs}
+    assert all(cores_for(j.key, jobs, state, 2) == 1 for j in jobs)  # Stage I and II side by side
+    state.update({k: "ok" for k in state if not k.endswith("q2")})
+    state["motion/q1"] = "running"
+    assert cores_for("calibrate/q2", jobs, state, 2) == 1  # q1's fit runs on the other worker
+    state["motion/q1"] = "ok"
+    state["scene/s"] = "running"
+    assert cores_for("sequence/q2", jobs, state, 2) == 1  # Stage I runs beside it
+    state["scene/s"] = state["sequence/q2"] = state["register/q2"] = "ok"
+    assert cores_for("calibrate/q2", jobs, state, 2) == 2  # only q2's motion is left, and it waits
+    state["calibrate/q2"] = "ok"
+    assert cores_for("motion/q2", jobs, state, 2) == 2
+    assert cores_for("motion/q2", jobs, state, 1) == 1
+    state["motion/q1"] = "pending"  # e.g. q1 failed to start: it does not wait for q2
+    assert cores_for("motion/q2", jobs, state, 2) == 1
+
+    assert parallel.lent_cores() == 1
+    with parallel.lend_cores(2):
+        assert parallel.lent_cores() == 2
+    assert parallel.lent_cores() == 1

@@ -45,6 +45,29 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: Cores the job in progress may use (see :func:`lent_cores`); set by :func:`lend_cores`.
+_LENT = 1
+
+
+def lent_cores() -> int:
+    """Cores the stage in progress may use for work it can split into independent pieces whose
+    answer does not depend on the split (Stage IV's fit windows): 1, unless ``embodmocap run``'s
+    scheduler lent the job its idle workers' cores (:mod:`embodmocap.schedule`: no other job runs
+    and every job left waits for this one)."""
+    return _LENT
+
+
+@contextlib.contextmanager
+def lend_cores(n: int):
+    """Context manager: :func:`lent_cores` is ``n`` (at least 1) inside, restored after."""
+    global _LENT
+    old, _LENT = _LENT, max(1, int(n))
+    try:
+        yield
+    finally:
+        _LENT = old
+
+
 def import_in_background(name: str) -> threading.Thread:
     """Start importing module ``name`` in a thread and return it (joined at exit, not a daemon).
 

@@ -23,6 +23,14 @@ its mesh (about as long: :data:`REGISTER_AFTER`), then the rest of Stage III bes
 ``floor`` and ``simplify`` (:data:`CALIBRATE_AFTER`), so the run's wall time is about Stage I's
 key frames, sparse model and mesh + the rest of Stage III + Stage IV.
 
+After Stage I and II the chain (registration, the rest of Stage III, Stage IV) is all that is left
+of a one-sequence session, and the second worker would idle: a job that starts when no other job
+runs and every job left waits for it is lent every worker's core (:func:`cores_for`; the worker
+runs it inside :func:`embodmocap.parallel.lend_cores`). Stage IV then fits its windows in two
+processes (:mod:`embodmocap.motion.smplify`: the windows are independent, the answer is the one
+process's); the registration already uses both cores (its frames on a thread pool, the views'
+frames decoded beside the scene index: :mod:`embodmocap.calibrate.stage`).
+
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
 (its imports are paid once), preferably the next job of its own scene or sequence; it waits idle
@@ -69,6 +77,11 @@ REGISTER_AFTER = "sfm"
 #: The step of Stage I after which the rest of Stage III may start: it reads the sparse model and
 #: the raw mesh, not what Stage I's ``floor`` and ``simplify`` steps make, so those two run beside it.
 CALIBRATE_AFTER = "mesh"
+#: Lend a job every worker's core when no other job runs and every job left waits for it (the
+#: chain's last jobs, Stage III and IV of a session's last sequence): its stage may then split work
+#: whose answer does not depend on the split over the idle cores (:func:`embodmocap.parallel.lent_cores`:
+#: Stage IV's fit windows in two processes, :mod:`embodmocap.motion.smplify`).
+LEND_IDLE_CORES = True
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -113,6 +126,30 @@ def plan_jobs(scenes, sequences) -> list[Job]:
                  Job("calibrate", q, (f"scene/{s}#{CALIBRATE_AFTER}", f"register/{q}"), s),
                  Job("motion", q, (f"scene/{s}", f"calibrate/{q}"), s)]
     return jobs
+
+
+def _upstream(key: str, by_key: dict[str, Job]) -> set[str]:
+    """The keys of the jobs that job ``key`` waits for, directly or not."""
+    seen: set[str] = set()
+    todo = [n.split("#")[0] for n in by_key[key].needs]
+    while todo:
+        k = todo.pop()
+        if k not in seen:
+            seen.add(k)
+            todo += [n.split("#")[0] for n in by_key[k].needs]
+    return seen
+
+
+def cores_for(key: str, jobs: list[Job], state: dict[str, str], workers: int) -> int:
+    """The cores job ``key`` may use as it starts: every worker's when no other job runs and every
+    job left (``pending``) waits for it, directly or not (the other workers would idle until it
+    ends), else one. ``state``: each job's key -> ``pending``, ``running``, ``ok``, ``failed``, ...
+    (see :data:`LEND_IDLE_CORES`)."""
+    others = [k for k, s in state.items() if k != key and s in ("pending", "running")]
+    if not LEND_IDLE_CORES or any(state[k] == "running" for k in others):
+        return 1
+    by_key = {j.key: j for j in jobs}
+    return workers if all(key in _upstream(k, by_key) for k in others) else 1
 
 
 def _call(job: Job, cfg, session: Path, force: bool) -> None:
@@ -179,6 +216,7 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
     from embodmocap import errors
     from embodmocap.io import stage_manifest
     from embodmocap.memory import map_large_blocks, release_freed_memory, trim_heaps
+    from embodmocap.parallel import lend_cores
     from embodmocap.progress import set_quiet
 
     lock = threading.Lock()  # a stage's own threads log too
@@ -203,13 +241,14 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
 
     stage_manifest.STEP_LISTENERS.append(step_done)
     errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
-    for job, cfg, session, force, digests in _received(conn):
+    for job, cfg, session, force, digests, cores in _received(conn):
         current[0] = job.key
         stage_manifest.remember_digests(digests)
         t0 = time.perf_counter()
         status, text = "ok", ""
         try:
-            _call(job, cfg, Path(session), force)
+            with lend_cores(cores):
+                _call(job, cfg, Path(session), force)
         except BaseException as err:  # noqa: BLE001 (sorted below, as pipeline.run_session sorts them)
             if errors.interrupted(err):
                 status, text = "interrupted", "interrupted"
@@ -248,9 +287,10 @@ class WorkerPool:
     def idle(self) -> int:
         return self.size - sum(1 for w in self.workers if w.job is not None)
 
-    def start(self, job: Job, digests: dict) -> None:
+    def start(self, job: Job, digests: dict, cores: int = 1) -> None:
         """Send ``job`` to an idle worker, preferably one whose last job was of the same scene or
-        sequence (its imports and caches are that target's), else start a worker."""
+        sequence (its imports and caches are that target's), else start a worker. ``cores``: what
+        the job may use (:func:`embodmocap.parallel.lent_cores` in the worker)."""
         idle = [w for w in self.workers if w.job is None and w.proc.is_alive()]
         w = next((w for w in idle if w.last == job.name), idle[0] if idle else None)
         if w is None:
@@ -265,7 +305,7 @@ class WorkerPool:
             w = _Worker(proc, parent)
             self.workers.append(w)
         w.job, w.started, w.last = job, time.perf_counter(), job.name
-        w.conn.send((job, self.cfg, str(self.session), self.force, digests))
+        w.conn.send((job, self.cfg, str(self.session), self.force, digests, cores))
 
     def messages(self, timeout: float) -> list[tuple]:
         """What the busy workers sent within ``timeout`` s; a worker that died gives its job
@@ -380,6 +420,7 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
         key = need.split("#")[0]
         return state[key] == "ok" or need in steps
 
+
     def drop_after(key: str) -> None:
         """The jobs that need ``key`` (directly or not) will not run; a failed scene's sequences
         are reported failed, as the sequential run reports them."""
@@ -430,9 +471,10 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
             for kind in PRIORITY:
                 for j in jobs:
                     if pool.idle() > 0 and j.kind == kind and state[j.key] == "pending" and all(map(met, j.needs)):
+                        cores = cores_for(j.key, jobs, state, workers)
                         state[j.key] = "running"
                         say(f"{j.target}: {STAGE_OF[j.kind]} ...")
-                        pool.start(j, digests)
+                        pool.start(j, digests, cores)
             if not any(s == "running" for s in state.values()):
                 break
             # Kept: a worker of a target whose next job waits only on running ones (see stop_idle).

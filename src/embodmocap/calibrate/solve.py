@@ -70,8 +70,17 @@ class VioDisagreement(InputError):
     """The view's registered frames disagree with its VIO (a view the performer may still place)."""
 
 
+def registration_frames(cfg: CalibrateConfig, view: ViewInputs) -> list[tuple[int, NDArray, NDArray | None]]:
+    """The frames :func:`register_view` registers: ``(t, rgb, person mask)`` of a sample of the
+    view's frames spread along its VIO path (read from the capture: the video decoded up to the
+    last one)."""
+    T_vio = np.asarray(view.cameras["T_world_cam"], dtype=np.float64)
+    ts = select_frames(T_vio, cfg.register.num_frames)
+    return [(int(t), np.asarray(view.rgb(int(t))), view.mask(int(t))) for t in ts]
+
+
 def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: str, label: str,
-                  source: object = None) -> RegisteredView:
+                  source: object = None, frames: list | None = None) -> RegisteredView:
     """Register a sample of one view's frames into the scene index and check them against its VIO.
 
     Args:
@@ -80,14 +89,14 @@ def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: s
         index: the scene's registration index (:func:`embodmocap.calibrate.scene_index.build_scene_index`).
         view_name: ``v1`` or ``v2`` (error messages); label: ``"<seq> <view>"`` (log lines).
         source: what an error names (the view's capture).
+        frames: :func:`registration_frames` of the view, when already read (None: read here).
 
     Raises:
         InputError: too few frames registered (names ``source`` and the likely causes).
     """
     T_vio = np.asarray(view.cameras["T_world_cam"], dtype=np.float64)
-    ts = select_frames(T_vio, cfg.register.num_frames)
     K = Intrinsics.from_K(view.cameras["K"], int(view.cameras["width"]), int(view.cameras["height"]))
-    frames = [(int(t), np.asarray(view.rgb(int(t))), view.mask(int(t))) for t in ts]
+    frames = registration_frames(cfg, view) if frames is None else frames
     reg = register_frames_of_view(cfg, frames, K, index, T_vio, label)
     check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
                               cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)

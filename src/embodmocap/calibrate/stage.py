@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,6 +124,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     index = None
     regs = {}
     fp_reg = {}
+    fp_placed = {}
     pending = {}  # views whose registrations disagree with their VIO: placed by the performer or an error
     for v in names:
         vl = out.view(v)
@@ -130,25 +132,40 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         # mesh), so its record holds the fingerprint with the mesh, which a rerun recognises.
         reg_reads = {**upstream, "<view>/masks.npy": vl.masks if vl.masks.is_file() else None}
         fp_reg[v] = STEPS.fingerprint("register", cfg, reads={**reg_reads, "scenes/<scene>/mesh_raw.ply": None})
-        fp_placed = STEPS.fingerprint("register", cfg, reads=reg_reads) if scene.mesh_raw.is_file() else None
-        if fp_placed is not None and not force and sm.is_current(f"register_{v}", fp_placed):
-            fp_reg[v] = fp_placed
-        with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
-            if step.run:
-                # One index per scene, cached next to the scene's outputs and reused by every sequence.
-                index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.register_index)
-                rv = solve.register_view(cfg, views[v], index, view_name=v, label=f"{entry.name} {v}",
-                                         source=entry.views[v].capture)  # raises before anything of the view is written
-                if rv.disagreement is not None:
-                    if not cfg.place_by_performer:
-                        raise rv.disagreement
-                    pending[v] = (rv, step.postpone())
-                    if not only_register:
-                        step.fp = fp_reg[v] = fp_placed  # recorded below, once the mesh has checked the placement
-                    continue
-                write_registration(vl.registration, solve.registration_file(rv.reg, rv.check, rv.off_chain))
-                step.record([vl.registration], solve.register_figures(v, rv))
-        regs[v] = _load_registration(vl.registration)
+        fp_placed[v] = STEPS.fingerprint("register", cfg, reads=reg_reads) if scene.mesh_raw.is_file() else None
+        if fp_placed[v] is not None and not force and sm.is_current(f"register_{v}", fp_placed[v]):
+            fp_reg[v] = fp_placed[v]
+    # The frames of every view to register are read (the video decoded up to the last one, one
+    # thread per view: the decoder releases the GIL) while this thread builds the scene's index, so
+    # the three use both cores; the registrations then run one after the other, as before.
+    todo = [v for v in names if force or not sm.is_current(f"register_{v}", fp_reg[v])]
+    reader = ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames") if todo else None
+    frames = {v: reader.submit(solve.registration_frames, cfg, views[v]) for v in todo}
+    try:
+        for v in names:
+            vl = out.view(v)
+            with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
+                if step.run:
+                    # One index per scene, cached next to the scene's outputs and reused by every sequence.
+                    index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.register_index)
+                    rv = solve.register_view(cfg, views[v], index, view_name=v, label=f"{entry.name} {v}",
+                                             source=entry.views[v].capture, frames=frames.pop(v).result())
+                    # (raises before anything of the view is written)
+                    if rv.disagreement is not None:
+                        if not cfg.place_by_performer:
+                            raise rv.disagreement
+                        pending[v] = (rv, step.postpone())
+                        if not only_register:
+                            step.fp = fp_reg[v] = fp_placed[v]  # recorded below, once the mesh has checked the placement
+                        continue
+                    write_registration(vl.registration, solve.registration_file(rv.reg, rv.check, rv.off_chain))
+                    step.record([vl.registration], solve.register_figures(v, rv))
+            regs[v] = _load_registration(vl.registration)
+    finally:
+        if reader is not None:
+            for f in frames.values():  # a view left after an error: its frames are not wanted
+                f.cancel()
+            reader.shutdown(wait=True)
     if only_register:
         return None
     slicing = _sync_record(out, entry.name)["slicing"]["source"]

@@ -219,7 +219,9 @@ class SmplifyConfig:
     windows' wall time nearly halves, but a worker costs about 20 % more CPU in all (its imports,
     each batch's per-step overhead), and on the shared, loaded benchmark machine Stage IV's wall
     time was not lower (the scheduler gives one session's processes one share). Set 2 where Stage IV
-    has the second core to itself (``embodmocap motion`` on a quiet machine)."""
+    has the second core to itself (``embodmocap motion`` on a quiet machine). ``embodmocap run``
+    does so itself when its other worker has nothing left to do (:func:`embodmocap.schedule.cores_for`,
+    :func:`embodmocap.parallel.lent_cores`): the fingerprints stay those of this setting."""
 
 
 @dataclass(frozen=True)

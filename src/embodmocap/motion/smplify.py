@@ -36,7 +36,9 @@ are not consecutive), then held fixed while each window runs both phases. Window
 blended linearly across overlaps (translations linearly, rotations by normalised quaternion
 blending). A sequence that fits in one window is fitted in one go with betas free in both phases.
 The windows are fitted in ``cfg.workers`` contiguous batches, this process's and one per worker process (fresh
-interpreters, never forks: :mod:`embodmocap.motion.fit_workers`; the same answer as one process).
+interpreters, never forks: :mod:`embodmocap.motion.fit_workers`; the same answer as one process), or
+in as many as the cores ``embodmocap run`` lent the stage when that is more
+(:func:`embodmocap.parallel.lent_cores`).
 
 Threads: the fit sets ``torch.set_num_threads(cfg.threads)`` while it runs and restores the
 previous count after (process-global: fits run in parallel threads of one process should share
@@ -65,7 +67,7 @@ from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with t
 from embodmocap.motion.fit_workers import run_pieces, start_workers
 from embodmocap.motion.floor import floor_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
-from embodmocap.parallel import usable_cores
+from embodmocap.parallel import lent_cores, usable_cores
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
@@ -682,7 +684,10 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
     # fresh interpreters, never forks). Contiguous groups of windows, one batch per process: the same
     # answer whatever the number of processes, the windows being independent.
     # At most one process per usable core: on one core a second process only adds its imports.
-    n_proc = max(min(cfg.workers if start.go.device.type == "cpu" else 1, len(ranges), usable_cores()), 1)
+    # `embodmocap run` lends the fit its idle second worker's core when nothing else is left to run
+    # (parallel.lent_cores): the windows then take two processes whatever cfg.workers says.
+    n_proc = max(min(max(cfg.workers, lent_cores()) if start.go.device.type == "cpu" else 1, len(ranges),
+                     usable_cores()), 1)
     with start_workers(n_proc - 1, (__name__,), cfg.threads) as pool:
         sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
         sub = torch.as_tensor(sub, device=start.go.device)
