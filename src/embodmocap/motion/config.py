@@ -321,6 +321,13 @@ class MotionConfig:
     every start lower on 8 of 10 (seed 5 52.4 -> 40.9 mm), fixed-chunk W-MPJPE c100 per seed within
     +-3.3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
     benchmarks/history/2026-12-04-s9-edges.md)."""
+    kp3d_min_view_conf: float = 0.5
+    """A triangulated point whose weakest used view detected the joint below this confidence gets
+    no weight in the fit's 3D term (the views' 2D terms still see it); 0 = off. A detector's
+    low-confidence point is a hidden joint's guess, jittered several times more than a seen one,
+    and with two views it sets the point's depth along the other view's ray alone; such joints
+    that one view sees well are placed with that view's depth instead (``depth_points``, which
+    runs after this). See benchmarks/history/2026-12-06-s13-edges.md."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that
