@@ -437,8 +437,10 @@ PASSES: tuple[Pass, ...] = (
     Pass("leg_sides", "start", "leg_sides.side_m", lambda c: c.leg_sides.side_m > 0,
          lambda ev, ctx: len(ctx.names) == 2 and ctx.model is not None, leg_sides,
          "both views' leg labels re-tracked with the starting body's pelvis side (two views)"),
-    Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min" or c.kp3d_min_view_conf > 0, _always, weakest_view_conf,
-         "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`), none where a view guessed (`kp3d_min_view_conf`)"),
+    Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min" or c.kp3d_min_view_conf > 0,
+         _always, weakest_view_conf,
+         "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`), none where a view guessed "
+         "(`kp3d_min_view_conf`)"),
     Pass("depth_points", "start", "depth_points.min_conf", lambda c: c.depth_points.min_conf > 0,
          lambda ev, ctx: len(ctx.names) == 2 and bool(ctx.depth), depth_points,
          "limb joints one view sees placed with its depth (two views, depth and masks read)"),
