@@ -177,6 +177,13 @@ def test_weakest_view_conf_lowers_a_point_to_its_weakest_view(walk):
     expect[2, 7] = 0.3
     np.testing.assert_array_equal(ev.conf, expect)
     assert rep[0]["points_dropped_guess"] == 0
+    # One view (a one-phone sequence's points, lifted with its depth): nothing is triangulated
+    # from a guess, so its 0.3 elbow is only lowered.
+    model, truth, coco, T_wc, P, _ = walk
+    one = PassContext(cfg, ("v1",), K[None], T_wc[:, :1], P=P[:, :1], model=model)
+    ev = Evidence(kp[:, 1:], np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), dtype=bool), points=walk[2], conf=conf)
+    ev, rep = run_passes("start", ev, one, _only("weakest_view_conf"))
+    assert ev.conf[2, 7] == 0.3 and rep[0]["points_dropped_guess"] == 0
 
 
 def test_bone_gate_drops_a_wrist_off_its_forearm(walk):

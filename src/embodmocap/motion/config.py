@@ -322,8 +322,9 @@ class MotionConfig:
     +-3.3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
     benchmarks/history/2026-12-04-s9-edges.md)."""
     kp3d_min_view_conf: float = 0.5
-    """A triangulated point whose weakest used view detected the joint below this confidence gets
-    no weight in the fit's 3D term (the views' 2D terms still see it); 0 = off. A detector's
+    """A point triangulated from two or more views, the weakest of which detected the joint below
+    this confidence, gets no weight in the fit's 3D term (the views' 2D terms still see it); 0 =
+    off; one view's lifted points are left alone. A detector's
     low-confidence point is a hidden joint's guess, jittered several times more than a seen one,
     and with two views it sets the point's depth along the other view's ray alone; such joints
     that one view sees well are placed with that view's depth instead (``depth_points``, which
