@@ -16,8 +16,8 @@ keypoint's pixel gives the body surface in front of the joint, and the joint cen
 half thickness further along the ray (as the one-phone path lifts every joint:
 :mod:`embodmocap.motion.lift`). Here only the (frame, joint) pairs that one view sees at
 ``min_conf`` or more while every other view's detection is below ``other_max_conf`` are lifted
-(by default 0.5: a point triangulated with the other view's guess of a hidden joint, whose depth
-along the seeing view's ray is that guess's, is replaced). The lifted point carries the view's confidence
+(by default the triangulation's threshold: a point triangulated from two views is not
+replaced). The lifted point carries the view's confidence
 times ``conf_scale``: it is measured along one ray only. The bone-length gate that follows
 (:mod:`embodmocap.motion.ik`) drops one that read an occluder or the background (a point away
 from its parent joint).
@@ -52,14 +52,11 @@ class DepthPointsConfig:
     ``SwapConfig.bone_continuity``), outdoor 5 41.9 -> 28.7, outdoor 1 28.0 -> 29.3 (its
     every-start median 28.8 -> 27.3, worst 45.3 -> 35.1, WA 21.0 -> 19.5); 0.3 and 0.7 gave the
     same within 1 mm on seeds 4 and 5."""
-    other_max_conf: float = 0.5
-    """The other view's detection must be below this confidence. Below the triangulation's
-    ``min_conf`` (0.1) the joint has no triangulated point; between that and this, the other view
-    only guessed it (a hidden joint: the studio's hard detector gives such guesses 0.05-0.35 and
-    several times a seen joint's jitter) and the triangulated point's depth along the seeing
-    view's ray is that guess's; it is replaced. 0.1 -> 0.5, with ``MotionConfig.kp3d_min_view_conf``
-    0.5, on the ten hard studio seeds (Stage IV in memory): W-MPJPE c100 median 32.0 -> 25.9 mm,
-    WA 19.02 -> 18.54, PA 16.48 -> 16.05 (benchmarks/history/2026-12-06-s13-edges.md)."""
+    other_max_conf: float = 0.1
+    """The other view's detection must be below this confidence (at the triangulation's
+    ``min_conf``, 0.1 by default, it is not used there: the joint has no triangulated point). Higher:
+    a point triangulated with a weak second view (a hidden joint's guess, jittered several times
+    more than a seen one) is replaced too."""
     conf_scale: float = 0.5
     """The placed point's confidence is the view's times this (one ray and one depth reading,
     against a triangulated point's two rays)."""
