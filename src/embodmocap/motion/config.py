@@ -328,8 +328,8 @@ class MotionConfig:
     low-confidence point is a hidden joint's guess, jittered several times more than a seen one,
     and with two views it sets the point's depth along the other view's ray alone (hard studio
     seed 3, frames 133-134: view 2's guesses of the left shoulder and elbow at 0.13-0.27, 20 px
-    off, put the points 8-10 cm along view 1's ray). Runs before ``depth_points``, which may place
-    the joint with the seeing view's depth. 0 -> 0.5 on the ten hard studio seeds (Stage IV):
+    off, put the points 8-10 cm along view 1's ray). Runs before ``depth_points`` (a joint it places
+    with the seeing view's depth keeps that point's weight). 0 -> 0.5 on the ten hard studio seeds (Stage IV):
     W-MPJPE c100 median 32.0 -> 29.6 mm, worst 34.8 -> 34.6 (benchmarks/history/2026-12-06-s13-edges.md)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose

@@ -260,8 +260,9 @@ def weakest_view_conf(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     # A view's detection below kp3d_min_view_conf is a guess (a hidden joint placed from context,
     # several times a seen one's jitter): a point triangulated with it has the guess's depth along
     # the other view's ray. It leaves the 3D term (the views' own 2D terms keep it, each at its
-    # confidence), and a joint the other view sees well is placed with that view's depth
-    # (depth_points, next). One view's points (lifted with its depth) are not triangulated.
+    # confidence; depth_points, next, may place the joint with the seeing view's depth, and its
+    # placed points keep their weight). One view's points (lifted with its depth) are not
+    # triangulated.
     guess = (used.sum(axis=1) >= 2) & (weakest < ctx.cfg.kp3d_min_view_conf) & (conf > 0)
     conf = np.where(guess, 0.0, conf)
     return replace(ev, conf=conf), {"points_lowered": lowered, "points_dropped_guess": int(guess.sum())}
