@@ -159,15 +159,31 @@ def test_switching_a_pass_off_changes_exactly_what_it_does(walk):
 
 def test_weakest_view_conf_lowers_a_point_to_its_weakest_view(walk):
     kp = walk[5].copy()
-    kp[3, 0, 5, 2] = 0.3  # view 1's left shoulder weak in frame 3
+    kp[3, 0, 5, 2] = 0.6  # view 1's left shoulder less sure in frame 3
+    kp[2, 1, 7, 2] = 0.3  # view 2's left elbow guessed in frame 2 (below kp3d_min_view_conf)
     kp[4, 1, 6, 2] = 0.05  # below the triangulation's threshold: that view was not used
     conf = np.full((T, 17), 0.8)
-    cfg = replace(MotionConfig(), kp3d_conf="min")
+    cfg = MotionConfig()
+    assert cfg.kp3d_conf == "min" and cfg.kp3d_min_view_conf == 0.5
     ev, rep = run_passes("start", _ev(walk, kp, points=walk[2], conf=conf), _ctx(walk, cfg), _only("weakest_view_conf"))
     expect = conf.copy()
-    expect[3, 5] = 0.3
+    expect[3, 5] = 0.6
+    expect[2, 7] = 0.0  # the guess's point leaves the 3D term
     np.testing.assert_array_equal(ev.conf, expect)
-    assert rep[0]["points_lowered"] == 1
+    assert rep[0]["points_lowered"] == 2 and rep[0]["points_dropped_guess"] == 1
+    # Off (0): the guessed point is only lowered to its weakest view's confidence.
+    ev, rep = run_passes("start", _ev(walk, kp, points=walk[2], conf=conf),
+                         _ctx(walk, replace(cfg, kp3d_min_view_conf=0.0)), _only("weakest_view_conf"))
+    expect[2, 7] = 0.3
+    np.testing.assert_array_equal(ev.conf, expect)
+    assert rep[0]["points_dropped_guess"] == 0
+    # One view (a one-phone sequence's points, lifted with its depth): nothing is triangulated
+    # from a guess, so its 0.3 elbow is only lowered.
+    model, truth, coco, T_wc, P, _ = walk
+    one = PassContext(cfg, ("v1",), K[None], T_wc[:, :1], P=P[:, :1], model=model)
+    ev = Evidence(kp[:, 1:], np.zeros((T, 1, len(COCO17_SWAP_GROUPS)), dtype=bool), points=walk[2], conf=conf)
+    ev, rep = run_passes("start", ev, one, _only("weakest_view_conf"))
+    assert ev.conf[2, 7] == 0.3 and rep[0]["points_dropped_guess"] == 0
 
 
 def test_bone_gate_drops_a_wrist_off_its_forearm(walk):

@@ -323,6 +323,16 @@ class MotionConfig:
     every start lower on 8 of 10 (seed 5 52.4 -> 40.9 mm), fixed-chunk W-MPJPE c100 per seed within
     +-3.3 mm except seed 7 62.9 -> 50.0 (seed 0 +3.2: its anchor frames;
     benchmarks/history/2026-12-04-s9-edges.md)."""
+    kp3d_min_view_conf: float = 0.5
+    """A point triangulated from two or more views, the weakest of which detected the joint below
+    this confidence, gets no weight in the fit's 3D term (the views' 2D terms still see it); 0 =
+    off; one view's lifted points are left alone. A detector's
+    low-confidence point is a hidden joint's guess, jittered several times more than a seen one,
+    and with two views it sets the point's depth along the other view's ray alone (hard studio
+    seed 3, frames 133-134: view 2's guesses of the left shoulder and elbow at 0.13-0.27, 20 px
+    off, put the points 8-10 cm along view 1's ray). Runs before ``depth_points`` (a joint it places
+    with the seeing view's depth keeps that point's weight). 0 -> 0.5 on the ten hard studio seeds (Stage IV):
+    W-MPJPE c100 median 32.0 -> 29.6 mm, worst 34.8 -> 34.6 (benchmarks/history/2026-12-06-s13-edges.md)."""
     propagate_limbs: bool = True
     """Where a limb's start (IK or prior) disagrees with its 3D and 2D keypoints and the limb pose
     carried over from the neighbouring frames where it agrees fits them better, start from that

@@ -250,14 +250,26 @@ def depth_points(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
 
 
 def weakest_view_conf(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
-    """Each 3D keypoint's confidence lowered to its weakest used view's (``kp3d_conf = "min"``)."""
+    """Each 3D keypoint's confidence lowered to its weakest used view's (``kp3d_conf = "min"``),
+    and none for a point a view made from a guess (``kp3d_min_view_conf``)."""
     # A point is as trustworthy as its weakest view: with two views, one wrong 2D point moves
     # the triangulated point along the other view's ray without any reprojection error.
     c2 = np.nan_to_num(ev.keypoints2d[..., 2])
     used = c2 >= ctx.cfg.triangulation.min_conf
     weakest = np.where(used, c2, np.inf).min(axis=1)
-    conf = np.where(np.isfinite(weakest), np.minimum(ev.conf, weakest), ev.conf)
-    return replace(ev, conf=conf), {"points_lowered": int((conf < ev.conf).sum())}
+    conf = ev.conf
+    if ctx.cfg.kp3d_conf == "min":
+        conf = np.where(np.isfinite(weakest), np.minimum(conf, weakest), conf)
+    lowered = int((conf < ev.conf).sum())
+    # A view's detection below kp3d_min_view_conf is a guess (a hidden joint placed from context,
+    # several times a seen one's jitter): a point triangulated with it has the guess's depth along
+    # the other view's ray. It leaves the 3D term (the views' own 2D terms keep it, each at its
+    # confidence; depth_points, next, may place the joint with the seeing view's depth, and its
+    # placed points keep their weight). One view's points (lifted with its depth) are not
+    # triangulated.
+    guess = (used.sum(axis=1) >= 2) & (weakest < ctx.cfg.kp3d_min_view_conf) & (conf > 0)
+    conf = np.where(guess, 0.0, conf)
+    return replace(ev, conf=conf), {"points_lowered": lowered, "points_dropped_guess": int(guess.sum())}
 
 
 def bone_gate(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
@@ -431,11 +443,13 @@ PASSES: tuple[Pass, ...] = (
     Pass("leg_sides", "start", "leg_sides.side_m", lambda c: c.leg_sides.side_m > 0,
          lambda ev, ctx: len(ctx.names) == 2 and ctx.model is not None, leg_sides,
          "both views' leg labels re-tracked with the starting body's pelvis side (two views)"),
+    Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min" or c.kp3d_min_view_conf > 0,
+         _always, weakest_view_conf,
+         "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`), none where a view guessed "
+         "(`kp3d_min_view_conf`)"),
     Pass("depth_points", "start", "depth_points.min_conf", lambda c: c.depth_points.min_conf > 0,
          lambda ev, ctx: len(ctx.names) == 2 and bool(ctx.depth), depth_points,
          "limb joints one view sees placed with its depth (two views, depth and masks read)"),
-    Pass("weakest_view_conf", "start", "kp3d_conf", lambda c: c.kp3d_conf == "min", _always, weakest_view_conf,
-         "3D keypoint confidence lowered to the weakest view's (`kp3d_conf = \"min\"`)"),
     Pass("bone_gate", "start", "bone_tol", lambda c: c.bone_tol > 0, _always, bone_gate,
          "3D keypoints breaking the bone lengths or the torso's shape get no weight (`bone_tol` > 0)"),
     Pass("keypoint_start", "start", None, lambda c: True, _always, keypoint_start,
