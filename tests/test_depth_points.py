@@ -69,13 +69,21 @@ def test_a_joint_hidden_from_the_seeing_views_depth_is_not_placed(body):
     assert np.array_equal(p[:, 9], points[:, 9])
 
 
-def test_by_default_a_point_a_weak_second_view_triangulates_is_kept(body):
-    """The other view's 0.2 wrist is at the triangulation's threshold (0.1) or above: by default
-    only the elbow, which view 2 does not detect at all, is placed."""
+def test_by_default_a_leg_point_a_weak_second_view_triangulates_is_kept_an_arm_guess_is_not(body):
+    """The other view's 0.2 detection is at the triangulation's threshold (0.1) or above. By default
+    an arm joint guessed that weakly is placed by the view that sees it (``arm_other_max_conf``
+    0.5: the hard detector's guess of a hidden elbow or wrist), a leg joint keeps its triangulated
+    point (``other_max_conf`` 0.1)."""
     kp3, points, conf, filled, kp2, Twc, views = _inputs(body)
+    kp2[:, 1, 13, 2] = 0.2  # view 2 guesses the left knee too
     cfg = DepthPointsConfig()
-    assert cfg.other_max_conf == 0.1 and cfg.min_conf > 0
+    assert cfg.other_max_conf == 0.1 and cfg.arm_other_max_conf == 0.5 and cfg.min_conf > 0
     p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views, cfg)
+    assert placed[:, [7, 9]].all() and not placed[:, 13].any() and placed.sum() == 2 * len(points)
+    assert np.linalg.norm(p[:, [7, 9]] - kp3[[7, 9]], axis=-1).max() < 0.035
+    assert np.array_equal(p[:, 13], points[:, 13])
+    # With the arms' bound at the legs' (0.1), the guessed wrist keeps its triangulated point.
+    p, c, f, placed = place_one_view_joints(points, conf, filled, kp2, np.stack([K, K]), Twc, views,
+                                            replace(cfg, arm_other_max_conf=0.1))
     assert placed[:, 7].all() and not placed[:, 9].any() and placed.sum() == len(points)
-    assert np.linalg.norm(p[:, 7] - kp3[7], axis=-1).max() < 0.035
     assert np.array_equal(p[:, 9], points[:, 9])

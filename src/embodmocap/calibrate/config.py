@@ -79,17 +79,17 @@ class RefineConfig:
     """Weight of each view's Chamfer (view -> scene) term."""
     w_reproj: float = 1.0
     """Weight of each view's reprojection term."""
-    track_phase: bool = False
+    track_phase: bool = True
     """Let the track term fit the views' sub-frame phase: view b's points are compared with view a's
     moved by the performer's motion over a fitted fraction of a frame (one parameter; the motion
     from the same keypoint about 5 frames before and after). Two phones film a fraction of a frame
     apart; without it the term reads the performer's motion over that fraction as an offset of
     view b and pulls the cameras by it. Not with ``presync`` (its pairs are already on one clock).
-    Off by default: on issue 29's 10 hard random-phase seeds it met the camera-centre targets
-    (median / p95 / worst 1.06 / 1.75 / 1.76 -> 0.93 / 1.58 / 1.66 cm; outdoor_5's view 2
-    1.76 -> 0.80) with WA / PA / RTE unchanged, but W c100 moved 32.0 / 34.8 -> 33.2 / 46.1 mm
-    and the ``sim check`` fit of seed 6 to 5.53 cm: Stage IV's first frames there swing with a
-    millimetre's camera change (history 2026-12-06-s13-cams.md)."""
+    On issue 29's 10 hard random-phase seeds it meets the camera-centre targets (median / p95 /
+    worst 1.06 / 1.75 / 1.76 -> 0.93 / 1.58 / 1.66 cm; outdoor_5's view 2 1.76 -> 0.80) with WA /
+    PA / RTE unchanged; with Stage IV's arm depth points (``depth_points.arm_other_max_conf``) the
+    W c100 median / worst are 28.3 / 38.2 mm (without them, 32.5 / 42.9: Stage IV's first frames
+    swung with the cameras; history 2026-12-06-s13-cams.md and -coord.md)."""
     track_kernel: str = "huber"
     """Robust kernel of the track term: "l2", "huber" or "geman_mcclure"."""
     track_scale_m: float = 0.05
