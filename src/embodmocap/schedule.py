@@ -420,7 +420,6 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
         key = need.split("#")[0]
         return state[key] == "ok" or need in steps
 
-
     def drop_after(key: str) -> None:
         """The jobs that need ``key`` (directly or not) will not run; a failed scene's sequences
         are reported failed, as the sequential run reports them."""

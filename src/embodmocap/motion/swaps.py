@@ -36,6 +36,7 @@ COCO17_SWAP_GROUPS: dict[str, tuple[tuple[int, int], ...]] = {
 }
 _NOSE, _L_SHOULDER, _R_SHOULDER, _L_ELBOW, _R_ELBOW = 0, 5, 6, 7, 8
 _L_HIP, _R_HIP, _L_KNEE, _R_KNEE, _L_EAR, _R_EAR = 11, 12, 13, 14, 3, 4
+_L_WRIST, _R_WRIST, _L_ANKLE, _R_ANKLE = 9, 10, 15, 16
 
 @dataclass(frozen=True)
 class SwapConfig:
@@ -123,7 +124,7 @@ def limb_side_score(points: NDArray, group: str, ends: bool = False) -> NDArray:
     """
     (l_end, r_end), (l_root, r_root) = (((_L_ELBOW, _R_ELBOW), (_L_SHOULDER, _R_SHOULDER)) if group == "arms"
                                         else ((_L_KNEE, _R_KNEE), (_L_HIP, _R_HIP)))
-    pairs = [(l_end, r_end)] + ([(9, 10) if group == "arms" else (15, 16)] if ends else [])
+    pairs = [(l_end, r_end)] + ([(_L_WRIST, _R_WRIST) if group == "arms" else (_L_ANKLE, _R_ANKLE)] if ends else [])
 
     def d(a, b):  # noqa: E306
         return np.linalg.norm(points[:, a] - points[:, b], axis=-1)
