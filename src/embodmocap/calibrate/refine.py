@@ -226,6 +226,31 @@ class _Problem:
                          for key, f in self._frames.items()}
         for v in self.reproj_views:
             self._weights[f"reproj/{v}"] = self.basis[v][views[v].matches.frames] if len(self.knot_frames[v]) > 1 else None
+        self._knot_rows: dict[tuple[str, str], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    def knot_rows(self, name: str, v: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Data block ``name``'s whitened rows that depend on view ``v``'s knots, as three (E,)
+        tensors: row, knot and the row's hat weight on that knot (a row with knots: the two knots
+        about its frame; a rigid view: knot 0, weight 1). Computed once per problem."""
+        if (name, v) not in self._knot_rows:
+            if name == "track":
+                key, k = ("track_a" if self.tracks.view_a == v else "track_b"), 3
+            else:
+                key, k = name, (1 if name.startswith("chamfer/") else 2)
+            frames = self.views[v].matches.frames if name.startswith("reproj/") else self._frames[key]
+            n, K = len(frames), len(self.knot_frames[v])
+            rows = torch.arange(n * k)
+            if K == 1:
+                out = (rows, torch.zeros(n * k, dtype=torch.int64), torch.ones(n * k, dtype=torch.float64))
+            else:
+                # a frame's hat weights are non-zero on the knots about it only
+                k0 = (torch.searchsorted(torch.as_tensor(self.knot_frames[v]), frames, right=True) - 1).clamp(0, K - 2)
+                B = self.basis[v][frames]
+                a0, a1 = B[torch.arange(n), k0], B[torch.arange(n), k0 + 1]
+                out = (torch.cat([rows, rows]), torch.cat([k0.repeat_interleave(k), (k0 + 1).repeat_interleave(k)]),
+                       torch.cat([a0.repeat_interleave(k), a1.repeat_interleave(k)]))
+            self._knot_rows[(name, v)] = out
+        return self._knot_rows[(name, v)]
 
     def _view_of(self, key: str) -> str:
         if key in ("track_a", "track_b"):
@@ -255,12 +280,16 @@ class _Problem:
             return L.offset_points(X[0, 0], X[0, 1:4], self.cams[v].pivot, self._world[key])
         return _offset_points_each(self._each(X, key), self.cams[v].pivot, self._world[key])
 
-    def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor], data: bool = True) -> list[_Block]:
-        """Every term's residual block at ``x`` (the drift priors last); ``data=False``: the priors only."""
+    def blocks(self, x: torch.Tensor, nbrs: dict[str, torch.Tensor], data: bool = True,
+               only: frozenset[str] | None = None) -> list[_Block]:
+        """Every term's residual block at ``x`` (the drift priors last); ``data=False``: the priors
+        only; ``only``: of the data blocks, those named (and no priors)."""
         cfg, p = self.cfg, self.params(x)
         out = []
         if data:
-            out += self._data_blocks(p, nbrs, None if self.phase_index is None else x[self.phase_index])
+            out += self._data_blocks(p, nbrs, None if self.phase_index is None else x[self.phase_index], only)
+        if only is not None:
+            return out
         for v in self.names:
             if len(self.knot_frames[v]) > 1:
                 # Smoothness prior: neighbouring knots differ by about drift_sigma (a Gaussian prior).
@@ -269,10 +298,18 @@ class _Problem:
                 out.append(_Block(f"drift/{v}", dX / sig, torch.ones(len(dX), dtype=dX.dtype), "l2", 1.0, cfg.w_drift))
         return out
 
-    def _data_blocks(self, p: dict[str, torch.Tensor], nbrs: dict[str, torch.Tensor], phase: torch.Tensor | None) -> list[_Block]:
+    def data_names(self, v: str | None = None) -> frozenset[str]:
+        """The names of the data blocks (those that depend on view ``v`` when given)."""
+        names = (["track"] if self.tracks is not None and v in (None, self.tracks.view_a, self.tracks.view_b) else []) \
+            + [f"chamfer/{u}" for u in self.chamfer_views if v in (None, u)] \
+            + [f"reproj/{u}" for u in self.reproj_views if v in (None, u)]
+        return frozenset(names)
+
+    def _data_blocks(self, p: dict[str, torch.Tensor], nbrs: dict[str, torch.Tensor], phase: torch.Tensor | None,
+                     only: frozenset[str] | None = None) -> list[_Block]:
         cfg = self.cfg
         out = []
-        if self.tracks is not None:
+        if self.tracks is not None and (only is None or "track" in only):
             a, b = self.tracks.view_a, self.tracks.view_b
             r = self._moved(p[a], a, "track_a") - self._moved(p[b], b, "track_b")
             if phase is not None:
@@ -280,6 +317,8 @@ class _Problem:
                 r = r + phase * self._motion
             out.append(_Block("track", r, self.tracks.weight, cfg.track_kernel, cfg.track_scale_m, cfg.w_track))
         for v in self.chamfer_views:
+            if only is not None and f"chamfer/{v}" not in only:
+                continue
             pw = self._moved(p[v], v, f"chamfer/{v}")
             j = nbrs[v].clamp(min=0)
             valid = nbrs[v] >= 0
@@ -288,9 +327,18 @@ class _Problem:
             has_nbr = valid.to(r.dtype)  # points with no scene sample nearby do not count
             out.append(_Block(f"chamfer/{v}", r, has_nbr, cfg.chamfer_kernel, cfg.chamfer_scale_m, cfg.w_chamfer))
         for v in self.reproj_views:
+            if only is not None and f"reproj/{v}" not in only:
+                continue
             r = _reproj(self._each(p[v], f"reproj/{v}"), self.cams[v].pivot, *self._reproj[v], self.K[v], self.views[v].matches)
             out.append(_Block(f"reproj/{v}", r, torch.ones(len(r), dtype=r.dtype), cfg.reproj_kernel, cfg.reproj_scale_px, cfg.w_reproj))
         return out
+
+    def loss(self, x: torch.Tensor) -> tuple[float, dict[str, torch.Tensor]]:
+        """The objective at ``x`` with freshly found neighbours (as :meth:`evaluate`'s total) and
+        those neighbours."""
+        nbrs = self.neighbours(x)
+        with torch.no_grad():
+            return sum(float(b.loss()) for b in self.blocks(x, nbrs)), nbrs
 
     def evaluate(self, x: torch.Tensor) -> tuple[float, dict[str, float], dict[str, dict[str, float]]]:
         """The objective at ``x`` with freshly found neighbours: total, terms, per-term statistics."""
@@ -395,29 +443,32 @@ def _adam(prob: _Problem, cfg: RefineConfig) -> SolverRun:
 def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
     t0 = time.perf_counter()
     x = torch.zeros(prob.num_params, dtype=torch.float64)
-    f = prob.evaluate(x)[0]
+    f, nbrs = prob.loss(x)
     lam = cfg.lm_damping
     it = 0
     for it in range(1, cfg.lm_iterations + 1):
-        nbrs = prob.neighbours(x)
+        # (nbrs: the neighbours at x, found when x was evaluated)
         with torch.no_grad():
             irls = [L.irls_weight((b.r * b.r).sum(-1), b.kind, b.scale) for b in prob.blocks(x, nbrs)]
 
-        def resid(xx: torch.Tensor) -> torch.Tensor:
-            return torch.cat([b.whitened(w) for b, w in zip(prob.blocks(xx, nbrs), irls)])
+        if prob.rigid:
+            def resid(xx: torch.Tensor) -> torch.Tensor:
+                return torch.cat([b.whitened(w) for b, w in zip(prob.blocks(xx, nbrs), irls)])
 
-        r = resid(x)
-        J = _jacobian(resid, x) if prob.rigid else _knot_jacobian(prob, resid, x, nbrs, irls)
-        H, g = J.T @ J, J.T @ r
+            r = resid(x)
+            J = _jacobian(resid, x)
+            H, g = J.T @ J, J.T @ r
+        else:
+            H, g = _knot_normal_equations(prob, x, nbrs, irls)
         # a tiny ridge keeps unobserved directions (e.g. the height with tracks only) solvable
         ridge = 1e-12 * max(float(H.diagonal().max()), 1e-12)
         accepted = False
         while lam < 1e10:
             A = H + lam * torch.diag(H.diagonal()) + ridge * torch.eye(len(x), dtype=x.dtype)
             dx = torch.linalg.solve(A, -g)
-            f_new = prob.evaluate(x + dx)[0]
+            f_new, nbrs_new = prob.loss(x + dx)
             if math.isfinite(f_new) and f_new <= f:
-                x, f, lam, accepted = x + dx, f_new, max(lam / 10.0, 1e-12), True
+                x, f, nbrs, lam, accepted = x + dx, f_new, nbrs_new, max(lam / 10.0, 1e-12), True
                 break
             lam *= 10.0
         if not accepted or float(dx.abs().max()) < cfg.lm_step_tol:
@@ -425,57 +476,72 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
     return SolverRun("lm", f, it, time.perf_counter() - t0, x.numpy())
 
 
-def _knot_jacobian(prob: _Problem, resid, x: torch.Tensor, nbrs, irls, step: float = 1e-6) -> torch.Tensor:
-    """(m, n) Jacobian of the whitened residuals over the drift knots, in 8 V evaluations instead of
-    two per knot parameter.
+def _knot_normal_equations(prob: _Problem, x: torch.Tensor, nbrs, irls, step: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(J^T J, J^T r)`` of the whitened residuals ``r`` over the drift knots, with ``J`` their
+    Jacobian (a sparse matrix: a row depends on at most two knots of each view it observes) in 8 V
+    evaluations instead of two per knot parameter.
 
     A data residual depends on a view's knots only through its observation's own parameters
     ``B[frame] @ X`` (hat weights summing to 1), so moving every knot of one component together
     gives each row's derivative by its own parameter, and the chain rule spreads it on the knots by
-    the row's hat weights. The smoothness prior's rows (the last ones) depend on the knots directly:
-    differenced on their own, which costs nothing."""
+    the row's hat weights. Each such move changes only the blocks of that view, so only those are
+    evaluated. The smoothness prior's rows (the last ones) depend on two neighbouring knots each:
+    moving every other knot of one component together gives each row's derivative by one of them.
+    """
+    from scipy import sparse
+
     with torch.no_grad():
         blocks = prob.blocks(x, nbrs)
-        data = [b for b in blocks if not b.name.startswith("drift/")]
-        m_data = sum(b.r.numel() for b in data)
-        J = torch.zeros(len(resid(x)), prob.num_params, dtype=x.dtype)
+        w_of = {b.name: w for b, w in zip(blocks, irls)}
+        r = torch.cat([b.whitened(w_of[b.name]) for b in blocks])
+        starts = dict(zip((b.name for b in blocks), np.cumsum([0] + [b.r.numel() for b in blocks[:-1]]).tolist()))
+        rows: list[torch.Tensor] = []
+        cols: list[torch.Tensor] = []
+        vals: list[torch.Tensor] = []
+
+        def diff(e: torch.Tensor, only: frozenset[str] | None) -> dict[str, torch.Tensor]:
+            """Each evaluated block's central difference along ``e``."""
+            plus = {b.name: b.whitened(w_of[b.name]) for b in prob.blocks(x + e, nbrs, data=only is not None, only=only)}
+            minus = {b.name: b.whitened(w_of[b.name]) for b in prob.blocks(x - e, nbrs, data=only is not None, only=only)}
+            return {k: (plus[k] - minus[k]) / (2.0 * step) for k in plus}
+
         if prob.phase_index is not None:  # the track phase: one column, differenced directly
             e = torch.zeros_like(x)
             e[prob.phase_index] = step
-            J[:m_data, prob.phase_index] = (resid(x + e)[:m_data] - resid(x - e)[:m_data]) / (2.0 * step)
+            d = diff(e, frozenset(["track"]))["track"]
+            rows.append(starts["track"] + torch.arange(len(d)))
+            cols.append(torch.full((len(d),), prob.phase_index))
+            vals.append(d)
         for v in prob.names:
             sl = prob.slices[v]
-            # (m_data, K) hat weights of each data row on this view's knots (0: rows of other views)
-            W = torch.cat([_row_weights(prob, b, v) for b in data])
+            only = prob.data_names(v)
+            hat = {name: prob.knot_rows(name, v) for name in only}
             for c in range(4):
                 e = torch.zeros_like(x)
                 e[sl.start + c: sl.stop: 4] = step
-                g = (resid(x + e)[:m_data] - resid(x - e)[:m_data]) / (2.0 * step)
-                J[:m_data, sl.start + c: sl.stop: 4] = g[:, None] * W
-
-        def prior(xx: torch.Tensor) -> torch.Tensor:
-            bl = [b for b in prob.blocks(xx, nbrs, data=False)]
-            return torch.cat([b.whitened(w) for b, w in zip(bl, irls[len(data):])])
-
-        J[m_data:] = _jacobian(prior, x, step)
-    return J
-
-
-def _row_weights(prob: _Problem, b: _Block, v: str) -> torch.Tensor:
-    """(rows, K_v) hat weights on view ``v``'s knots of block ``b``'s whitened rows (zeros when
-    the block does not depend on ``v``)."""
-    k = b.r.shape[1]
-    K = len(prob.knot_frames[v])
-    if b.name == "track":
-        keys = [key for key in ("track_a", "track_b") if prob._view_of(key) == v]
-    else:
-        keys = [b.name] if prob._view_of(b.name) == v else []
-    if not keys:
-        return torch.zeros(b.r.numel(), K, dtype=b.r.dtype)
-    w = prob._weights[keys[0]]
-    if w is None:  # a rigid view (shorter than two knot spacings) beside one with knots
-        return torch.ones(b.r.numel(), 1, dtype=b.r.dtype)
-    return w.repeat_interleave(k, dim=0)
+                for name, d in diff(e, only).items():
+                    i, k, w = hat[name]
+                    rows.append(starts[name] + i)
+                    cols.append(sl.start + 4 * k + c)
+                    vals.append(w * d[i])
+            K = len(prob.knot_frames[v])
+            if K > 1:
+                # prior row (k, c) ties knots k and k + 1 of component c: one of each parity
+                ks = torch.arange(K - 1)
+                for c in range(4):
+                    for parity in range(2):
+                        e = torch.zeros_like(x)
+                        e[sl.start + 4 * parity + c: sl.stop: 8] = step
+                        d = diff(e, None)[f"drift/{v}"]
+                        i = 4 * ks + c
+                        rows.append(starts[f"drift/{v}"] + i)
+                        cols.append(sl.start + 4 * torch.where(ks % 2 == parity, ks, ks + 1) + c)
+                        vals.append(d[i])
+        J = sparse.csr_matrix((torch.cat(vals).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())),
+                              shape=(len(r), prob.num_params))
+        H = torch.as_tensor((J.T @ J).toarray())
+        g = torch.as_tensor(J.T @ r.numpy())
+    return H, g
 
 
 def _jacobian(fn, x: torch.Tensor, step: float = 1e-6) -> torch.Tensor:
