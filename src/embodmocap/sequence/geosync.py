@@ -191,22 +191,61 @@ def midpoint_reprojection_error(K1: F, T1: F, x1: F, K2: F, T2: F, x2: F) -> F:
         (...) error in pixels; ``inf`` where the rays are parallel or the midpoint lies behind a
         camera (the pairing cannot be right).
     """
-    c1, d1 = pixel_rays(K1, T1, x1)
-    c2, d2 = pixel_rays(K2, T2, x2)
+    return _midpoint_error(_Rays.of(K1, T1, x1), _Rays.of(K2, T2, x2))
+
+
+def _dot(a: F, b: F) -> F:
+    """``sum(a * b, axis=-1)`` of (..., 3) arrays as three products (no reduction loop)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+@dataclass(frozen=True)
+class _Rays:
+    """Keypoint rays of one view: camera centres c (..., 3), unit directions d (..., 3), the
+    pixels xy (..., 2) and ``A = K R^T`` (..., 3, 3), world offsets from the centre -> homogeneous
+    pixels (its last row gives the depth). Taken once per frame and joint, then indexed by frame
+    for every pairing of the two views' frames."""
+
+    c: F
+    d: F
+    xy: F
+    A: F
+
+    @staticmethod
+    def of(K: F, T_world_cam: F, xy: F) -> "_Rays":
+        c, d = pixel_rays(K, T_world_cam, xy)
+        A = np.asarray(K) @ np.swapaxes(np.asarray(T_world_cam)[..., :3, :3], -1, -2)
+        return _Rays(np.asarray(T_world_cam)[..., :3, 3], d, np.asarray(xy), A)
+
+    def frames(self, t: NDArray) -> "_Rays":
+        """Frames ``t`` of per-frame rays (c, A of shape (T, 1, ...), d, xy (T, J, ...))."""
+        return _Rays(self.c[t], self.d[t], self.xy[t], self.A[t])
+
+
+def _midpoint_error(r1: _Rays, r2: _Rays) -> F:
+    """:func:`midpoint_reprojection_error` of two sets of rays (shapes broadcast)."""
+    c1, d1, c2, d2 = r1.c, r1.d, r2.c, r2.d
     w0 = c1 - c2
-    b = np.sum(d1 * d2, axis=-1)
-    d = np.sum(d1 * w0, axis=-1)
-    e = np.sum(d2 * w0, axis=-1)
+    b = _dot(d1, d2)
+    d = _dot(d1, w0)
+    e = _dot(d2, w0)
     den = 1.0 - b * b  # unit directions: a = c = 1
     ok = den > 1e-8
     den = np.where(ok, den, 1.0)
     s = (b * e - d) / den
     u = (e - b * d) / den
     X = 0.5 * ((c1 + s[..., None] * d1) + (c2 + u[..., None] * d2))
-    p1, z1 = _project(K1, T1, X)
-    p2, z2 = _project(K2, T2, X)
-    err = 0.5 * (np.linalg.norm(p1 - x1, axis=-1) + np.linalg.norm(p2 - x2, axis=-1))
-    return np.where(ok & (z1 > 0) & (z2 > 0), err, np.inf)
+    err = 0.0
+    for r in (r1, r2):
+        q = X - r.c
+        A = r.A
+        z = A[..., 2, 0] * q[..., 0] + A[..., 2, 1] * q[..., 1] + A[..., 2, 2] * q[..., 2]
+        zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+        du = (A[..., 0, 0] * q[..., 0] + A[..., 0, 1] * q[..., 1] + A[..., 0, 2] * q[..., 2]) / zs - r.xy[..., 0]
+        dv = (A[..., 1, 0] * q[..., 0] + A[..., 1, 1] * q[..., 1] + A[..., 1, 2] * q[..., 2]) / zs - r.xy[..., 1]
+        err = err + np.sqrt(du * du + dv * dv)
+        ok = ok & (z > 0)
+    return np.where(ok, 0.5 * err, np.inf)
 
 
 def epipolar_distance(K1: F, T1: F, x1: F, K2: F, T2: F, x2: F) -> F:
@@ -222,11 +261,11 @@ def epipolar_distance(K1: F, T1: F, x1: F, K2: F, T2: F, x2: F) -> F:
     tx[..., 1, 0], tx[..., 1, 2] = t[..., 2], -t[..., 0]
     tx[..., 2, 0], tx[..., 2, 1] = -t[..., 1], t[..., 0]
     Fm = np.swapaxes(np.linalg.inv(K2), -1, -2) @ tx @ R @ np.linalg.inv(K1)
-    h1 = np.concatenate([x1, np.ones(x1.shape[:-1] + (1,))], axis=-1)
-    h2 = np.concatenate([x2, np.ones(x2.shape[:-1] + (1,))], axis=-1)
-    line = np.einsum("...ij,...j->...i", Fm, h1)
-    norm = np.maximum(np.linalg.norm(line[..., :2], axis=-1), 1e-12)
-    return np.sum(line * h2, axis=-1) / norm
+    # line = Fm [x1, 1], as explicit products (broadcast frames against joints)
+    u1, v1 = x1[..., 0], x1[..., 1]
+    la, lb, lc = (Fm[..., i, 0] * u1 + Fm[..., i, 1] * v1 + Fm[..., i, 2] for i in range(3))
+    norm = np.maximum(np.sqrt(la * la + lb * lb), 1e-12)
+    return (la * x2[..., 0] + lb * x2[..., 1] + lc) / norm
 
 
 # --------------------------------------------------------------------------- search
@@ -257,6 +296,7 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
     """
     shifts = np.asarray(shifts, dtype=np.int64)
     T, Tv2 = len(kp1), len(kp2)
+    rays1, rays2 = _frame_rays(K1, T1, kp1), _frame_rays(K2, T2, kp2)
     costs = np.full(len(shifts), np.nan)
     counts = np.zeros(len(shifts), dtype=np.int64)
     var = np.full(len(shifts), np.nan)
@@ -265,7 +305,7 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
         t1, t2, ok = _pairs(T, Tv2, sh)
         k1, k2 = kp1[t1], kp2[t2]  # (s, T, J, 3)
         use = ok[..., None] & (k1[..., 2] >= cfg.min_keypoint_confidence) & (k2[..., 2] >= cfg.min_keypoint_confidence)
-        err = midpoint_reprojection_error(K1, T1[t1][:, :, None], k1[..., :2], K2, T2[t2][:, :, None], k2[..., :2])
+        err = _midpoint_error(rays1.frames(t1), rays2.frames(t2))
         e2 = np.minimum(err, cfg.clip_px) ** 2
         n = use.sum(axis=(1, 2))
         c = np.where(use, e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1)
@@ -274,6 +314,11 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
         costs[a:a + chunk] = np.where((n >= cfg.min_pairs) & frames_ok, c, np.nan)
         counts[a:a + chunk] = n
     return (costs, counts, var) if return_var else (costs, counts)
+
+
+def _frame_rays(K: F, T_world_cam: F, kp: F) -> _Rays:
+    """:class:`_Rays` of every frame (T) and joint (J) of keypoints kp (T, J, 3)."""
+    return _Rays.of(K, np.asarray(T_world_cam)[:, None], kp[..., :2])
 
 
 def _distinctness(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, costs: F, i: int, far_frames: int,
@@ -308,7 +353,7 @@ def _pair_sq_errors(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int, cfg:
     t1, t2, ok = _pairs(len(kp1), len(kp2), np.array([shift]))
     k1, k2 = kp1[t1[0]], kp2[t2[0]]
     use = ok[0][:, None] & (k1[..., 2] >= cfg.min_keypoint_confidence) & (k2[..., 2] >= cfg.min_keypoint_confidence)
-    err = midpoint_reprojection_error(K1, T1[t1[0]][:, None], k1[..., :2], K2, T2[t2[0]][:, None], k2[..., :2])
+    err = _midpoint_error(_frame_rays(K1, T1, kp1).frames(t1[0]), _frame_rays(K2, T2, kp2).frames(t2[0]))
     return np.where(use, np.minimum(err, cfg.clip_px) ** 2, np.nan)
 
 
