@@ -221,12 +221,22 @@ class _Problem:
             self._frames[f"chamfer/{v}"] = bg.frames
         self._reproj: dict[str, tuple[torch.Tensor, torch.Tensor]] = {
             v: (self.cams[v].R[views[v].matches.frames], self.cams[v].c[views[v].matches.frames]) for v in self.reproj_views}
-        # Per observation key: its (N, K) knot weights (None for a rigid view: one parameter set).
-        self._weights = {key: self.basis[self._view_of(key)][f] if len(self.knot_frames[self._view_of(key)]) > 1 else None
-                         for key, f in self._frames.items()}
         for v in self.reproj_views:
-            self._weights[f"reproj/{v}"] = self.basis[v][views[v].matches.frames] if len(self.knot_frames[v]) > 1 else None
+            self._frames[f"reproj/{v}"] = views[v].matches.frames
+        # Per observation key: the knots about each observation's frame and its hat weights on them,
+        # (k0, a0, a1) with the frame's parameters a0 X[k0] + a1 X[k0 + 1] (None: a rigid view).
+        self._hat = {key: self._hat_weights(self._view_of(key), f) for key, f in self._frames.items()}
         self._knot_rows: dict[tuple[str, str], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    def _hat_weights(self, v: str, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        K = len(self.knot_frames[v])
+        if K == 1:
+            return None
+        # a frame's hat weights are non-zero on the two knots about it only
+        k0 = (torch.searchsorted(torch.as_tensor(self.knot_frames[v]), frames, right=True) - 1).clamp(0, K - 2)
+        B = self.basis[v][frames]
+        i = torch.arange(len(frames))
+        return k0, B[i, k0], B[i, k0 + 1]
 
     def knot_rows(self, name: str, v: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Data block ``name``'s whitened rows that depend on view ``v``'s knots, as three (E,)
@@ -237,16 +247,12 @@ class _Problem:
                 key, k = ("track_a" if self.tracks.view_a == v else "track_b"), 3
             else:
                 key, k = name, (1 if name.startswith("chamfer/") else 2)
-            frames = self.views[v].matches.frames if name.startswith("reproj/") else self._frames[key]
-            n, K = len(frames), len(self.knot_frames[v])
+            n, hat = len(self._frames[key]), self._hat[key]
             rows = torch.arange(n * k)
-            if K == 1:
+            if hat is None:
                 out = (rows, torch.zeros(n * k, dtype=torch.int64), torch.ones(n * k, dtype=torch.float64))
             else:
-                # a frame's hat weights are non-zero on the knots about it only
-                k0 = (torch.searchsorted(torch.as_tensor(self.knot_frames[v]), frames, right=True) - 1).clamp(0, K - 2)
-                B = self.basis[v][frames]
-                a0, a1 = B[torch.arange(n), k0], B[torch.arange(n), k0 + 1]
+                k0, a0, a1 = hat
                 out = (torch.cat([rows, rows]), torch.cat([k0.repeat_interleave(k), (k0 + 1).repeat_interleave(k)]),
                        torch.cat([a0.repeat_interleave(k), a1.repeat_interleave(k)]))
             self._knot_rows[(name, v)] = out
@@ -263,8 +269,11 @@ class _Problem:
 
     def _each(self, X: torch.Tensor, key: str) -> torch.Tensor:
         """The observations of ``key``'s own parameters: (N, 4), or (1, 4) for a rigid view."""
-        w = self._weights[key]
-        return X if w is None else w @ X
+        hat = self._hat[key]
+        if hat is None:
+            return X
+        k0, a0, a1 = hat
+        return a0[:, None] * X[k0] + a1[:, None] * X[k0 + 1]
 
     def neighbours(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         p = self.params(x.detach())
@@ -276,7 +285,7 @@ class _Problem:
     def _moved(self, X: torch.Tensor, v: str, key: str) -> torch.Tensor:
         """The fixed world points ``key`` moved by view ``v``'s offset ``X`` (K, 4) (same as
         :func:`embodmocap.calibrate.losses.cam_to_world` on the camera-space points)."""
-        if self._weights[key] is None:
+        if self._hat[key] is None:
             return L.offset_points(X[0, 0], X[0, 1:4], self.cams[v].pivot, self._world[key])
         return _offset_points_each(self._each(X, key), self.cams[v].pivot, self._world[key])
 
