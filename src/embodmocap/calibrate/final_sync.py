@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,7 +40,7 @@ class GeosyncResult:
 
 def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewInputs], T_world_vio: Mapping[str, NDArray],
                    fps: float, contact_sheets: Mapping[str, str] | None = None, label: str = "",
-                   laser_dots: Mapping[str, object] | None = None, subframe_sync: bool = True,
+                   laser_dots: Mapping[str, object] | Callable[[], Mapping[str, object] | None] | None = None, subframe_sync: bool = True,
                    sync_force: bool = False, measure_on: tuple[Mapping[str, ViewInputs], Mapping[str, NDArray]] | None = None
                    ) -> GeosyncResult:
     """With both views in the scene's world (whatever their time offset), the offset at which the
@@ -52,8 +52,8 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         record: Stage II's ``sync.json`` (version 2); T_world_vio: view -> (4, 4) refined offset;
         fps: the sequence frame rate; contact_sheets: view -> the laser contact sheet's path (text
         for the messages); label: the sequence (log lines); laser_dots: view -> the view's last
-        sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`;
-        None: no same-dot check); subframe_sync, sync_force: the sequence's session.toml keys
+        sighting of its laser dot (:func:`embodmocap.sequence.laser_check.observe_laser_dots`,
+        or a function returning it, called once the offset is searched; None: no same-dot check); subframe_sync, sync_force: the sequence's session.toml keys
         (:func:`embodmocap.sequence.sync_record.decide`); measure_on: (views, T_world_vio) on
         whose cameras the offset is measured when not those of ``views`` and ``T_world_vio``
         (``CalibrateConfig.sync_cameras = "registration"``: the registration-only cameras); the
@@ -79,6 +79,8 @@ def geometric_sync(cfg: CalibrateConfig, record: dict, views: Mapping[str, ViewI
         log.info("%s: geometric sync %+.3f frames from the slicing (confidence %.2f, +-%.3f frames)%s", label,
                  geo.offset_frames, geo.confidence, geo.std_frames, f": {geo.message}" if geo.message else "")
     # The laser events as places in the world: one dot is one place in both views.
+    if callable(laser_dots):
+        laser_dots = laser_dots()
     dot_check = check_laser_dots(laser_dots, T_world_vio, cfg.geosync.laser_dot_agree_m)
     rec = decide(record, geo, cfg.geosync, fps, dict(contact_sheets or {}), label, dot_check, subframe_sync, sync_force)
     cameras_world = {}

@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 from embodmocap.calibrate import losses as L
 from embodmocap.calibrate.config import RefineConfig, Solver  # noqa: F401 (defined with the stage's settings)
 from embodmocap.calibrate.drift import drift_transforms, knot_basis, knot_frames
+from embodmocap.parallel import map_in_threads
 
 log = logging.getLogger(__name__)
 
@@ -276,11 +277,10 @@ class _Problem:
         return a0[:, None] * X[k0] + a1[:, None] * X[k0 + 1]
 
     def neighbours(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """view -> each background point's scene neighbour at ``x`` (the views on the lent cores' threads)."""
         p = self.params(x.detach())
-        return {
-            v: L.nearest_scene(self.scene, self._moved(p[v], v, f"chamfer/{v}"), self.cfg.chamfer_max_distance_m)
-            for v in self.chamfer_views
-        }
+        return dict(zip(self.chamfer_views, map_in_threads(lambda v: L.nearest_scene(
+            self.scene, self._moved(p[v], v, f"chamfer/{v}"), self.cfg.chamfer_max_distance_m), self.chamfer_views)))
 
     def _moved(self, X: torch.Tensor, v: str, key: str) -> torch.Tensor:
         """The fixed world points ``key`` moved by view ``v``'s offset ``X`` (K, 4) (same as
@@ -521,31 +521,39 @@ def _knot_normal_equations(prob: _Problem, x: torch.Tensor, nbrs, irls, step: fl
             rows.append(starts["track"] + torch.arange(len(d)))
             cols.append(torch.full((len(d),), prob.phase_index))
             vals.append(d)
-        for v in prob.names:
-            sl = prob.slices[v]
-            only = prob.data_names(v)
-            hat = {name: prob.knot_rows(name, v) for name in only}
-            for c in range(4):
-                e = torch.zeros_like(x)
-                e[sl.start + c: sl.stop: 4] = step
-                for name, d in diff(e, only).items():
-                    i, k, w = hat[name]
-                    rows.append(starts[name] + i)
-                    cols.append(sl.start + 4 * k + c)
-                    vals.append(w * d[i])
-            K = len(prob.knot_frames[v])
-            if K > 1:
-                # prior row (k, c) ties knots k and k + 1 of component c: one of each parity
-                ks = torch.arange(K - 1)
+
+        def view_columns(v: str) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+            """(rows, columns, values) of view ``v``'s knot columns."""
+            out = []
+            with torch.no_grad():  # (per thread)
+                sl = prob.slices[v]
+                only = prob.data_names(v)
+                hat = {name: prob.knot_rows(name, v) for name in only}
                 for c in range(4):
-                    for parity in range(2):
-                        e = torch.zeros_like(x)
-                        e[sl.start + 4 * parity + c: sl.stop: 8] = step
-                        d = diff(e, None)[f"drift/{v}"]
-                        i = 4 * ks + c
-                        rows.append(starts[f"drift/{v}"] + i)
-                        cols.append(sl.start + 4 * torch.where(ks % 2 == parity, ks, ks + 1) + c)
-                        vals.append(d[i])
+                    e = torch.zeros_like(x)
+                    e[sl.start + c: sl.stop: 4] = step
+                    for name, d in diff(e, only).items():
+                        i, k, w = hat[name]
+                        out.append((starts[name] + i, sl.start + 4 * k + c, w * d[i]))
+                K = len(prob.knot_frames[v])
+                if K > 1:
+                    # prior row (k, c) ties knots k and k + 1 of component c: one of each parity
+                    ks = torch.arange(K - 1)
+                    for c in range(4):
+                        for parity in range(2):
+                            e = torch.zeros_like(x)
+                            e[sl.start + 4 * parity + c: sl.stop: 8] = step
+                            d = diff(e, None)[f"drift/{v}"]
+                            i = 4 * ks + c
+                            out.append((starts[f"drift/{v}"] + i, sl.start + 4 * torch.where(ks % 2 == parity, ks, ks + 1) + c, d[i]))
+            return out
+
+        # the views' columns on the lent cores' threads, assembled in the views' order
+        for part in map_in_threads(view_columns, prob.names):
+            for i, k, d in part:
+                rows.append(i)
+                cols.append(k)
+                vals.append(d)
         J = sparse.csr_matrix((torch.cat(vals).numpy(), (torch.cat(rows).numpy(), torch.cat(cols).numpy())),
                               shape=(len(r), prob.num_params))
         H = torch.as_tensor((J.T @ J).toarray())

@@ -415,14 +415,22 @@ def refine_report(cfg: CalibrateConfig, views: Mapping[str, ViewInputs], init: d
             track term pairs view 2's points at view 1's instants by it (None: frame pairs, as
             without ``cfg.presync``); fps: the sequence frame rate.
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     warnings: list[str] = []
     names = [v for v in VIEWS if v in views]
-    data = {v: build_view_data(cfg, views[v], init[v], regs[v]) for v in names}
     result = None
+    # The scene's points (the mesh read and sampled, its KD-tree built) on a second thread while
+    # this one reads the views' depth for the clouds and the track pairs: NumPy and SciPy release
+    # the GIL, so the two use both cores; the values are the same as one after the other.
+    with ThreadPoolExecutor(1, thread_name_prefix="refine-points") as pool:
+        scene_points_ = pool.submit(points) if cfg.refine_views and callable(points) else None
+        data = {v: build_view_data(cfg, views[v], init[v], regs[v]) for v in names}
+        if cfg.refine_views:
+            shift = presync[0] if presync is not None else 0.0
+            tracks = track_pairs(views, cfg.track_frames, shift, fps) if use_tracks and len(names) > 1 else None
+        points = scene_points_.result() if scene_points_ is not None else points
     if cfg.refine_views:
-        points = points() if callable(points) else points
-        shift = presync[0] if presync is not None else 0.0
-        tracks = track_pairs(views, cfg.track_frames, shift, fps) if use_tracks and len(names) > 1 else None
         if not use_tracks and len(names) > 1:
             warnings.append("no laser sync: the views were sliced from their first frames, so cross-view keypoint "
                             "pairs are not used by the refinement")

@@ -226,11 +226,14 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         if step.run:
             sheets = {v: str(out.sync_sheet(v)) for v, d in rec["sources"]["laser"]["views"].items()
                       if d.get("contact_sheet")}
-            dots = observe_laser_dots(rec, {v: (lambda p=entry.views[v].capture: open_capture(p)) for v in names}) \
-                if len(names) > 1 else None  # one dot seen by two views is one place; one view has nothing to compare
-            geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
-                                       sheets, entry.name, dots, entry.subframe_sync, entry.sync_force,
-                                       solve.sync_measure_cameras(cfg, views, report))
+            # One dot seen by two views is one place; one view has nothing to compare. The captures
+            # are opened and the dots looked up on a second thread while the offset is searched.
+            with ThreadPoolExecutor(1, thread_name_prefix="laser-dots") as pool:
+                dots = pool.submit(observe_laser_dots, rec, {v: (lambda p=entry.views[v].capture: open_capture(p))
+                                                             for v in names}).result if len(names) > 1 else None
+                geo = solve.geometric_sync(cfg, rec, solve.drift_corrected(views, report), T_world_vio, sequence_fps(out),
+                                           sheets, entry.name, dots, entry.subframe_sync, entry.sync_force,
+                                           solve.sync_measure_cameras(cfg, views, report))
             write_sync(out.final_sync, geo.record)  # Stage II's sync.json stays Stage II's
             for w in geo.record["warnings"]:
                 log.warning("%s", w)

@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from embodmocap.geometry.raycast import pixel_rays
+from embodmocap.parallel import map_in_threads
 
 F = NDArray[np.floating]
 
@@ -280,7 +281,7 @@ def _pairs(T: int, T2: int, shift: NDArray[np.int64]) -> tuple[NDArray, NDArray,
 
 
 def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg: GeoSyncConfig = GeoSyncConfig(),
-                chunk: int = 16, return_var: bool = False):
+                chunk: int = 16, return_var: bool = False, threads: int | None = None):
     """Cost of every integer shift (view 2 frame ``t + s`` paired with view 1 frame ``t``).
 
     Args:
@@ -293,6 +294,9 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
         ``cfg.min_pairs`` pairs or less than ``cfg.min_overlap`` of the frames pair up) and
         ``counts`` (S,) pairs scored; with ``return_var`` also (S,) the variance of the clipped
         squared errors (the cost's standard error is ``sqrt(var / counts)``).
+
+    The chunks of ``chunk`` shifts are scored on ``threads`` threads (:func:`embodmocap.parallel.lent_cores`
+    when None); each is computed as alone, so the costs do not depend on the threads.
     """
     shifts = np.asarray(shifts, dtype=np.int64)
     T, Tv2 = len(kp1), len(kp2)
@@ -300,19 +304,23 @@ def shift_costs(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, cfg
     costs = np.full(len(shifts), np.nan)
     counts = np.zeros(len(shifts), dtype=np.int64)
     var = np.full(len(shifts), np.nan)
-    for a in range(0, len(shifts), chunk):  # chunks bound memory on long sequences
-        sh = shifts[a:a + chunk]
-        t1, t2, ok = _pairs(T, Tv2, sh)
+
+    def score(a: int) -> tuple[F, F, F]:
+        """The chunk of shifts from ``a``: costs, variances, counts."""
+        t1, t2, ok = _pairs(T, Tv2, shifts[a:a + chunk])
         k1, k2 = kp1[t1], kp2[t2]  # (s, T, J, 3)
         use = ok[..., None] & (k1[..., 2] >= cfg.min_keypoint_confidence) & (k2[..., 2] >= cfg.min_keypoint_confidence)
         err = _midpoint_error(rays1.frames(t1), rays2.frames(t2))
         e2 = np.minimum(err, cfg.clip_px) ** 2
         n = use.sum(axis=(1, 2))
         c = np.where(use, e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1)
-        var[a:a + chunk] = np.where(use, e2 * e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1) - c * c
+        v = np.where(use, e2 * e2, 0.0).sum(axis=(1, 2)) / np.maximum(n, 1) - c * c
         frames_ok = ok.sum(axis=1) >= cfg.min_overlap * T
-        costs[a:a + chunk] = np.where((n >= cfg.min_pairs) & frames_ok, c, np.nan)
-        counts[a:a + chunk] = n
+        return np.where((n >= cfg.min_pairs) & frames_ok, c, np.nan), v, n
+
+    starts = range(0, len(shifts), chunk)  # chunks bound memory on long sequences
+    for a, (c, v, n) in zip(starts, map_in_threads(score, starts, threads)):
+        costs[a:a + chunk], var[a:a + chunk], counts[a:a + chunk] = c, v, n
     return (costs, counts, var) if return_var else (costs, counts)
 
 
@@ -338,7 +346,7 @@ def _distinctness(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shifts: NDArray, c
     if not len(rivals):
         return 0.0  # the scored range is too narrow to tell
     j = int(rivals[np.argmin(c[rivals])])
-    e_best, e_rival = (_pair_sq_errors(K1, T1, kp1, K2, T2, kp2, int(shifts[k]), cfg) for k in (i, j))
+    e_best, e_rival = map_in_threads(lambda k: _pair_sq_errors(K1, T1, kp1, K2, T2, kp2, int(shifts[k]), cfg), (i, j))
     both = np.isfinite(e_best) & np.isfinite(e_rival)
     diff = (e_rival - e_best)[both]
     if len(diff) < 2:
@@ -374,8 +382,8 @@ def subframe_shift(K1: F, T1: F, kp1: F, K2: F, T2: F, kp2: F, shift: int,
         ``(f, std, pairs)`` as :func:`subframe_one_way`; one way alone where the other has no
         estimate.
     """
-    f1, s1, n1 = subframe_one_way(K1, T1, kp1, K2, T2, kp2, shift, cfg, iterations)
-    f2, s2, n2 = subframe_one_way(K2, T2, kp2, K1, T1, kp1, -shift, cfg, iterations)
+    (f1, s1, n1), (f2, s2, n2) = map_in_threads(lambda way: subframe_one_way(*way, cfg, iterations), [
+        (K1, T1, kp1, K2, T2, kp2, shift), (K2, T2, kp2, K1, T1, kp1, -shift)])
     if not math.isfinite(s2):
         return f1, s1, n1
     if not math.isfinite(s1):
