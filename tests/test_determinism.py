@@ -53,3 +53,20 @@ def test_stage3_twice_is_identical(session):
     again = stage3.run(CALIB, session, force=True)
     assert not again.skipped
     assert differences(first, snapshot(session, ("sequences",))) == []
+
+
+def test_stage3_same_answer_on_lent_cores(session):
+    """Stage III splits the refinement's and the geometric sync's work over the cores
+    ``embodmocap run`` lends it (parallel.lent_cores): the split must not change a bit."""
+    from embodmocap.parallel import lend_cores
+
+    if not (session / "scenes" / SYNTH.scene_name / "sfm").is_dir():
+        stage1.run(SCENE, session)
+    stage2.run(SequenceConfig(), session)
+    with lend_cores(1):
+        stage3.run(CALIB, session, force=True)
+    one = snapshot(session, ("sequences",))
+    with lend_cores(2):
+        again = stage3.run(CALIB, session, force=True)
+    assert not again.skipped
+    assert differences(one, snapshot(session, ("sequences",))) == []
