@@ -72,14 +72,22 @@ class SwapConfig:
 
 
 def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
-                 joints: list[int]) -> tuple[NDArray, NDArray]:
+                 joints: list[int], X_rest: NDArray | None = None) -> tuple[NDArray, NDArray]:
     """(T,) mean capped reprojection error over ``joints`` of each frame, and (T, J, 3) the
-    triangulated points (no gap filling, no rejection)."""
-    tri = triangulate(P, xy, conf, TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
-                                                        max_gap_frames=0, drop_unresolved=False))
-    err = np.minimum(tri.reproj_err_px[:, joints], cap)  # (T, j, V)
+    triangulated points (no gap filling, no rejection). ``X_rest``: (T, J, 3) the points of the
+    other joints, triangulated from the same keypoints as here: only ``joints`` are triangulated
+    (each point's triangulation is its own: the same bits as triangulating all of them)."""
+    sub = list(joints) if X_rest is not None else list(range(xy.shape[2]))
+    tri = triangulate(P, xy[:, :, sub], conf[:, :, sub], TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
+                                                                           max_gap_frames=0, drop_unresolved=False))
+    err = np.minimum(tri.reproj_err_px[:, [sub.index(j) for j in joints]], cap)  # (T, j, V)
     seen = np.isfinite(err)
-    return np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1), tri.points
+    if X_rest is None:
+        X = tri.points
+    else:
+        X = np.array(X_rest, copy=True)
+        X[:, sub] = tri.points
+    return np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1), X
 
 
 def _swap(kp: NDArray, pairs: tuple[tuple[int, int], ...]) -> NDArray:
@@ -196,7 +204,7 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
     for v in range(kp.shape[1]):
         trial = kp.copy()
         trial[:, v] = _swap(kp[:, v], pairs)
-        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0)
         nv = _implausible_bones(Xv, bones, L, cfg.bone_tol)
         ok = (nv == 0) & (n0 >= 1) & (nv < best_n) & (err <= base + cfg.bone_max_extra_px)
         best_n, best_v = np.where(ok, nv, best_n), np.where(ok, v, best_v)
@@ -235,13 +243,17 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
     T, V = kp.shape[:2]
     names = list(groups)
     swapped = np.zeros((T, V, len(names)), dtype=bool)
+    # The points of the keypoints as they stand (every joint triangulated once; then only the
+    # joints of the group at hand, whose keypoints alone a group's swaps change).
+    X_now = None
     for g, name in enumerate(names):
         joints = [j for pair in groups[name] for j in pair]
-        base, X0 = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+        base, X0 = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X_now)
+        X_now = X0
         if V == 2 and name in _LIMB_BONES and cfg.bone_tol > 0:
             kp, n_bone = _bone_swaps(P, kp, X0, base, name, groups[name], g, swapped, tcfg, cfg)
             if n_bone:
-                base, _ = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+                base, X_now = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X0)
         bad = base >= cfg.min_error_px
         if not bad.any():
             continue
@@ -250,7 +262,7 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
         for v in range(V):
             trial = kp.copy()
             trial[:, v] = _swap(kp[:, v], groups[name])
-            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0)
             trials.append((err, Xv))
             # With 3+ views only the wrong view's swap lowers the error.
             ok = bad & (err < cfg.min_gain * base) & (err < best_err)
@@ -277,6 +289,7 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
             kp[t, v] = _swap(kp[t, v], groups[name])
             swapped[t, v, g] = True
         if len(t_idx):
+            X_now = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X_now)[1]
             log.info("left/right %s swapped back in %d frames (%s)", name, len(t_idx),
                      ", ".join(f"view {v}: {int((best_view == v).sum())}" for v in range(V) if (best_view == v).any()))
     return kp, swapped
