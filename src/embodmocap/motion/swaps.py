@@ -72,22 +72,33 @@ class SwapConfig:
 
 
 def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
-                 joints: list[int], X_rest: NDArray | None = None) -> tuple[NDArray, NDArray]:
+                 joints: list[int], X_rest: NDArray | None = None,
+                 frames: NDArray | None = None) -> tuple[NDArray, NDArray]:
     """(T,) mean capped reprojection error over ``joints`` of each frame, and (T, J, 3) the
     triangulated points (no gap filling, no rejection). ``X_rest``: (T, J, 3) the points of the
-    other joints, triangulated from the same keypoints as here: only ``joints`` are triangulated
-    (each point's triangulation is its own: the same bits as triangulating all of them)."""
+    other joints, triangulated from the same keypoints as here: only ``joints`` are triangulated.
+    ``frames``: only these frames are triangulated (the error is +inf and the points are
+    ``X_rest``'s elsewhere; needs ``X_rest``). Each point's triangulation is its own: the same
+    bits as triangulating every joint of every frame."""
     sub = list(joints) if X_rest is not None else list(range(xy.shape[2]))
+    if frames is not None:
+        P = P[frames] if np.ndim(P) == 4 else P
+        xy, conf = xy[frames], conf[frames]
     tri = triangulate(P, xy[:, :, sub], conf[:, :, sub], TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
                                                                            max_gap_frames=0, drop_unresolved=False))
     err = np.minimum(tri.reproj_err_px[:, [sub.index(j) for j in joints]], cap)  # (T, j, V)
     seen = np.isfinite(err)
+    mean = np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1)
     if X_rest is None:
-        X = tri.points
-    else:
-        X = np.array(X_rest, copy=True)
+        return mean, tri.points
+    X = np.array(X_rest, copy=True)
+    if frames is None:
         X[:, sub] = tri.points
-    return np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1), X
+        return mean, X
+    X[np.ix_(frames, sub)] = tri.points
+    full = np.full(len(X), np.inf)
+    full[frames] = mean
+    return full, X
 
 
 def _swap(kp: NDArray, pairs: tuple[tuple[int, int], ...]) -> NDArray:
@@ -204,7 +215,8 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
     for v in range(kp.shape[1]):
         trial = kp.copy()
         trial[:, v] = _swap(kp[:, v], pairs)
-        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0)
+        # only the frames where a swap may be taken (a bone implausible as given)
+        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0, np.flatnonzero(n0 >= 1))
         nv = _implausible_bones(Xv, bones, L, cfg.bone_tol)
         ok = (nv == 0) & (n0 >= 1) & (nv < best_n) & (err <= base + cfg.bone_max_extra_px)
         best_n, best_v = np.where(ok, nv, best_n), np.where(ok, v, best_v)
@@ -262,7 +274,8 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
         for v in range(V):
             trial = kp.copy()
             trial[:, v] = _swap(kp[:, v], groups[name])
-            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0)
+            # only the frames where a swap may be taken (bad: the runs judged below lie within them)
+            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0, np.flatnonzero(bad))
             trials.append((err, Xv))
             # With 3+ views only the wrong view's swap lowers the error.
             ok = bad & (err < cfg.min_gain * base) & (err < best_err)
