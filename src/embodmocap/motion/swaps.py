@@ -81,6 +81,8 @@ def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConf
     ``X_rest``'s elsewhere; needs ``X_rest``). Each point's triangulation is its own: the same
     bits as triangulating every joint of every frame."""
     sub = list(joints) if X_rest is not None else list(range(xy.shape[2]))
+    if frames is not None and len(frames) == 0:
+        return np.full(len(X_rest), np.inf), np.array(X_rest, copy=True)
     if frames is not None:
         P = P[frames] if np.ndim(P) == 4 else P
         xy, conf = xy[frames], conf[frames]
