@@ -169,6 +169,22 @@ def test_batching_and_inputs(body):
     assert body.faces.shape[1] == 3 and len(body.parents) == 24 and body.joint_names[16] == "left_shoulder"
 
 
+
+@pytest.mark.parametrize("T", [0, 1, 5, 63, 64, 65, 130, 301])
+def test_joints_without_the_mesh_equal_the_skinned_bodys_bit_for_bit(body, T):
+    # Stage IV's leg-side pass reads only the start's joints: the same bits as the whole body's,
+    # whatever the number of frames (whole SIMD blocks and a tail), betas shorter than the model's too.
+    params = _random_params(T, seed=T)
+    params = SmplParams(betas=params.betas[:7], global_orient=params.global_orient, body_pose=params.body_pose,
+                        transl=params.transl)
+    joints = body.joints_from_params(params)
+    assert joints.shape == (T, 24, 3) and joints.dtype == torch.float64
+    assert torch.equal(joints, _f64(body, params).joints)
+    # and not a constant: the joints move with the pose
+    if T > 1:
+        assert not torch.equal(joints[0], joints[1])
+
+
 # ------------------------------------------------------------------------------------------ files
 
 

@@ -84,3 +84,29 @@ def test_three_views_need_no_tie_break(scene):
     fixed, swapped = fix_swaps(P, bad)
     np.testing.assert_array_equal(np.flatnonzero(swapped[:, 2, list(COCO17_SWAP_GROUPS).index("arms")]), frames)
     np.testing.assert_array_equal(fixed, kp)
+
+
+def test_a_groups_trial_triangulates_only_its_joints_and_frames_with_the_same_bits(scene):
+    # fix_swaps' trials re-triangulate only the swapped group's joints, only on the frames they
+    # judge, the other points carried: each equals that point of a full triangulation.
+    from embodmocap.geometry.triangulation import TriangulationConfig
+    from embodmocap.motion.swaps import _frame_error
+
+    _, P, kp = scene
+    kp = kp.copy()
+    kp[::7, 1, 9, 2] = 0.0  # some wrists unseen by one view
+    trial = _swapped(kp, 1, slice(10, 30), "arms")
+    joints = [7, 8, 9, 10]
+    tcfg, cap = TriangulationConfig(), 20.0
+    err_all, X_all = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cap, joints)
+    _, X_given = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cap, joints)
+    err, X = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cap, joints, X_given)
+    assert np.array_equal(err, err_all) and np.array_equal(X, X_all, equal_nan=True)
+    frames = np.arange(5, 40, 3)
+    err_f, X_f = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cap, joints, X_given, frames)
+    assert np.array_equal(err_f[frames], err_all[frames]) and np.isinf(np.delete(err_f, frames)).all()
+    assert np.array_equal(X_f[frames], X_all[frames], equal_nan=True)
+    assert np.array_equal(np.delete(X_f, frames, 0), np.delete(X_given, frames, 0), equal_nan=True)
+    # the swap moved the arms' points (the comparison is not between equal arrays)
+    assert not np.allclose(X_all[10:30, 7:11], X_given[10:30, 7:11], equal_nan=True)
+    assert np.isinf(_frame_error(P, trial[..., :2], trial[..., 2], tcfg, cap, joints, X_given, frames[:0])[0]).all()

@@ -233,6 +233,33 @@ class BodyModel:
         """Pose the body for every frame of ``params`` (its betas shared by all frames)."""
         return self.forward(params.betas, params.global_orient, params.body_pose, params.transl, dtype=dtype, device=device)
 
+    def joints_from_params(self, params: SmplParams, *, dtype: torch.dtype = torch.float64,
+                           device: str | torch.device = "cpu") -> torch.Tensor:
+        """(T, 24, 3) the posed joints of every frame of ``params``: :meth:`from_params`'s
+        ``joints``, bit for bit, without skinning the mesh (joints do not depend on the pose blend
+        shapes; the shaped rest joints, one set for the sequence, are regressed once)."""
+        from smplx.lbs import batch_rigid_transform, batch_rodrigues, blend_shapes, vertices2joints
+
+        device = torch.device(device)
+        smpl = self._module(dtype, device)
+        conv = lambda x: torch.as_tensor(np.array(x, dtype=np.float64), dtype=dtype, device=device)  # noqa: E731
+        T = len(params)
+        if T == 0:
+            return torch.zeros(0, 24, 3, dtype=dtype, device=device)
+        pose = torch.cat([conv(params.global_orient).reshape(T, 3), conv(params.body_pose).reshape(T, 69)], 1)
+        b = conv(params.betas).reshape(1, -1)
+        b = torch.nn.functional.pad(b, (0, self.num_betas - b.shape[-1]))
+        # smplx regresses the rest joints once per frame from identical rows (T of them): whole
+        # blocks of 64 rows give every row the bits of the first (SIMD vectors, BLAS tiles), the
+        # T % 64 rows after them the bits of a batch's tail. 64 rows and that tail reproduce both.
+        tail = T % 64 if T > 64 else 0
+        n = min(T, 64) + tail
+        J = vertices2joints(smpl.J_regressor, smpl.v_template + blend_shapes(b.expand(max(n, 1), -1), smpl.shapedirs))
+        J = J if n == T else torch.cat([J[:1].expand(T - tail, -1, -1), J[n - tail:]])
+        rot = batch_rodrigues(pose.reshape(-1, 3)).reshape(T, -1, 3, 3)
+        joints, _ = batch_rigid_transform(rot, J, smpl.parents, dtype=dtype)
+        return joints + conv(params.transl).reshape(T, 3).unsqueeze(1)
+
     # ---------------------------------------------------------------- rest shape
 
     def _betas_np(self, betas: TensorLike | None) -> NDArray[np.float64]:

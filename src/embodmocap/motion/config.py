@@ -221,7 +221,10 @@ class SmplifyConfig:
     time was not lower (the scheduler gives one session's processes one share). Set 2 where Stage IV
     has the second core to itself (``embodmocap motion`` on a quiet machine). ``embodmocap run``
     does so itself when its other worker has nothing left to do (:func:`embodmocap.schedule.cores_for`,
-    :func:`embodmocap.parallel.lent_cores`): the fingerprints stay those of this setting."""
+    :func:`embodmocap.parallel.lent_cores`): the fingerprints stay those of this setting. The
+    fitted motion's per-frame quality (the mesh and the depth tests) runs on as many threads, in
+    pieces of frames fixed by the sequence's length (:func:`embodmocap.motion.solve.fit_quality`:
+    the same answer on any number)."""
 
 
 @dataclass(frozen=True)

@@ -360,22 +360,28 @@ def _disagreement(P: NDArray, kp: NDArray, pairs, cfg: LabelTrackConfig, group: 
     exchanging both views' labels mirrors the triangulated sides, so two triangulations say it
     all."""
     from embodmocap.geometry.triangulation import TriangulationConfig, triangulate
-    from embodmocap.motion.swaps import limb_side_score
+    from embodmocap.motion.swaps import _L_HIP, _R_HIP, limb_side_score
 
     joints = [j for pair in pairs for j in pair]
     tcfg = TriangulationConfig(min_conf=cfg.min_conf, reject_px=np.inf, max_gap_frames=0, drop_unresolved=False)
+    legs = cfg.anatomy_m > 0 and group == "legs"
+    # Only the points read here: the group's, and the hips the knees' side is judged from (each
+    # point's triangulation is its own: the same bits as triangulating every joint).
+    sub = joints + ([j for j in (_L_HIP, _R_HIP) if j not in joints] if legs else [])
     out, side = [], []
     for swap in (False, True):
         trial = kp.copy()
         if swap:
             for a, b in pairs:
                 trial[:, 1, [a, b]] = kp[:, 1, [b, a]]
-        tri = triangulate(P, trial[..., :2], trial[..., 2], tcfg)
-        err = np.minimum(tri.reproj_err_px[:, joints], cfg.cap_px)  # (T, j, V)
+        tri = triangulate(P, trial[:, :, sub, :2], trial[:, :, sub, 2], tcfg)
+        err = np.minimum(tri.reproj_err_px[:, list(range(len(joints)))], cfg.cap_px)  # (T, j, V)
         seen = np.isfinite(err)
         out.append(np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1))
-        if cfg.anatomy_m > 0 and group == "legs":
-            side.append(np.nan_to_num(limb_side_score(tri.points, group)))
+        if legs:
+            points = np.full(kp.shape[:1] + kp.shape[2:3] + (3,), np.nan)
+            points[:, sub] = tri.points
+            side.append(np.nan_to_num(limb_side_score(points, group)))
     anat = np.zeros((len(kp), 4))
     if side:
         sx, sy = side  # as given, view 2 exchanged; states (1, 1) and (1, 0) mirror them

@@ -118,8 +118,16 @@ def relabel_legs(kp2d: NDArray, P: NDArray, hip_left: NDArray, hip_right: NDArra
     exchanged = kp2d.copy()
     for a, b in legs:
         exchanged[:, 1, [a, b]] = kp2d[:, 1, [b, a]]
-    given = triangulate(P, kp2d[..., :2], kp2d[..., 2], tcfg).points
-    v2x = triangulate(P, exchanged[..., :2], exchanged[..., 2], tcfg).points
+    # Only the points the side cost reads, the hips and the legs (each point's triangulation is
+    # its own: the same bits as triangulating every joint); NaN elsewhere.
+    sub = sorted(set(_HIPS) | {j for pair in _LEG_PAIRS for j in pair})
+
+    def points(k: NDArray) -> NDArray:
+        out = np.full(k.shape[:1] + k.shape[2:3] + (3,), np.nan)
+        out[:, sub] = triangulate(P, k[:, :, sub, :2], k[:, :, sub, 2], tcfg).points
+        return out
+
+    given, v2x = points(kp2d), points(exchanged)
     cost = side_costs(given, v2x, hip_left, hip_right, cfg)
     _, judged = track_labels(kp2d, label_cfg, {"legs": legs}, P=P, extra={"legs": cost})
     # The chain run again on its own output (after the swap check and the guessed-run drop) is not

@@ -225,7 +225,7 @@ def leg_sides(ev: Evidence, ctx: PassContext) -> tuple[Evidence, dict]:
     if probe.start is None or probe.start.init is None:
         return ev, {"legs_relabelled": {}}
     with torch.no_grad():
-        joints = ctx.model.from_params(probe.start.init, dtype=torch.float64).joints.numpy()
+        joints = ctx.model.joints_from_params(probe.start.init, dtype=torch.float64).numpy()
     P = projection_matrices(ctx.K, ctx.T_world_cam)
     kp, changed = relabel_legs(ev.keypoints2d, P, joints[:, 1], joints[:, 2], ctx.cfg.label_track, ctx.cfg.leg_sides)
     report = {"legs_relabelled": {v: int(changed[:, i].sum()) for i, v in enumerate(ctx.names)}}

@@ -260,43 +260,101 @@ def fit_quality(cfg: MotionConfig, model, params, layout: str, cams: Mapping[str
     against the 2D keypoints the fit used (``kp2d`` (T, V, 17, 3)), the detector's (``kps``), the
     triangulation ``k3``, with the cameras ``cams`` (all on view 1's instants), and the views'
     ``depth`` (as :func:`fit_motion`; the free-space test, off with ``cfg.quality.free_space_m`` 0;
-    the seen-surface test with the views' person masks, off with ``cfg.quality.surface_m`` 0)."""
-    import torch
+    the seen-surface test with the views' person masks, off with ``cfg.quality.surface_m`` 0).
 
-    from embodmocap.body.joints import smpl_to_coco17
+    The body's mesh and the depth tests are figures of each frame alone: they are computed in
+    pieces of frames (:func:`frame_pieces`, fixed by ``T`` alone) on as many threads as the fit may
+    use cores (:func:`quality_threads`; torch, NumPy and SciPy's k-d tree release the GIL), and the
+    answer does not depend on that number."""
     from embodmocap.motion.quality import frame_quality
 
-    with torch.no_grad():
-        out = model.from_params(params, dtype=torch.float64)
-        fitted = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
     filled = k3["filled"] if "filled" in k3.files else None
     names = [v for v in VIEWS if v in cams]  # two views, or one (a one-phone sequence)
     K, T_world_cam = np.stack([cams[v]["K"] for v in names]), np.stack([cams[v]["T_world_cam"][:T] for v in names], axis=1)
-    free = None
+    raw = np.stack([kps[v][:T] for v in names], axis=1)
+    kp2d = np.asarray(kp2d)[:T]
+    pieces = frame_pieces(T)
+    parts = map_threads(lambda s: _frame_figures(cfg, model, params, layout, names, K, T_world_cam, kp2d, raw, depth, s),
+                        pieces, quality_threads(cfg))
+    fitted, free, surface, front = (None if parts[0][i] is None else np.concatenate([p[i] for p in parts])
+                                    for i in range(4))
+    return frame_quality(fitted, K, T_world_cam, kp2d, raw, k3["points"], filled, tuple(names), cfg.quality, free,
+                         surface, front)
+
+
+#: Frames a piece of :func:`fit_quality`'s per-frame work takes (its pieces start at multiples of
+#: it: a batch cut there gives the same bits as the whole, SIMD lanes and BLAS tiles included).
+QUALITY_PIECE_FRAMES = 128
+
+
+def frame_pieces(T: int, frames: int = QUALITY_PIECE_FRAMES) -> list[slice]:
+    """Contiguous slices covering ``range(T)``, each ``frames`` long but the last (one for T = 0)."""
+    return [slice(a, min(a + frames, T)) for a in range(0, max(T, 1), frames)]
+
+
+def quality_threads(cfg: MotionConfig) -> int:
+    """Threads :func:`fit_quality` runs its pieces on: the cores the fit's windows may use
+    (``smplify.workers``, or the cores ``embodmocap run`` lent the stage), at most the usable ones."""
+    from embodmocap.parallel import lent_cores, usable_cores
+
+    return max(1, min(max(cfg.smplify.workers, lent_cores()), usable_cores()))
+
+
+def map_threads(fn, items: Sequence, threads: int) -> list:
+    """``[fn(x) for x in items]`` on up to ``threads`` threads (in order; here alone for 1). Only
+    for work whose bits do not depend on the thread that does it (no shared state)."""
+    import torch
+
+    n = min(int(threads), len(items))
+    if n <= 1:
+        return [fn(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    # One torch thread each: the pieces are the parallelism (torch's own pool would spin beside them).
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(n, thread_name_prefix="motion-frames") as pool:
+            return list(pool.map(fn, items))
+    finally:
+        torch.set_num_threads(before)
+
+
+def _frame_figures(cfg: MotionConfig, model, params, layout: str, names: list[str], K: NDArray, T_world_cam: NDArray,
+                   kp2d: NDArray, raw: NDArray, depth: Mapping | None, s: slice):
+    """:func:`fit_quality`'s figures of frames ``s`` alone: the fitted keypoints (t, 17, 3) and the
+    free-space, seen-surface and in-front figures (None: the test is off)."""
+    import torch
+
+    from embodmocap.body.joints import smpl_to_coco17
+
+    with torch.no_grad():
+        out = model.from_params(replace(params, global_orient=params.global_orient[s], body_pose=params.body_pose[s],
+                                        transl=params.transl[s]), dtype=torch.float64)
+        fitted = smpl_to_coco17(out.joints, out.vertices, model.vertex_ids, layout).numpy()
+    Tw = T_world_cam[s]
+    # each view's depth stack and masks from frame s.start on (frames past their ends are not judged)
+    got = [(depth or {}).get(v) for v in names]
+    sizes = [g[1] if g else (0, 0) for g in got]
+    stacks = [g[0][s] if g else None for g in got]
+    masks = [g[2][s] if g and len(g) > 2 and g[2] is not None else None for g in got]
+    free = surface = front = None
     if depth and cfg.quality.free_space_m > 0:
         from embodmocap.motion.free_space import free_space_limbs
 
-        free = free_space_limbs(out.vertices.numpy(), model.lbs_weights, K, T_world_cam,
-                                [depth[v][1] if v in depth else (0, 0) for v in names],
-                                [depth[v][0] if v in depth else None for v in names],
+        free = free_space_limbs(out.vertices.numpy(), model.lbs_weights, K, Tw, sizes, stacks,
                                 cfg.quality.free_space_m, cfg.quality.free_space_window_px)
-    raw = np.stack([kps[v][:T] for v in names], axis=1)
-    surface = front = None
     if depth and (cfg.quality.surface_m > 0 or cfg.quality.front_m > 0):
         from embodmocap.motion.seen_surface import joint_in_front, unexplained_surface
 
-        got = [depth.get(v) for v in names]  # (depth, rgb size[, person masks]) per view
-        sizes, stacks = [g[1] if g else (0, 0) for g in got], [g[0] if g else None for g in got]
-        masks = [g[2] if g and len(g) > 2 else None for g in got]
         if cfg.quality.surface_m > 0:
-            surface = unexplained_surface(out.vertices.numpy(), K, T_world_cam, sizes, stacks, masks, raw,
+            surface = unexplained_surface(out.vertices.numpy(), K, Tw, sizes, stacks, masks, raw[s],
                                           cfg.quality.surface_conf, cfg.quality.surface_window_px,
                                           cfg.quality.surface_quantile)
         if cfg.quality.front_m > 0:
-            front = joint_in_front(fitted, K, T_world_cam, sizes, stacks, masks, kp2d, raw, cfg.quality.front_conf,
+            front = joint_in_front(fitted, K, Tw, sizes, stacks, masks, kp2d[s], raw[s], cfg.quality.front_conf,
                                    cfg.quality.front_window_px)
-    return frame_quality(fitted, K, T_world_cam, kp2d, raw, k3["points"], filled, tuple(names), cfg.quality, free,
-                         surface, front)
+    return fitted, free, surface, front
 
 
 @dataclass(frozen=True)

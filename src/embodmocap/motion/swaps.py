@@ -72,14 +72,35 @@ class SwapConfig:
 
 
 def _frame_error(P: NDArray, xy: NDArray, conf: NDArray, tcfg: TriangulationConfig, cap: float,
-                 joints: list[int]) -> tuple[NDArray, NDArray]:
+                 joints: list[int], X_rest: NDArray | None = None,
+                 frames: NDArray | None = None) -> tuple[NDArray, NDArray]:
     """(T,) mean capped reprojection error over ``joints`` of each frame, and (T, J, 3) the
-    triangulated points (no gap filling, no rejection)."""
-    tri = triangulate(P, xy, conf, TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
-                                                        max_gap_frames=0, drop_unresolved=False))
-    err = np.minimum(tri.reproj_err_px[:, joints], cap)  # (T, j, V)
+    triangulated points (no gap filling, no rejection). ``X_rest``: (T, J, 3) the points of the
+    other joints, triangulated from the same keypoints as here: only ``joints`` are triangulated.
+    ``frames``: only these frames are triangulated (the error is +inf and the points are
+    ``X_rest``'s elsewhere; needs ``X_rest``). Each point's triangulation is its own: the same
+    bits as triangulating every joint of every frame."""
+    sub = list(joints) if X_rest is not None else list(range(xy.shape[2]))
+    if frames is not None and len(frames) == 0:
+        return np.full(len(X_rest), np.inf), np.array(X_rest, copy=True)
+    if frames is not None:
+        P = P[frames] if np.ndim(P) == 4 else P
+        xy, conf = xy[frames], conf[frames]
+    tri = triangulate(P, xy[:, :, sub], conf[:, :, sub], TriangulationConfig(min_conf=tcfg.min_conf, reject_px=np.inf,
+                                                                           max_gap_frames=0, drop_unresolved=False))
+    err = np.minimum(tri.reproj_err_px[:, [sub.index(j) for j in joints]], cap)  # (T, j, V)
     seen = np.isfinite(err)
-    return np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1), tri.points
+    mean = np.where(seen, err, 0.0).sum((1, 2)) / np.maximum(seen.sum((1, 2)), 1)
+    if X_rest is None:
+        return mean, tri.points
+    X = np.array(X_rest, copy=True)
+    if frames is None:
+        X[:, sub] = tri.points
+        return mean, X
+    X[np.ix_(frames, sub)] = tri.points
+    full = np.full(len(X), np.inf)
+    full[frames] = mean
+    return full, X
 
 
 def _swap(kp: NDArray, pairs: tuple[tuple[int, int], ...]) -> NDArray:
@@ -196,7 +217,8 @@ def _bone_swaps(P, kp, X0, base, name, pairs, g, swapped, tcfg, cfg) -> tuple[ND
     for v in range(kp.shape[1]):
         trial = kp.copy()
         trial[:, v] = _swap(kp[:, v], pairs)
-        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+        # only the frames where a swap may be taken (a bone implausible as given)
+        err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0, np.flatnonzero(n0 >= 1))
         nv = _implausible_bones(Xv, bones, L, cfg.bone_tol)
         ok = (nv == 0) & (n0 >= 1) & (nv < best_n) & (err <= base + cfg.bone_max_extra_px)
         best_n, best_v = np.where(ok, nv, best_n), np.where(ok, v, best_v)
@@ -235,13 +257,17 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
     T, V = kp.shape[:2]
     names = list(groups)
     swapped = np.zeros((T, V, len(names)), dtype=bool)
+    # The points of the keypoints as they stand (every joint triangulated once; then only the
+    # joints of the group at hand, whose keypoints alone a group's swaps change).
+    X_now = None
     for g, name in enumerate(names):
         joints = [j for pair in groups[name] for j in pair]
-        base, X0 = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+        base, X0 = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X_now)
+        X_now = X0
         if V == 2 and name in _LIMB_BONES and cfg.bone_tol > 0:
             kp, n_bone = _bone_swaps(P, kp, X0, base, name, groups[name], g, swapped, tcfg, cfg)
             if n_bone:
-                base, _ = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints)
+                base, X_now = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X0)
         bad = base >= cfg.min_error_px
         if not bad.any():
             continue
@@ -250,7 +276,8 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
         for v in range(V):
             trial = kp.copy()
             trial[:, v] = _swap(kp[:, v], groups[name])
-            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints)
+            # only the frames where a swap may be taken (bad: the runs judged below lie within them)
+            err, Xv = _frame_error(P, trial[..., :2], trial[..., 2], tcfg, cfg.cap_px, joints, X0, np.flatnonzero(bad))
             trials.append((err, Xv))
             # With 3+ views only the wrong view's swap lowers the error.
             ok = bad & (err < cfg.min_gain * base) & (err < best_err)
@@ -277,6 +304,7 @@ def fix_swaps(P: NDArray, keypoints: NDArray, tcfg: TriangulationConfig = Triang
             kp[t, v] = _swap(kp[t, v], groups[name])
             swapped[t, v, g] = True
         if len(t_idx):
+            X_now = _frame_error(P, kp[..., :2], kp[..., 2], tcfg, cfg.cap_px, joints, X_now)[1]
             log.info("left/right %s swapped back in %d frames (%s)", name, len(t_idx),
                      ", ".join(f"view {v}: {int((best_view == v).sum())}" for v in range(V) if (best_view == v).any()))
     return kp, swapped
