@@ -80,14 +80,25 @@ def registration_frames(cfg: CalibrateConfig, view: ViewInputs) -> list[tuple[in
     return [(int(t), np.asarray(view.rgb(int(t))), view.mask(int(t))) for t in ts]
 
 
-def registration_features(cfg: CalibrateConfig, view: ViewInputs, pool: Executor) -> list[Future[FrameFeatures]]:
+def registration_features(cfg: CalibrateConfig, view: ViewInputs, pool: Executor,
+                          reader: Executor) -> Future[list[Future[FrameFeatures]]]:
     """The frames of :func:`registration_frames`, each handed to ``pool`` for its features
-    (:func:`~embodmocap.calibrate.register.frame_features`) as soon as it is read, so that decoding
-    the video and detecting run side by side; :func:`register_view` takes the futures. The caller
-    keeps OpenCV on one thread meanwhile (:func:`~embodmocap.calibrate.register.one_library_thread`)."""
+    (:func:`~embodmocap.calibrate.register.frame_features`) as soon as ``reader`` (a thread of its
+    own per view) has decoded it, so that decoding the video and detecting run side by side;
+    :func:`register_view` takes the futures. The caller keeps OpenCV on one thread meanwhile
+    (:func:`~embodmocap.calibrate.register.one_library_thread`).
+
+    The person masks are read here, on the calling thread: reading one parses its stack's ``.npy``
+    header, and CPython 3.11's parser is not safe to run on two threads at once (it failed with
+    "AST constructor recursion depth mismatch" when both views' readers read masks)."""
     T_vio = np.asarray(view.cameras["T_world_cam"], dtype=np.float64)
-    return [pool.submit(frame_features, (int(t), np.asarray(view.rgb(int(t))), view.mask(int(t))), cfg.register)
-            for t in select_frames(T_vio, cfg.register.num_frames)]
+    ts = [int(t) for t in select_frames(T_vio, cfg.register.num_frames)]
+    masks = [view.mask(t) for t in ts]
+
+    def read() -> list[Future[FrameFeatures]]:
+        return [pool.submit(frame_features, (t, np.asarray(view.rgb(t)), m), cfg.register) for t, m in zip(ts, masks)]
+
+    return reader.submit(read)
 
 
 def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: str, label: str,

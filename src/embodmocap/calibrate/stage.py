@@ -151,7 +151,7 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         pool = stack.enter_context(ThreadPoolExecutor(max(1, cfg.register.workers or os.cpu_count() or 1),
                                                       thread_name_prefix="register"))
         reader = stack.enter_context(ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames"))
-        frames = {v: reader.submit(solve.registration_features, cfg, views[v], pool) for v in todo}
+        frames = {v: solve.registration_features(cfg, views[v], pool, reader) for v in todo}
     try:
         for v in names:
             vl = out.view(v)
