@@ -2,7 +2,8 @@
 
 Frames are (H, W, 3) uint8 **RGB**. Frame ``i`` is the i-th frame in presentation order. The
 reader keeps one decoder open and decodes forward, so sequential access costs one decode per frame;
-it seeks (to the key frame before the target) only when asked for an earlier frame or one far ahead.
+it seeks (to the key frame before the target) only when asked for an earlier frame or one far ahead
+with a key frame in between.
 
 Rotation metadata (a display matrix, as iPhones write for portrait recordings) is *not* applied:
 frames come out as stored in the file. :attr:`VideoInfo.rotation_deg` reports it so a capture
@@ -157,8 +158,8 @@ def _probe(path: Path) -> tuple[VideoInfo, NDArray[np.int64], NDArray[np.int64]]
 class VideoReader:
     """Random access to a video's frames as (H, W, 3) uint8 RGB.
 
-    Cheap for forward sequential reads (the decoder stays open); a read of an earlier frame or one
-    far ahead seeks to the preceding key frame. Use as a context manager, or call :meth:`close`.
+    Cheap for forward sequential reads (the decoder stays open); a read of an earlier frame, or of
+    one far ahead with a key frame in between, seeks to the key frame before it. Use as a context manager, or call :meth:`close`.
     """
 
     def __init__(self, path: str | Path) -> None:
