@@ -158,8 +158,8 @@ def test_view_whose_registration_fails_is_placed_through_the_performer(session, 
     rng = np.random.default_rng(1)
     calls = []
 
-    def broken(cfg, frames, K, index, T_vio, name):
-        reg = real(cfg, frames, K, index, T_vio, name)
+    def broken(cfg, frames, K, index, T_vio, name, pool=None):
+        reg = real(cfg, frames, K, index, T_vio, name, pool)
         calls.append(name[-2:])
         if not name.endswith("v1"):
             return reg

@@ -48,6 +48,29 @@ def test_frames_round_trip_close(video):
     assert max(errs) < 4.0 and wrong > 4 * max(errs)
 
 
+def test_far_jump_without_key_frame_decodes_forward(video):
+    """A jump far ahead seeks only when a key frame lies in the gap: the seek would land on the key
+    frame before the target, and with none in the gap that is at or before the frames already
+    decoded (decoding them again). The clip's only key frame is its first."""
+    path, _ = video
+    seeks = []
+
+    class Counting(VideoReader):
+        def _seek(self, index: int) -> None:
+            seeks.append(index)
+            super()._seek(index)
+
+    with VideoReader(path) as r:
+        seq = [r.read(i) for i in range(90)]
+    with Counting(path) as r:
+        assert r._key_at_or_before(80) == 0
+        for i in (3, 70, 89):  # jumps of 67 and 19 frames, no key frame after 0
+            np.testing.assert_array_equal(r.read(i), seq[i])
+        assert seeks == [3]  # the first read opens the decoder; the jump decodes on
+        np.testing.assert_array_equal(r.read(10), seq[10])  # backwards: a seek
+        assert seeks == [3, 10]
+
+
 def test_random_access_equals_sequential(video):
     path, _ = video
     with VideoReader(path) as r:

@@ -23,12 +23,14 @@ Pixel convention: ours puts the top-left pixel's centre at (0, 0); COLMAP's at (
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Iterator, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +51,23 @@ log = logging.getLogger(__name__)
 
 #: One view frame to register: (sequence frame t, rgb (H, W, 3) uint8, person mask (H, W) bool).
 ViewFrame = tuple[int, NDArray[np.uint8], NDArray[np.bool_]]
+
+
+class FrameFeatures(NamedTuple):
+    """The SIFT features of one view frame's background (:func:`frame_features`): what
+    :func:`register_frames` needs of a frame, computed once however often the frame is tried.
+
+    Attributes:
+        t: sequence frame.
+        xy: (n, 2) float64 keypoint positions (our pixel convention).
+        desc: (n, 128) float32 unit-norm descriptors.
+        seconds: wall time the detection took.
+    """
+
+    t: int
+    xy: NDArray[np.float64]
+    desc: NDArray[np.float32]
+    seconds: float
 
 
 @dataclass(frozen=True)
@@ -158,6 +177,14 @@ def detect_background_features(rgb: NDArray[np.uint8], person_mask: NDArray[np.b
     return xy, _normalise_rows(desc.astype(np.float32))
 
 
+def frame_features(frame: ViewFrame, cfg: RegisterConfig = RegisterConfig()) -> FrameFeatures:
+    """:func:`detect_background_features` of one ``(t, rgb, person mask)`` view frame."""
+    t, rgb, mask = frame
+    t0 = time.perf_counter()
+    xy, desc = detect_background_features(rgb, mask, cfg)
+    return FrameFeatures(int(t), xy, desc, time.perf_counter() - t0)
+
+
 def match_to_keyframes(index: SceneIndex, desc: NDArray[np.float32], keyframes: Sequence[int],
                        ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """2D-3D matches of a query frame against the observations of some key frames.
@@ -191,19 +218,24 @@ def match_to_keyframes(index: SceneIndex, desc: NDArray[np.float32], keyframes: 
     return pairs[:, 0], pairs[:, 1]
 
 
-def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: str | Path | SceneIndex,
+def register_frames(view_frames: Sequence[ViewFrame | FrameFeatures], K: Intrinsics, sfm_dir: str | Path | SceneIndex,
                     cfg: RegisterConfig = RegisterConfig(),
-                    predicted_T_world_cam: Mapping[int, NDArray] | None = None) -> Registration:
+                    predicted_T_world_cam: Mapping[int, NDArray] | None = None,
+                    pool: Executor | None = None) -> Registration:
     """Register view frames into the Stage I sparse model.
 
     Args:
-        view_frames: ``(t, rgb (H, W, 3) uint8, person_mask (H, W) bool)`` per frame to try.
+        view_frames: ``(t, rgb (H, W, 3) uint8, person_mask (H, W) bool)`` per frame to try, or its
+            :class:`FrameFeatures` when already computed (with ``cfg``'s detection settings).
         K: the view's RGB intrinsics (our pixel convention), at the frames' resolution.
         sfm_dir: the Stage I sparse model folder, or a :class:`SceneIndex` built from it (reuse one
             index for both views).
         cfg: settings.
         predicted_T_world_cam: ``t -> (4, 4)`` predicted camera-to-world poses in the scene's world
             (e.g. VIO poses through a coarse offset); used for ``"pose"`` / ``"auto"`` candidates.
+        pool: threads to register the frames on (shared with other work, e.g. the stage's feature
+            detection); None: a pool of ``cfg.workers`` threads for this call. The caller keeps
+            OpenCV and BLAS on one thread while work of its own runs on a shared pool.
 
     Returns:
         The :class:`Registration`; frames that fail have 0 inliers in ``attempted_inliers``.
@@ -219,11 +251,8 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
     est.ransac.random_seed = cfg.seed
     predicted = dict(predicted_T_world_cam or {})
 
-    def one(frame: ViewFrame):
-        t, rgb, mask = frame
-        t = int(t)
-        t0 = time.perf_counter()
-        xy, desc = detect_background_features(rgb, mask, cfg)
+    def one(frame: ViewFrame | FrameFeatures):
+        t, xy, desc, detect_s = frame if isinstance(frame, FrameFeatures) else frame_features(frame, cfg)
         t1 = time.perf_counter()
         chosen = _choose(index, desc, K, cfg, predicted.get(t))
         q_idx, p_ids = match_to_keyframes(index, desc, chosen, cfg.ratio)
@@ -231,7 +260,7 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
         res = _absolute_pose(pycolmap, camera, est, xy[q_idx], p_ids, index, cfg) if len(q_idx) >= 4 else None
         t3 = time.perf_counter()
         log.debug("frame %d: %d features, %d matches, %d inliers", t, len(xy), len(q_idx), 0 if res is None else len(res[1]))
-        return t, xy, chosen, q_idx, p_ids, res, (t1 - t0, t2 - t1, t3 - t2)
+        return t, xy, chosen, q_idx, p_ids, res, (detect_s, t2 - t1, t3 - t2)
 
     # Each frame is registered on its own with a fixed RANSAC seed and single-threaded OpenCV (its
     # SIFT keeps the strongest features, and with several internal threads the order of equally
@@ -242,8 +271,10 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
     # BLAS on one thread too (the matching's products): each pool thread running a multi-threaded
     # OpenBLAS product oversubscribes the cores, and OpenBLAS's waiting threads spin (measured:
     # matching products in a 2-thread pool cost 2.3x the CPU; same results).
-    with _opencv_threads(1), library_threads(1, ("blas",)):
-        if workers > 1:
+    with one_library_thread():
+        if pool is not None:
+            outs = list(progress(pool.map(one, frames), "registration", total=len(frames), unit="frame"))
+        elif workers > 1:
             from concurrent.futures import ThreadPoolExecutor
 
             with ThreadPoolExecutor(workers) as pool:
@@ -263,6 +294,16 @@ def register_frames(view_frames: Sequence[ViewFrame], K: Intrinsics, sfm_dir: st
             T, inl = res
             results.append((len(attempted) - 1, t, T, q_idx[inl], p_ids[inl], xy))
     return _collect(attempted, counts, cands, results, index, K, cfg, seconds)
+
+
+@contextlib.contextmanager
+def one_library_thread() -> Iterator[None]:
+    """OpenCV and BLAS on one thread inside (restored after), as :func:`register_frames` runs its
+    frames: each frame is registered on one thread, so its result does not depend on the thread
+    count. A caller whose own work of this kind shares the threads (the stage's feature detection
+    and key frame descriptors) holds it around all of that."""
+    with _opencv_threads(1), library_threads(1, ("blas",)):
+        yield
 
 
 def _choose(index: SceneIndex, desc: NDArray, K: Intrinsics, cfg: RegisterConfig,

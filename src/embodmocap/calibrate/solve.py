@@ -22,6 +22,7 @@ by frame, from whatever holds it: memory-mapped files in the stage, arrays in a 
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field, replace
 from typing import Mapping
 
@@ -34,7 +35,7 @@ from embodmocap.calibrate.final_sync import GeosyncResult, geometric_sync  # noq
 from embodmocap.calibrate.inputs import ViewInputs
 from embodmocap.calibrate.offset import YawOffset, chain_yaw_offset
 from embodmocap.calibrate.refine import ViewData, refine_offsets
-from embodmocap.calibrate.register import Registration, register_frames, select_frames
+from embodmocap.calibrate.register import FrameFeatures, Registration, frame_features, register_frames, select_frames
 from embodmocap.errors import InputError
 from embodmocap.geometry.transforms import rotation_angle
 from embodmocap.io.layout import VIEWS
@@ -79,8 +80,29 @@ def registration_frames(cfg: CalibrateConfig, view: ViewInputs) -> list[tuple[in
     return [(int(t), np.asarray(view.rgb(int(t))), view.mask(int(t))) for t in ts]
 
 
+def registration_features(cfg: CalibrateConfig, view: ViewInputs, pool: Executor,
+                          reader: Executor) -> Future[list[Future[FrameFeatures]]]:
+    """The frames of :func:`registration_frames`, each handed to ``pool`` for its features
+    (:func:`~embodmocap.calibrate.register.frame_features`) as soon as ``reader`` (a thread of its
+    own per view) has decoded it, so that decoding the video and detecting run side by side;
+    :func:`register_view` takes the futures. The caller keeps OpenCV on one thread meanwhile
+    (:func:`~embodmocap.calibrate.register.one_library_thread`).
+
+    The person masks are read here, on the calling thread: reading one parses its stack's ``.npy``
+    header, and CPython 3.11's parser is not safe to run on two threads at once (it failed with
+    "AST constructor recursion depth mismatch" when both views' readers read masks)."""
+    T_vio = np.asarray(view.cameras["T_world_cam"], dtype=np.float64)
+    ts = [int(t) for t in select_frames(T_vio, cfg.register.num_frames)]
+    masks = [view.mask(t) for t in ts]
+
+    def read() -> list[Future[FrameFeatures]]:
+        return [pool.submit(frame_features, (t, np.asarray(view.rgb(t)), m), cfg.register) for t, m in zip(ts, masks)]
+
+    return reader.submit(read)
+
+
 def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: str, label: str,
-                  source: object = None, frames: list | None = None) -> RegisteredView:
+                  source: object = None, frames: list | None = None, pool: Executor | None = None) -> RegisteredView:
     """Register a sample of one view's frames into the scene index and check them against its VIO.
 
     Args:
@@ -89,15 +111,19 @@ def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: s
         index: the scene's registration index (:func:`embodmocap.calibrate.scene_index.build_scene_index`).
         view_name: ``v1`` or ``v2`` (error messages); label: ``"<seq> <view>"`` (log lines).
         source: what an error names (the view's capture).
-        frames: :func:`registration_frames` of the view, when already read (None: read here).
+        frames: :func:`registration_frames` of the view, when already read, or
+            :func:`registration_features` (futures; their features are computed once for every
+            try); None: read here.
+        pool: threads for the frames (:func:`~embodmocap.calibrate.register.register_frames`).
 
     Raises:
         InputError: too few frames registered (names ``source`` and the likely causes).
     """
     T_vio = np.asarray(view.cameras["T_world_cam"], dtype=np.float64)
     K = Intrinsics.from_K(view.cameras["K"], int(view.cameras["width"]), int(view.cameras["height"]))
-    frames = registration_frames(cfg, view) if frames is None else frames
-    reg = register_frames_of_view(cfg, frames, K, index, T_vio, label)
+    frames = registration_frames(cfg, view) if frames is None else [
+        f.result() if isinstance(f, Future) else f for f in frames]
+    reg = register_frames_of_view(cfg, frames, K, index, T_vio, label, pool)
     check = check_against_vio(reg.T_world_cam, T_vio[reg.t], reg.inliers,
                               cfg.vio_max_disagreement_m, cfg.vio_max_disagreement_deg)
     try:
@@ -111,7 +137,8 @@ def register_view(cfg: CalibrateConfig, view: ViewInputs, index, *, view_name: s
     return RegisteredView(reg, check, off)
 
 
-def register_frames_of_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.ndarray, name: str) -> Registration:
+def register_frames_of_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.ndarray, name: str,
+                            pool: Executor | None = None) -> Registration:
     """Register one view's frames: a few by retrieval first, the rest by pose from their coarse,
     VIO-checked offset; frames that still fail are retried against more retrieval candidates.
 
@@ -122,28 +149,28 @@ def register_frames_of_view(cfg: CalibrateConfig, frames, K, index, T_vio: np.nd
     pick = np.zeros(len(frames), dtype=bool)
     pick[np.unique(np.linspace(0, len(frames) - 1, min(rc.coarse_frames, len(frames))).round().astype(int))] = True
     retrieval = replace(rc, candidates="retrieval")
-    first = register_frames([f for f, p in zip(frames, pick) if p], K, index, retrieval)
+    first = register_frames([f for f, p in zip(frames, pick) if p], K, index, retrieval, pool=pool)
     coarse = coarse_offset(cfg, first, T_vio)
     if coarse is None:  # retrieval failed on the sample: try it with more candidates
         wider = replace(retrieval, num_candidates=rc.num_candidates * cfg.retry_candidates_factor)
         log.info("%s: no VIO-consistent coarse offset from %d frames; retrying with %d candidates", name,
                  int(pick.sum()), wider.num_candidates)
-        first = register_frames([f for f, p in zip(frames, pick) if p], K, index, wider)
+        first = register_frames([f for f, p in zip(frames, pick) if p], K, index, wider, pool=pool)
         coarse = coarse_offset(cfg, first, T_vio)
     rest = [f for f, p in zip(frames, pick) if not p]
     if coarse is None:
         log.info("%s: still no coarse offset; registering every frame by retrieval", name)
-        reg = first.merged(register_frames(rest, K, index, retrieval))
+        reg = first.merged(register_frames(rest, K, index, retrieval, pool=pool))
     else:
         predicted = {int(f[0]): coarse.apply(T_vio[int(f[0])]) for f in rest}
-        reg = first.merged(register_frames(rest, K, index, replace(rc, candidates="auto"), predicted))
+        reg = first.merged(register_frames(rest, K, index, replace(rc, candidates="auto"), predicted, pool))
     if reg.registered_fraction < cfg.retry_below_fraction:
         # Rare now: retry only the frames that failed, against more retrieval candidates.
         failed = set(int(t) for t in reg.attempted) - set(int(t) for t in reg.t)
         wider = replace(retrieval, num_candidates=rc.num_candidates * cfg.retry_candidates_factor)
         log.info("%s: %.0f%% registered; retrying %d frames with %d candidates", name, 100 * reg.registered_fraction,
                  len(failed), wider.num_candidates)
-        retry = register_frames([f for f in frames if int(f[0]) in failed], K, index, wider)
+        retry = register_frames([f for f in frames if int(f[0]) in failed], K, index, wider, pool=pool)
         keep = ~np.isin(reg.attempted, retry.attempted)
         reg = Registration(reg.attempted[keep], reg.attempted_inliers[keep], reg.t, reg.T_world_cam, reg.inliers,
                            reg.reproj_error_px, reg.correspondences, (), reg.seconds).merged(retry)

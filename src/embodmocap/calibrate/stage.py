@@ -32,8 +32,10 @@ limits, is reported with its numbers (and the registration-only offset is kept w
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +46,7 @@ from embodmocap.calibrate import solve
 from embodmocap.calibrate.config import CalibrateConfig  # noqa: F401 (re-exported: defined in config.py)
 from embodmocap.calibrate.offset import YawOffset
 from embodmocap.calibrate.refine import ViewData
-from embodmocap.calibrate.register import load_or_build_scene_index
+from embodmocap.calibrate.register import load_or_build_scene_index, one_library_thread
 from embodmocap.calibrate.solve import CALIBRATION_VERSION, REGISTER_VERSION, ViewInputs  # noqa: F401 (re-exported)
 from embodmocap.calibrate.steps import STEPS
 from embodmocap.errors import InputError
@@ -135,21 +137,30 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
         fp_placed[v] = STEPS.fingerprint("register", cfg, reads=reg_reads) if scene.mesh_raw.is_file() else None
         if fp_placed[v] is not None and not force and sm.is_current(f"register_{v}", fp_placed[v]):
             fp_reg[v] = fp_placed[v]
-    # The frames of every view to register are read (the video decoded up to the last one, one
-    # thread per view: the decoder releases the GIL) while this thread builds the scene's index, so
-    # the three use both cores; the registrations then run one after the other, as before.
+    # One pool of threads (one per core) does all of the registration's work: the features of each
+    # view frame as soon as its reader thread has decoded it (one reader per view, decoding the
+    # video up to the last frame wanted: the decoder releases the GIL), the key frames' descriptors
+    # of the scene's index, then the views' matches and poses, one view after the other. Every
+    # task's result is its own (one thread inside OpenCV and BLAS), whatever runs beside it.
     todo = [v for v in names if force or not sm.is_current(f"register_{v}", fp_reg[v])]
-    reader = ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames") if todo else None
-    frames = {v: reader.submit(solve.registration_frames, cfg, views[v]) for v in todo}
+    stack = contextlib.ExitStack()
+    reader = pool = None
+    frames = {}
+    if todo:
+        stack.enter_context(one_library_thread())
+        pool = stack.enter_context(ThreadPoolExecutor(max(1, cfg.register.workers or os.cpu_count() or 1),
+                                                      thread_name_prefix="register"))
+        reader = stack.enter_context(ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames"))
+        frames = {v: solve.registration_features(cfg, views[v], pool, reader) for v in todo}
     try:
         for v in names:
             vl = out.view(v)
             with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
                 if step.run:
                     # One index per scene, cached next to the scene's outputs and reused by every sequence.
-                    index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.register_index)
+                    index = index or load_or_build_scene_index(scene.sfm_dir, cfg.register, scene.register_index, pool)
                     rv = solve.register_view(cfg, views[v], index, view_name=v, label=f"{entry.name} {v}",
-                                             source=entry.views[v].capture, frames=frames.pop(v).result())
+                                             source=entry.views[v].capture, frames=frames.pop(v).result(), pool=pool)
                     # (raises before anything of the view is written)
                     if rv.disagreement is not None:
                         if not cfg.place_by_performer:
@@ -162,10 +173,12 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
                     step.record([vl.registration], solve.register_figures(v, rv))
             regs[v] = _load_registration(vl.registration)
     finally:
-        if reader is not None:
-            for f in frames.values():  # a view left after an error: its frames are not wanted
-                f.cancel()
-            reader.shutdown(wait=True)
+        for f in frames.values():  # a view left after an error: its frames are not wanted
+            f.cancel()
+        if pool is not None:
+            reader.shutdown(wait=True)  # (its frames' tasks are all on the pool then)
+            pool.shutdown(wait=True, cancel_futures=True)
+        stack.close()
     if only_register:
         return None
     slicing = _sync_record(out, entry.name)["slicing"]["source"]

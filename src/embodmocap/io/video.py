@@ -2,7 +2,8 @@
 
 Frames are (H, W, 3) uint8 **RGB**. Frame ``i`` is the i-th frame in presentation order. The
 reader keeps one decoder open and decodes forward, so sequential access costs one decode per frame;
-it seeks (to the key frame before the target) only when asked for an earlier frame or one far ahead.
+it seeks (to the key frame before the target) only when asked for an earlier frame or one far ahead
+with a key frame in between.
 
 Rotation metadata (a display matrix, as iPhones write for portrait recordings) is *not* applied:
 frames come out as stored in the file. :attr:`VideoInfo.rotation_deg` reports it so a capture
@@ -26,7 +27,9 @@ from embodmocap.io.atomic import default_file_mode
 
 log = logging.getLogger(__name__)
 
-#: Jumping ahead by more than this many frames seeks instead of decoding through the gap.
+#: Jumping ahead by more than this many frames seeks instead of decoding through the gap (when a
+#: key frame lies in the gap: a seek lands on the key frame before the target, and without one
+#: there it would decode again the frames already passed).
 _SEEK_AHEAD_FRAMES = 48
 
 
@@ -72,23 +75,26 @@ def _open(path: Path):
     return container
 
 
-def _packet_pts(container, stream, path: Path) -> NDArray[np.int64]:
-    """Sorted presentation timestamps of every packet of ``stream`` (demux only, no decode)."""
+def _packet_pts(container, stream, path: Path) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Sorted presentation timestamps of every packet of ``stream`` (demux only, no decode), and
+    the sorted frame indices (presentation order) of its key frames."""
     import av
 
-    pts = []
+    pts, key = [], []
     try:
         for packet in container.demux(stream):
             if packet.size == 0:  # the flush packet at the end
                 continue
             pts.append(packet.pts if packet.pts is not None else packet.dts)
+            key.append(bool(packet.is_keyframe))
     except av.error.FFmpegError as err:
         raise InputError(path, f"video is truncated or corrupt after {len(pts)} frames ({err})",
                          "copy the file again from the phone") from err
     if any(p is None for p in pts):
         # Streams without timestamps: fall back to the packet order.
-        return np.arange(len(pts), dtype=np.int64)
-    return np.sort(np.asarray(pts, dtype=np.int64))
+        return np.arange(len(pts), dtype=np.int64), np.flatnonzero(key).astype(np.int64)
+    order = np.argsort(np.asarray(pts, dtype=np.int64), kind="stable")
+    return np.asarray(pts, dtype=np.int64)[order], np.flatnonzero(np.asarray(key, dtype=bool)[order]).astype(np.int64)
 
 
 def _first_frame_rotation(container, stream, path: Path) -> int:
@@ -116,13 +122,14 @@ def probe_video(path: str | Path) -> VideoInfo:
     return _probe(Path(path))[0]
 
 
-def _probe(path: Path) -> tuple[VideoInfo, NDArray[np.int64]]:
-    """:func:`probe_video` plus the sorted raw packet timestamps (stream time base)."""
+def _probe(path: Path) -> tuple[VideoInfo, NDArray[np.int64], NDArray[np.int64]]:
+    """:func:`probe_video` plus the sorted raw packet timestamps (stream time base) and the frame
+    indices of the key frames."""
     container = _open(path)
     try:
         stream = container.streams.video[0]
         tb = stream.time_base
-        pts = _packet_pts(container, stream, path)
+        pts, keys = _packet_pts(container, stream, path)
         if len(pts) == 0:
             raise InputError(path, "video has no frames", "record the capture again")
         declared = stream.frames
@@ -143,7 +150,7 @@ def _probe(path: Path) -> tuple[VideoInfo, NDArray[np.int64]]:
             height=stream.codec_context.height, codec=stream.codec_context.name,
             timestamps_s=t, rotation_deg=_first_frame_rotation(container, stream, path),
         )
-        return info, pts
+        return info, pts, keys
     finally:
         container.close()
 
@@ -151,13 +158,13 @@ def _probe(path: Path) -> tuple[VideoInfo, NDArray[np.int64]]:
 class VideoReader:
     """Random access to a video's frames as (H, W, 3) uint8 RGB.
 
-    Cheap for forward sequential reads (the decoder stays open); a read of an earlier frame or one
-    far ahead seeks to the preceding key frame. Use as a context manager, or call :meth:`close`.
+    Cheap for forward sequential reads (the decoder stays open); a read of an earlier frame, or of
+    one far ahead with a key frame in between, seeks to the key frame before it. Use as a context manager, or call :meth:`close`.
     """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
-        self.info, self._pts = _probe(self.path)
+        self.info, self._pts, self._keys = _probe(self.path)
         self._container = _open(self.path)
         self._stream = self._container.streams.video[0]
         self._stream.thread_type = "AUTO"
@@ -190,9 +197,15 @@ class VideoReader:
             return self._last[1]
         if self._container is None:
             raise ValueError(f"{self.path}: reader is closed")
-        if self._frames is None or index < self._next or index > self._next + _SEEK_AHEAD_FRAMES:
+        if self._frames is None or index < self._next or (index > self._next + _SEEK_AHEAD_FRAMES
+                                                            and self._key_at_or_before(index) > self._next):
             self._seek(index)
         return self._decode_until(index)
+
+    def _key_at_or_before(self, index: int) -> int:
+        """The last key frame at or before ``index`` (``index`` itself when the demuxer flagged none)."""
+        k = int(np.searchsorted(self._keys, index, side="right")) - 1
+        return int(self._keys[k]) if k >= 0 else index
 
     def _seek(self, index: int) -> None:
         # backward=True lands on the key frame at or before the target; decoding then runs forward.
