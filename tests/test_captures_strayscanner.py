@@ -67,6 +67,22 @@ def test_round_trip(stray):
         np.testing.assert_allclose(f.T_world_cam, gt["T"][i], atol=1e-5)
 
 
+def test_depth_mm_is_the_stored_millimetres_and_what_the_metres_round_back_to(stray):
+    from embodmocap.io.frame_stack import depth_mm
+
+    root, gt = stray
+    cap = open_capture(root)
+    for i in (0, 7, 14):
+        mm = cap.frames.depth_mm(i)
+        assert mm.dtype == np.uint16
+        np.testing.assert_array_equal(mm, gt["depth"][i])
+        np.testing.assert_array_equal(depth_mm(cap.frames.depth_m(i)), mm)
+    # Every stored value: metres as read_depth_image makes them (float32 / 1000) round back exactly,
+    # so Stage II's integer path writes the stack the float path wrote.
+    every = np.arange(65536, dtype=np.uint16)
+    np.testing.assert_array_equal(depth_mm(every.astype(np.float32) / 1000.0), every)
+
+
 def test_imu_read_in_mps2(stray):
     root, gt = stray
     imu = read_strayscanner(root).imu

@@ -230,6 +230,12 @@ def test_bounded_json_reader(tmp_path):
     ok = tmp_path / "ok.json"
     ok.write_text(text)
     assert read_json(ok, max_bytes=1 << 20)["people"] == [[1, 2, 3]]
+    # At the limit, with no more opening brackets than the limit (measured or not): one level too
+    # many is refused, the limit itself is read.
+    (tmp_path / "four.json").write_text("[[{\"a\": [1]}]]")
+    with pytest.raises(InputError, match="nested 4 levels deep"):
+        read_json(tmp_path / "four.json", max_bytes=1 << 20, max_depth=3)
+    assert read_json(tmp_path / "four.json", max_bytes=1 << 20, max_depth=4) == [[{"a": [1]}]]
 
 
 def test_os_errors_read_as_one_line():

@@ -63,7 +63,7 @@ def test_sync_and_slices_match_ground_truth(session, done):
         good = kp["keypoints"][..., 2] > 0.5
         err = np.linalg.norm(kp["keypoints"][..., :2] - gt[f"{v}_keypoints2d_gt"][raw], axis=-1)[good]
         assert np.median(err) < 4.0
-        from embodmocap.io.frame_stack import read_depth_m, read_mask
+        from embodmocap.io.frame_stack import depth_mm, read_depth_m, read_mask
         from embodmocap.types import PngMasks
 
         # Masks equal the precomputed PNGs of the same raw frames; depth equals the capture's
@@ -77,6 +77,8 @@ def test_sync_and_slices_match_ground_truth(session, done):
             d = cap.frames.depth_m(int(raw[t]))
             keep = cap.frames.confidence(int(raw[t])) >= CFG.min_depth_confidence
             np.testing.assert_allclose(read_depth_m(vl.depth, t), np.where(keep, d, 0), atol=5e-4)
+            # To the millimetre what the metres filtered and rounded give (the integer path's promise).
+            np.testing.assert_array_equal(np.load(vl.depth, mmap_mode="r")[t], depth_mm(np.where(keep, d, 0.0)))
         assert np.load(vl.masks).shape == (T, SYNTH.height, SYNTH.width // 8)
         assert np.load(vl.depth).shape == (T, SYNTH.depth_height, SYNTH.depth_width)
         from embodmocap.io.body_prior import read_body_prior

@@ -48,3 +48,28 @@ def test_corrupt_or_foreign_manifest_means_redo(tmp_path):
     assert not StageManifest(man, "scene", {}).is_current("x", "fp")
 
 
+
+
+def test_folder_fingerprint_lists_every_regular_file_below_it(tmp_path):
+    """What a folder's fingerprint holds, entry by entry: the relative path (``/``-separated), size
+    and digest of every regular file at any depth, sorted; hidden files and folders left out; a
+    link to a file counts as that file, a dangling link and what a linked folder holds do not."""
+    from embodmocap.io.stage_manifest import file_digest
+
+    d = tmp_path / "cap"
+    (d / "depth" / "deeper").mkdir(parents=True)
+    (d / ".tmp").mkdir()
+    (d / "b.csv").write_text("1,2\n")
+    (d / "depth" / "000001.png").write_bytes(b"\x89PNG one")
+    (d / "depth" / "deeper" / "z.bin").write_bytes(os.urandom(100))
+    (d / ".hidden").write_text("x")
+    (d / ".tmp" / "a.txt").write_text("x")
+    (d / "linked.csv").symlink_to(d / "b.csv")
+    (d / "dangling").symlink_to(d / "nowhere")
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "c.txt").write_text("c")
+    (d / "dirlink").symlink_to(tmp_path / "elsewhere")
+    expected = sorted([rel, (d / rel).stat().st_size, file_digest(d / rel)]
+                      for rel in ("b.csv", "depth/000001.png", "depth/deeper/z.bin", "linked.csv"))
+    assert path_fingerprint(d) == expected
+    assert path_fingerprint(str(d) + "/") == expected  # however the folder is named

@@ -286,3 +286,36 @@ def test_two_disappearances_in_a_view_are_both_kept_and_the_pair_that_leaves_no_
     s = sorted(p["score"] for p in rec["sources"]["laser"]["pairs"])
     assert rec["slicing"]["source"] == ("candidates" if s[0] >= 0.8 * s[1] else "laser")
     assert rec["sources"]["laser"]["ambiguous"] == (rec["slicing"]["source"] == "candidates")
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_seed_components_equal_the_labelling_of_the_whole_frame(threads):
+    """The candidate search labels only the box around its seed pixels; labels, statistics and
+    centroids must be OpenCV's for the whole frame, bit for bit (ties in the candidates' ranking
+    follow the label order), for sparse and dense seeds at any offset, on 1 and 2 OpenCV threads."""
+    import cv2
+
+    from embodmocap.sequence.laser_dots import _seed_components
+
+    rng = np.random.default_rng(3)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(threads)
+    try:
+        for _ in range(400):
+            H, W = (int(v) for v in rng.integers(16, 300, 2))
+            y0, y1 = sorted(int(v) for v in rng.integers(0, H, 2))
+            x0, x1 = sorted(int(v) for v in rng.integers(0, W, 2))
+            seed = (rng.random((y1 + 1 - y0, x1 + 1 - x0)) < rng.choice([0.002, 0.02, 0.3])).astype(np.uint8)
+            full = np.zeros((H, W), np.uint8)
+            full[y0:y1 + 1, x0:x1 + 1] = seed
+            n, labels, stats, cents = cv2.connectedComponentsWithStats(full, connectivity=8)
+            got = _seed_components(seed, (y0, x0), (H, W))
+            if n == 1:
+                assert got is None
+                continue
+            assert got[0] == n
+            np.testing.assert_array_equal(got[1], labels)
+            np.testing.assert_array_equal(got[2][1:], stats[1:])
+            np.testing.assert_array_equal(got[3][1:], cents[1:])
+    finally:
+        cv2.setNumThreads(before)

@@ -23,11 +23,13 @@ the resolved config, the package version, timings and the quality figures of eac
 from __future__ import annotations
 
 import contextvars
+import errno
 import functools
 import hashlib
 import json
 import logging
 import os
+import stat
 import time
 from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
@@ -72,7 +74,7 @@ def remember_digests(digests: dict[tuple, str]) -> None:
     _DIGESTS.update(digests)
 
 
-def file_digest(path: str | Path) -> str:
+def file_digest(path: str | Path, stat_result: os.stat_result | None = None) -> str:
     """A content fingerprint of one file (hex, 32 characters).
 
     Files up to :data:`SMALL_FILE_BYTES` (8 MiB: keypoint JSON, PNG frames, CSV, npz outputs) are
@@ -80,10 +82,11 @@ def file_digest(path: str | Path) -> str:
     the first and the last MiB and 16 evenly spread 64 KiB blocks: about 3 MiB read whatever the
     size, and any rewrite that changes the size, either end or one of the blocks is seen. Never the
     modification time, so faithful copies fingerprint the same. SQLite files (COLMAP's database)
-    leave out the header's change counters, which every open bumps.
+    leave out the header's change counters, which every open bumps. ``stat_result``: the file's
+    ``os.stat`` when the caller has it (a folder walk), saving a second call.
     """
     p = os.path.abspath(path)
-    st = os.stat(p)
+    st = os.stat(p) if stat_result is None else stat_result
     key = (p, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
     hit = _DIGESTS.get(key)
     if hit is not None:
@@ -135,15 +138,26 @@ def path_fingerprint(path: str | Path) -> list:
     if p.is_file():
         return [p.name, p.stat().st_size, file_digest(p)]
     if p.is_dir():
+        # Plain strings and one stat per file: a capture folder holds thousands of frame files, and
+        # Path objects cost more than the hashing of those already hashed by this process.
         out = []
-        for dirpath, dirnames, filenames in os.walk(p):
+        root = os.path.abspath(p)
+        for dirpath, dirnames, filenames in os.walk(root):
             dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+            rel = os.path.relpath(dirpath, root)
+            prefix = "" if rel == os.curdir else rel.replace(os.sep, "/") + "/"
             for name in sorted(filenames):
                 if name.startswith("."):
                     continue
-                f = Path(dirpath) / name
-                if f.is_file():
-                    out.append([f.relative_to(p).as_posix(), f.stat().st_size, file_digest(f)])
+                f = os.path.join(dirpath, name)
+                try:
+                    st = os.stat(f)
+                except OSError as err:  # as Path.is_file: a dangling link or a vanished file is no file
+                    if err.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
+                        continue
+                    raise
+                if stat.S_ISREG(st.st_mode):
+                    out.append([prefix + name, st.st_size, file_digest(f, st)])
         out.sort()
         return out
     return [p.name, None]

@@ -293,11 +293,22 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
             return drop_depth_edges(d, cfg.no_confidence_edge_spread)
         return np.nan_to_num(d.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
 
+    stored_mm = getattr(cap.frames, "depth_mm", None)
+
+    def lidar_mm(i: int) -> np.ndarray:
+        """``depth_mm(lidar(i))`` read as integers where the capture stores millimetres (a 16-bit
+        PNG): metres x 1000 rounds back to the stored value exactly, so the stack is the same."""
+        d = stored_mm(i) if stored_mm is not None else None
+        c = cap.frames.confidence(i) if d is not None else None
+        if d is None or (c is None and cfg.min_depth_confidence > 0):
+            return depth_mm(lidar(i))
+        return d if c is None else np.where(c >= cfg.min_depth_confidence, d, np.uint16(0))
+
     T = len(fm.raw_frames)
     if src is None and cfg.min_depth_confidence > 0 and cap.frames.confidence(int(fm.raw_frames[0])) is None:
         log.info("%s has no LiDAR confidence map: depth edges dropped instead (relative 3x3 spread > %g, "
                  "sequence setting no_confidence_edge_spread)", cap.path.name, cfg.no_confidence_edge_spread)
-    first = src.depth_maps(None, [int(fm.raw_frames[0])], None)[0] if cfg.depth == "precomputed" else lidar(int(fm.raw_frames[0]))
+    first = src.depth_maps(None, [int(fm.raw_frames[0])], None)[0] if cfg.depth == "precomputed" else lidar_mm(int(fm.raw_frames[0]))
     if refiner is not None:
         shape = (cap.rgb_intrinsics.height, cap.rgb_intrinsics.width)
     else:
@@ -305,16 +316,21 @@ def _depth_step(cfg: SequenceConfig, view, cap: Capture, fm: FrameMap, vl: ViewL
     empty = np.zeros(T, dtype=bool)
     with write_stack(vl.depth, (T,) + tuple(shape), np.uint16) as stack:
 
-        def write(t: int, d: np.ndarray) -> None:
-            if d.shape != stack.shape[1:]:
-                raise InputError(cap.path, f"depth of raw frame {int(fm.raw_frames[t])} is {d.shape[1]}x{d.shape[0]}, "
+        def write_mm(t: int, mm: np.ndarray) -> None:
+            if mm.shape != stack.shape[1:]:
+                raise InputError(cap.path, f"depth of raw frame {int(fm.raw_frames[t])} is {mm.shape[1]}x{mm.shape[0]}, "
                                  f"expected {stack.shape[2]}x{stack.shape[1]}", "all depth maps of a view must share one size")
-            stack[t] = depth_mm(d)
-            empty[t] = not np.any(stack[t])
+            stack[t] = mm
+            empty[t] = not mm.any()
 
-        if refiner is None:
-            read = (lambda i: src.depth_maps(None, [i], None)[0]) if cfg.depth == "precomputed" else lidar
-            _parallel(lambda t: write(t, read(int(fm.raw_frames[t]))), range(T), f"{cap.path.name}: depth")
+        def write(t: int, d: np.ndarray) -> None:
+            write_mm(t, depth_mm(d))
+
+        if cfg.depth == "lidar":
+            _parallel(lambda t: write_mm(t, lidar_mm(int(fm.raw_frames[t]))), range(T), f"{cap.path.name}: depth")
+        elif refiner is None:
+            _parallel(lambda t: write(t, src.depth_maps(None, [int(fm.raw_frames[t])], None)[0]), range(T),
+                      f"{cap.path.name}: depth")
         else:
             for idx in progress(list(_chunks(T, cfg.batch_size)), f"{cap.path.name}: depth", unit="batch"):
                 ids = [int(i) for i in fm.raw_frames[idx]]

@@ -127,12 +127,29 @@ def read_depth_image(path: str | Path) -> NDArray[np.float32]:
             raise InputError(path, f"depth TIFF must be one float channel in metres, got {d.shape} {d.dtype}")
         d = d.astype(np.float32)
     else:
-        d = read_png(path)
-        if d.ndim != 2 or d.dtype != np.uint16:
-            raise InputError(path, f"depth PNG must be single-channel uint16 millimetres, got {d.shape} {d.dtype}",
-                             "write depth as 16-bit PNG in mm")
+        d = _png_millimetres(path)
         d = d.astype(np.float32) / 1000.0
     d[~np.isfinite(d) | (d < 0)] = 0.0
+    return d
+
+
+def read_depth_png_mm(path: str | Path) -> NDArray[np.uint16] | None:
+    """One depth map as stored, (h, w) uint16 millimetres (0 = invalid), when it is a PNG; None for
+    a TIFF (float metres). The same numbers as :func:`read_depth_image` (metres x 1000, rounded),
+    without the float round trip."""
+    path = Path(path)
+    if path.suffix.lower() in (".tif", ".tiff"):
+        return None
+    if not path.is_file():
+        raise InputError(path, "depth image not found", "check the capture folder is complete")
+    return _png_millimetres(path)
+
+
+def _png_millimetres(path: Path) -> NDArray[np.uint16]:
+    d = read_png(path)
+    if d.ndim != 2 or d.dtype != np.uint16:
+        raise InputError(path, f"depth PNG must be single-channel uint16 millimetres, got {d.shape} {d.dtype}",
+                         "write depth as 16-bit PNG in mm")
     return d
 
 
@@ -301,6 +318,7 @@ class LazyFrames:
         self._conf_path = conf_path
         self._depth_size = depth_size
         self._rot90 = rot90
+        self._stored_mm = read_depth is None  # depth files read by read_depth_image (PNG in mm or TIFF)
         self._read_depth = read_depth or (lambda i: read_depth_image(self._depth_path(i)))
         self._read_conf = read_conf or (None if conf_path is None else self._conf_from_png)
 
@@ -317,7 +335,21 @@ class LazyFrames:
 
     def depth_m(self, index: int) -> NDArray[np.float32]:
         self._check(index)
-        d = self._read_depth(index)
+        return self._oriented(index, self._read_depth(index))
+
+    def depth_mm(self, index: int) -> NDArray[np.uint16] | None:
+        """(h, w) uint16 depth in millimetres of frame ``index`` as the capture stores it (a 16-bit
+        PNG), or None when it stores depth otherwise (float metres). Equal to
+        :func:`embodmocap.io.frame_stack.depth_mm` of :meth:`depth_m`, read without converting to
+        metres and back (Stage II's depth stack is millimetres)."""
+        self._check(index)
+        if not self._stored_mm:
+            return None
+        d = read_depth_png_mm(self._depth_path(index))
+        return None if d is None else self._oriented(index, d)
+
+    def _oriented(self, index: int, d: NDArray) -> NDArray:
+        """A depth map read for frame ``index``, its size checked, turned to the RGB orientation."""
         w, h = self._depth_size
         if d.shape != (h, w):
             raise InputError(self._depth_path(index), f"depth map is {d.shape[1]}x{d.shape[0]}, expected {w}x{h}",
