@@ -28,6 +28,7 @@ import hashlib
 import json
 import logging
 import os
+import stat
 import time
 from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
@@ -83,7 +84,11 @@ def file_digest(path: str | Path) -> str:
     leave out the header's change counters, which every open bumps.
     """
     p = os.path.abspath(path)
-    st = os.stat(p)
+    return _digest(p, os.stat(p))
+
+
+def _digest(p: str, st: os.stat_result) -> str:
+    """:func:`file_digest` of the file at absolute path ``p`` whose ``os.stat`` is ``st``."""
     key = (p, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
     hit = _DIGESTS.get(key)
     if hit is not None:
@@ -135,18 +140,33 @@ def path_fingerprint(path: str | Path) -> list:
     if p.is_file():
         return [p.name, p.stat().st_size, file_digest(p)]
     if p.is_dir():
-        out = []
-        for dirpath, dirnames, filenames in os.walk(p):
-            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-            for name in sorted(filenames):
-                if name.startswith("."):
-                    continue
-                f = Path(dirpath) / name
-                if f.is_file():
-                    out.append([f.relative_to(p).as_posix(), f.stat().st_size, file_digest(f)])
+        out: list = []
+        _folder_fingerprint(os.path.abspath(p), "", out)
         out.sort()
         return out
     return [p.name, None]
+
+
+def _folder_fingerprint(folder: str, rel: str, out: list) -> None:
+    """Append ``[relative path, size, digest]`` of every file below ``folder`` (absolute; ``rel``:
+    its path below the fingerprinted folder, ``""`` or ending in ``/``) to ``out``, as
+    :func:`path_fingerprint` lists them: hidden names left out, links to files followed, links to
+    folders not entered (as ``os.walk`` does). One ``stat`` per file (``os.scandir``): a capture's
+    thousands of frame files are checked at every stage's start (issue 30)."""
+    with os.scandir(folder) as it:
+        entries = list(it)
+    for e in entries:
+        if e.name.startswith("."):
+            continue
+        try:
+            if e.is_dir(follow_symlinks=False):
+                _folder_fingerprint(e.path, f"{rel}{e.name}/", out)
+                continue
+            st = e.stat()  # follows a link, as Path.is_file does
+        except OSError:  # vanished, or a dangling link: not a file
+            continue
+        if stat.S_ISREG(st.st_mode):
+            out.append([f"{rel}{e.name}", st.st_size, _digest(e.path, st)])
 
 
 def fingerprint(*parts: Any) -> str:
