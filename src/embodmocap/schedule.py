@@ -48,13 +48,16 @@ are the sequential run's and a rerun resumes.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing as mp
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
+import types
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -82,6 +85,21 @@ CALIBRATE_AFTER = "mesh"
 #: whose answer does not depend on the split over the idle cores (:func:`embodmocap.parallel.lent_cores`:
 #: Stage IV's fit windows in two processes, :mod:`embodmocap.motion.smplify`).
 LEND_IDLE_CORES = True
+#: Modules a job's worker imports on a background thread as the job starts, for the next job of
+#: its target (the worker takes it when this one ends): Stage II's worker will run the registration,
+#: whose Stage III modules import torch (~1.3 s of CPU on a quiet core, 3 s on a loaded one), which
+#: Stage II does not. On the thread's own lower priority (:data:`PREIMPORT_NICE`) it takes mostly
+#: the CPU Stage II leaves (waiting on its files and decoders at the start) rather than the
+#: registration's start on the run's critical path.
+PREIMPORT = {"sequence": ("torch",)}
+#: How much nicer than its worker a background import of :data:`PREIMPORT` runs.
+PREIMPORT_NICE = 5
+#: The module Stage IV's fit workers preload (what :mod:`embodmocap.motion.smplify` passes to
+#: :func:`embodmocap.motion.fit_workers.start_workers`). A Stage IV job starts them as it begins
+#: (:func:`embodmocap.motion.fit_workers.prestarted`), so that their imports (torch, the body model
+#: and the fit: seconds in a fresh interpreter) overlap the triangulation and the fit's start on
+#: the idle core; the fit takes them when it splits its windows.
+FIT_PRELOAD = ("embodmocap.motion.smplify",)
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -161,6 +179,7 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
     elif job.kind == "sequence":
         from embodmocap.sequence.stage import run
 
+        _warm_up(PREIMPORT.get(job.kind, ()))
         run(cfg.sequence, session, job.name, force=force)
     elif job.kind in ("register", "calibrate"):
         from embodmocap.calibrate.stage import run
@@ -168,11 +187,39 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
         run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register",
             scene_running=job.kind == "calibrate")
     elif job.kind == "motion":
+        from embodmocap.motion.fit_workers import prestarted
         from embodmocap.motion.stage import run
 
-        run(cfg.motion, session, job.name, force=force)
+        with prestarted(fit_helpers(cfg.motion), FIT_PRELOAD, cfg.motion.smplify.threads):
+            run(cfg.motion, session, job.name, force=force)
     else:  # pragma: no cover - plan_jobs makes only these
         raise ValueError(f"unknown job {job.kind}")
+
+
+def _warm_up(modules: tuple[str, ...]) -> None:
+    """Import ``modules`` on background threads at :data:`PREIMPORT_NICE` (see :data:`PREIMPORT`)."""
+    from embodmocap.parallel import import_in_background
+
+    for name in modules:
+        import_in_background(name, nice=PREIMPORT_NICE)
+
+
+def fit_helpers(motion_cfg) -> int:
+    """The fit worker processes Stage IV's fit will start besides its own (``motion_cfg``: the
+    MotionConfig, device resolved): one per core it may use beyond the first
+    (:func:`embodmocap.parallel.lent_cores`, ``smplify.workers``), none on a CUDA device. As
+    :mod:`embodmocap.motion.smplify` counts them for a sequence of more than one window."""
+    from embodmocap.device import resolve_device
+    from embodmocap.errors import InputError
+    from embodmocap.parallel import lent_cores, usable_cores
+
+    sm = motion_cfg.smplify
+    try:
+        if sm.device != "cpu" and resolve_device(sm.device) != "cpu":
+            return 0
+    except InputError:  # the stage says so itself
+        return 0
+    return max(min(max(sm.workers, lent_cores()), usable_cores()) - 1, 0)
 
 
 class _LogToPipe(logging.Handler):
@@ -264,6 +311,36 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
             return
         if status == "interrupted":
             return
+    # Told to stop (or the scheduler went away) between jobs: every file is written and every log
+    # record sent, so the process ends here without the interpreter's teardown of its modules and
+    # heap (torch, a fit's GBs: 0.75-2 s of one core on the 2-core box against 0.2 s), which the
+    # run's end waits for and which Stage I's worker spent beside the registration.
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    os._exit(0)
+
+
+@contextlib.contextmanager
+def _main_module_not_rerun():
+    """Inside: a process started with ``spawn`` does not import this process's ``__main__`` again.
+
+    ``spawn`` re-imports the parent's main module in the child (as ``__mp_main__``) for targets
+    defined there; ``embodmocap run``'s is the CLI (the ``embodmocap`` script, or ``python -m
+    embodmocap.cli``), whose imports (every command's config, tyro) are 0.1-0.4 s of a worker's
+    start-up for nothing: the worker's target lives in this module. ``multiprocessing`` reads the
+    main module while ``start()`` prepares the child, in this thread; a placeholder without a
+    file or a spec stands in for it meanwhile (the scheduler starts workers from one thread)."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
 
 
 @dataclass
@@ -300,7 +377,8 @@ class WorkerPool:
 
             proc = self._ctx.Process(target=_worker_main, args=(child, pkg.getEffectiveLevel(), is_quiet()),
                                      daemon=True, name="embodmocap-run-worker")
-            proc.start()
+            with _main_module_not_rerun():
+                proc.start()
             child.close()
             w = _Worker(proc, parent)
             self.workers.append(w)
