@@ -149,26 +149,6 @@ def test_a_job_is_lent_the_idle_cores_only_when_every_job_left_waits_for_it():
     assert parallel.lent_cores() == 1
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value is Linux's")
-def test_a_background_import_runs_nicer_than_the_process_and_leaves_it_as_it_was(tmp_path, monkeypatch):
-    """What a worker imports ahead for its next job (``schedule.PREIMPORT``) takes mostly the CPU its
-    job leaves: the importing thread runs ``nice`` steps nicer, the worker's own threads do not."""
-    import os
-    import threading
-
-    from embodmocap.parallel import import_in_background
-
-    (tmp_path / "probe_nice_mod.py").write_text(
-        "import os, threading\nNICE = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    me = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    import_in_background("probe_nice_mod", nice=3).join()
-    import probe_nice_mod
-
-    assert probe_nice_mod.NICE == min(19, me + 3)
-    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == me
-
-
 def test_a_worker_does_not_import_the_cli_again(monkeypatch):
     """``spawn`` would re-import the parent's main module (the CLI, with every command's config) in
     each worker; the pool starts its workers without it, and leaves ``__main__`` as it was."""

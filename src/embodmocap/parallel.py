@@ -14,7 +14,6 @@ import contextlib
 import importlib
 import logging
 import os
-import sys
 import threading
 
 log = logging.getLogger(__name__)
@@ -69,7 +68,7 @@ def lend_cores(n: int):
         _LENT = old
 
 
-def import_in_background(name: str, nice: int = 0) -> threading.Thread:
+def import_in_background(name: str) -> threading.Thread:
     """Start importing module ``name`` in a thread and return it (joined at exit, not a daemon).
 
     For a heavy import (Open3D: about 7 s of CPU, most of it its ML package's scikit-learn) that a
@@ -77,17 +76,9 @@ def import_in_background(name: str, nice: int = 0) -> threading.Thread:
     import then costs the other core's time, not the stage's. A later ``import name`` in any thread
     waits for this one to finish (the import lock) and gets the same module. A failed import is
     only logged here: the step that needs the module imports it again and raises there.
-
-    ``nice`` > 0: the thread runs that much nicer than the process (Linux, where a thread has its
-    own nice value; elsewhere ignored), so that it takes mostly CPU the process's other work and
-    the machine's other processes leave idle: for an import a later job needs, started while this
-    one runs (:mod:`embodmocap.schedule`). Whoever needs the module before it is done waits for it
-    as it would for its own import (the waiting thread then leaves its core to this one).
     """
 
     def work() -> None:
-        if nice > 0:
-            _be_nicer(nice)
         try:
             importlib.import_module(name)
         except Exception as err:  # noqa: BLE001 (the importing step reports it)
@@ -96,15 +87,3 @@ def import_in_background(name: str, nice: int = 0) -> threading.Thread:
     th = threading.Thread(target=work, name=f"import-{name}")
     th.start()
     return th
-
-
-def _be_nicer(n: int) -> None:
-    """The calling thread's nice value raised by ``n`` (Linux only: elsewhere ``setpriority`` with
-    a thread id would renice the whole process)."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + int(n)))
-    except OSError as err:  # not allowed: the thread runs at the process's priority
-        log.debug("could not lower a thread's priority: %s", err)

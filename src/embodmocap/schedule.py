@@ -28,14 +28,17 @@ of a one-sequence session, and the second worker would idle: a job that starts w
 runs and every job left waits for it is lent every worker's core (:func:`cores_for`; the worker
 runs it inside :func:`embodmocap.parallel.lend_cores`). Stage IV then fits its windows in two
 processes (:mod:`embodmocap.motion.smplify`: the windows are independent, the answer is the one
-process's); the registration already uses both cores (its frames on a thread pool, the views'
-frames decoded beside the scene index: :mod:`embodmocap.calibrate.stage`).
+process's), the second started as the Stage IV job begins (:data:`FIT_PRELOAD`), so that its
+imports overlap the triangulation on the idle core; the registration already uses both cores (its
+frames on a thread pool, the views' frames decoded beside the scene index:
+:mod:`embodmocap.calibrate.stage`).
 
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
 (its imports are paid once), preferably the next job of its own scene or sequence; it waits idle
 when that job waits only on running ones (the registration's worker for Stage I's mesh), else it is
-stopped, so no idle process holds memory next to a peak. A worker tells the scheduler which steps it finished (through
+stopped, so no idle process holds memory next to a peak (a worker told to stop ends at once, without
+the interpreter's teardown of its modules). A worker tells the scheduler which steps it finished (through
 :data:`embodmocap.io.stage_manifest.STEP_LISTENERS`), forwards its log records to this process's
 handlers, and returns the memory a job freed to the system before the next one.
 
@@ -85,15 +88,6 @@ CALIBRATE_AFTER = "mesh"
 #: whose answer does not depend on the split over the idle cores (:func:`embodmocap.parallel.lent_cores`:
 #: Stage IV's fit windows in two processes, :mod:`embodmocap.motion.smplify`).
 LEND_IDLE_CORES = True
-#: Modules a job's worker imports on a background thread as the job starts, for the next job of
-#: its target (the worker takes it when this one ends): Stage II's worker will run the registration,
-#: whose Stage III modules import torch (~1.3 s of CPU on a quiet core, 3 s on a loaded one), which
-#: Stage II does not. On the thread's own lower priority (:data:`PREIMPORT_NICE`) it takes mostly
-#: the CPU Stage II leaves (waiting on its files and decoders at the start) rather than the
-#: registration's start on the run's critical path.
-PREIMPORT = {"sequence": ("torch",)}
-#: How much nicer than its worker a background import of :data:`PREIMPORT` runs.
-PREIMPORT_NICE = 5
 #: The module Stage IV's fit workers preload (what :mod:`embodmocap.motion.smplify` passes to
 #: :func:`embodmocap.motion.fit_workers.start_workers`). A Stage IV job starts them as it begins
 #: (:func:`embodmocap.motion.fit_workers.prestarted`), so that their imports (torch, the body model
@@ -179,7 +173,6 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
     elif job.kind == "sequence":
         from embodmocap.sequence.stage import run
 
-        _warm_up(PREIMPORT.get(job.kind, ()))
         run(cfg.sequence, session, job.name, force=force)
     elif job.kind in ("register", "calibrate"):
         from embodmocap.calibrate.stage import run
@@ -194,14 +187,6 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
             run(cfg.motion, session, job.name, force=force)
     else:  # pragma: no cover - plan_jobs makes only these
         raise ValueError(f"unknown job {job.kind}")
-
-
-def _warm_up(modules: tuple[str, ...]) -> None:
-    """Import ``modules`` on background threads at :data:`PREIMPORT_NICE` (see :data:`PREIMPORT`)."""
-    from embodmocap.parallel import import_in_background
-
-    for name in modules:
-        import_in_background(name, nice=PREIMPORT_NICE)
 
 
 def fit_helpers(motion_cfg) -> int:
