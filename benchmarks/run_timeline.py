@@ -165,6 +165,30 @@ def report(data: dict, cores: int, bin_s: float) -> None:
         rows.append((end - dur, end, roles.get(r["pid"], str(r["pid"])), f"{m['label']} {m['step']}", dur, c))
     for a, b, who, what, dur, c in sorted(rows):
         print(f"| {a:.1f} | {b:.1f} | {who} | {what} | {dur:.1f} | {c:.1f} | {c / max(dur, 1e-9):.2f} |")
+    # The chain after Stage I and II (registration, the rest of Stage III, Stage IV) of each sequence:
+    # its wall from the register job's start to the motion job's end, and the seconds between its
+    # steps where none of them ran (job start-up: imports, upstream checks; a job waiting for a worker).
+    for r in recs:
+        m = JOB.match(r["msg"])
+        if not (m and m["stage"] == "register" and m["s"] is None):
+            continue
+        target, t_reg = m["target"], r["t"]
+        ends = [x["t"] for x in recs if (j := JOB.match(x["msg"])) and j["target"] == target
+                and j["stage"] == "motion" and j["s"] is not None]
+        chain = sorted((a, b) for a, b, _, what, *_ in rows if what.startswith(target + " ") and a >= t_reg - 0.05
+                       and what.split()[-1] not in ("scene", "sequence", "register", "calibrate", "motion"))
+        if not ends or not chain:
+            continue
+        gaps, cur = [], t_reg
+        for a, b in chain:
+            if a > cur:
+                gaps.append((cur, a))
+            cur = max(cur, b)
+        if ends[0] > cur:
+            gaps.append((cur, ends[0]))
+        print(f"\nchain of {target}: register job start {t_reg:.1f} s -> motion done {ends[0]:.1f} s: "
+              f"{ends[0] - t_reg:.1f} s, of which {sum(b - a for a, b in gaps):.1f} s between its steps ("
+              + ", ".join(f"{a:.1f}-{b:.1f}" for a, b in gaps if b - a >= 0.05) + ")")
     print("\n| time s | job line |")
     print("|---|---|")
     for r in recs:

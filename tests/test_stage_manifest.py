@@ -22,6 +22,32 @@ def test_fingerprint_changes_with_inputs(tmp_path):
     assert path_fingerprint(d) != before
 
 
+def test_folder_fingerprint_lists_what_it_reads(tmp_path):
+    """A folder's fingerprint: every file below it by relative path, size and content digest;
+    hidden names left out, a link to a file followed, a link to a folder not entered, a dangling
+    link ignored; the same digest as the file alone, and the same list for a moved copy."""
+    d = tmp_path / "cap"
+    (d / "depth").mkdir(parents=True)
+    (d / ".tmp").mkdir()
+    (d / "depth" / "000001.png").write_bytes(b"a" * 10)
+    (d / "rgb.mp4").write_bytes(b"video")
+    (d / ".partial").write_text("x")
+    (d / ".tmp" / "q").write_text("y")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "w").write_text("zz")
+    os.symlink(other, d / "linked_folder")
+    os.symlink("rgb.mp4", d / "linked_file")
+    os.symlink(tmp_path / "nowhere", d / "dangling")
+    fp = path_fingerprint(d)
+    assert [(r, n) for r, n, _ in fp] == [("depth/000001.png", 10), ("linked_file", 5), ("rgb.mp4", 5)]
+    assert fp[1][2] == fp[2][2] == path_fingerprint(d / "rgb.mp4")[2]
+    assert fp[0][2] != fp[2][2]
+    moved = tmp_path / "moved"
+    os.rename(d, moved)
+    assert path_fingerprint(moved) == fp
+
+
 def test_steps_are_skipped_until_outputs_or_fingerprints_change(tmp_path):
     man = tmp_path / "manifest.json"
     out = tmp_path / "mesh.ply"

@@ -28,14 +28,17 @@ of a one-sequence session, and the second worker would idle: a job that starts w
 runs and every job left waits for it is lent every worker's core (:func:`cores_for`; the worker
 runs it inside :func:`embodmocap.parallel.lend_cores`). Stage IV then fits its windows in two
 processes (:mod:`embodmocap.motion.smplify`: the windows are independent, the answer is the one
-process's); the registration already uses both cores (its frames on a thread pool, the views'
-frames decoded beside the scene index: :mod:`embodmocap.calibrate.stage`).
+process's), the second started as the Stage IV job begins (:data:`FIT_PRELOAD`), so that its
+imports overlap the triangulation on the idle core; the registration already uses both cores (its
+frames on a thread pool, the views' frames decoded beside the scene index:
+:mod:`embodmocap.calibrate.stage`).
 
 Workers are processes started with ``spawn`` (a fresh interpreter: no OpenMP or torch thread pool
 copied half-initialised through ``fork``); a worker takes the next job when one is ready as it ends
 (its imports are paid once), preferably the next job of its own scene or sequence; it waits idle
 when that job waits only on running ones (the registration's worker for Stage I's mesh), else it is
-stopped, so no idle process holds memory next to a peak. A worker tells the scheduler which steps it finished (through
+stopped, so no idle process holds memory next to a peak (a worker told to stop ends at once, without
+the interpreter's teardown of its modules). A worker tells the scheduler which steps it finished (through
 :data:`embodmocap.io.stage_manifest.STEP_LISTENERS`), forwards its log records to this process's
 handlers, and returns the memory a job freed to the system before the next one.
 
@@ -48,13 +51,17 @@ are the sequential run's and a rerun resumes.
 
 from __future__ import annotations
 
+import contextlib
+import importlib
 import logging
 import multiprocessing as mp
 import os
 import signal
+import sys
 import threading
 import time
 import traceback
+import types
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -82,6 +89,20 @@ CALIBRATE_AFTER = "mesh"
 #: whose answer does not depend on the split over the idle cores (:func:`embodmocap.parallel.lent_cores`:
 #: Stage IV's fit windows in two processes, :mod:`embodmocap.motion.smplify`).
 LEND_IDLE_CORES = True
+#: Job kinds for which ``embodmocap run`` (with two workers or more) starts a worker as the run
+#: begins, which imports these modules at once and then waits for the first job of that kind: the
+#: registration's modules import torch (1.3 s of CPU on a quiet core, 3 s on the loaded 2-core
+#: box), which Stage II, whose worker would run the registration next, does not; in a worker of
+#: its own the import costs the start of the run (where the stages' own start-up leaves a core
+#: idle), not the registration's start on the run's critical path. (Importing it on a thread of
+#: Stage II's worker raced Stage II's own imports.) The worker holds ~0.3 GB meanwhile.
+AHEAD = {"register": ("embodmocap.calibrate.stage",)}
+#: The module Stage IV's fit workers preload (what :mod:`embodmocap.motion.smplify` passes to
+#: :func:`embodmocap.motion.fit_workers.start_workers`). A Stage IV job starts them as it begins
+#: (:func:`embodmocap.motion.fit_workers.prestarted`), so that their imports (torch, the body model
+#: and the fit: seconds in a fresh interpreter) overlap the triangulation and the fit's start on
+#: the idle core; the fit takes them when it splits its windows.
+FIT_PRELOAD = ("embodmocap.motion.smplify",)
 #: Seconds a worker gets after Ctrl-C to record ``interrupted`` before it is killed.
 INTERRUPT_GRACE_S = 30.0
 
@@ -168,11 +189,31 @@ def _call(job: Job, cfg, session: Path, force: bool) -> None:
         run(cfg.calibrate, session, job.name, force=force, only_register=job.kind == "register",
             scene_running=job.kind == "calibrate")
     elif job.kind == "motion":
+        from embodmocap.motion.fit_workers import prestarted
         from embodmocap.motion.stage import run
 
-        run(cfg.motion, session, job.name, force=force)
+        with prestarted(fit_helpers(cfg.motion), FIT_PRELOAD, cfg.motion.smplify.threads):
+            run(cfg.motion, session, job.name, force=force)
     else:  # pragma: no cover - plan_jobs makes only these
         raise ValueError(f"unknown job {job.kind}")
+
+
+def fit_helpers(motion_cfg) -> int:
+    """The fit worker processes Stage IV's fit will start besides its own (``motion_cfg``: the
+    MotionConfig, device resolved): one per core it may use beyond the first
+    (:func:`embodmocap.parallel.lent_cores`, ``smplify.workers``), none on a CUDA device. As
+    :mod:`embodmocap.motion.smplify` counts them for a sequence of more than one window."""
+    from embodmocap.device import resolve_device
+    from embodmocap.errors import InputError
+    from embodmocap.parallel import lent_cores, usable_cores
+
+    sm = motion_cfg.smplify
+    try:
+        if sm.device != "cpu" and resolve_device(sm.device) != "cpu":
+            return 0
+    except InputError:  # the stage says so itself
+        return 0
+    return max(min(max(sm.workers, lent_cores()), usable_cores()) - 1, 0)
 
 
 class _LogToPipe(logging.Handler):
@@ -241,7 +282,17 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
 
     stage_manifest.STEP_LISTENERS.append(step_done)
     errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
-    for job, cfg, session, force, digests, cores in _received(conn):
+    for msg in _received(conn):
+        if msg[0] == "import":  # a worker started ahead for a job kind: its imports now (see WorkerPool.ahead)
+            try:
+                for name in msg[1]:
+                    importlib.import_module(name)
+            except KeyboardInterrupt:
+                return
+            except Exception as err:  # noqa: BLE001 (the job that needs it imports it again and fails there)
+                log.debug("import ahead failed: %s", err)
+            continue
+        job, cfg, session, force, digests, cores = msg
         current[0] = job.key
         stage_manifest.remember_digests(digests)
         t0 = time.perf_counter()
@@ -264,6 +315,36 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
             return
         if status == "interrupted":
             return
+    # Told to stop (or the scheduler went away) between jobs: every file is written and every log
+    # record sent, so the process ends here without the interpreter's teardown of its modules and
+    # heap (torch, a fit's GBs: 0.75-2 s of one core on the 2-core box against 0.2 s), which the
+    # run's end waits for and which Stage I's worker spent beside the registration.
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    os._exit(0)
+
+
+@contextlib.contextmanager
+def _main_module_not_rerun():
+    """Inside: a process started with ``spawn`` does not import this process's ``__main__`` again.
+
+    ``spawn`` re-imports the parent's main module in the child (as ``__mp_main__``) for targets
+    defined there; ``embodmocap run``'s is the CLI (the ``embodmocap`` script, or ``python -m
+    embodmocap.cli``), whose imports (every command's config, tyro) are 0.1-0.4 s of a worker's
+    start-up for nothing: the worker's target lives in this module. ``multiprocessing`` reads the
+    main module while ``start()`` prepares the child, in this thread; a placeholder without a
+    file or a spec stands in for it meanwhile (the scheduler starts workers from one thread)."""
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
 
 
 @dataclass
@@ -273,6 +354,7 @@ class _Worker:
     job: Job | None = None
     started: float = 0.0
     last: str = ""  # the scene or sequence of the last job it ran
+    ahead_for: str = ""  # the job kind it was started ahead for (WorkerPool.ahead), until it runs one
 
 
 class WorkerPool:
@@ -292,20 +374,32 @@ class WorkerPool:
         sequence (its imports and caches are that target's), else start a worker. ``cores``: what
         the job may use (:func:`embodmocap.parallel.lent_cores` in the worker)."""
         idle = [w for w in self.workers if w.job is None and w.proc.is_alive()]
-        w = next((w for w in idle if w.last == job.name), idle[0] if idle else None)
-        if w is None:
-            parent, child = self._ctx.Pipe()
-            pkg = logging.getLogger("embodmocap")
-            from embodmocap.progress import is_quiet
-
-            proc = self._ctx.Process(target=_worker_main, args=(child, pkg.getEffectiveLevel(), is_quiet()),
-                                     daemon=True, name="embodmocap-run-worker")
-            proc.start()
-            child.close()
-            w = _Worker(proc, parent)
-            self.workers.append(w)
-        w.job, w.started, w.last = job, time.perf_counter(), job.name
+        w = next((w for w in idle if w.ahead_for == job.kind), None) or next(
+            (w for w in idle if w.last == job.name and not w.ahead_for), None) or next(
+            (w for w in idle if not w.ahead_for), None) or self._spawn()
+        w.job, w.started, w.last, w.ahead_for = job, time.perf_counter(), job.name, ""
         w.conn.send((job, self.cfg, str(self.session), self.force, digests, cores))
+
+    def ahead(self, kind: str, modules: tuple[str, ...]) -> None:
+        """Start a worker now that imports ``modules`` and then waits, idle, for the first job of
+        ``kind``, which it takes before any other worker (see :data:`AHEAD`)."""
+        w = self._spawn()
+        w.ahead_for = kind
+        w.conn.send(("import", tuple(modules)))
+
+    def _spawn(self) -> _Worker:
+        parent, child = self._ctx.Pipe()
+        pkg = logging.getLogger("embodmocap")
+        from embodmocap.progress import is_quiet
+
+        proc = self._ctx.Process(target=_worker_main, args=(child, pkg.getEffectiveLevel(), is_quiet()),
+                                 daemon=True, name="embodmocap-run-worker")
+        with _main_module_not_rerun():
+            proc.start()
+        child.close()
+        w = _Worker(proc, parent)
+        self.workers.append(w)
+        return w
 
     def messages(self, timeout: float) -> list[tuple]:
         """What the busy workers sent within ``timeout`` s; a worker that died gives its job
@@ -355,14 +449,32 @@ class WorkerPool:
             except KeyboardInterrupt:  # a second Ctrl-C: stop waiting
                 break
 
-    def stop_idle(self, keep: set[str] = frozenset()) -> None:
+    def stop_idle(self, keep: set[str] = frozenset(), keep_kinds: set[str] = frozenset()) -> None:
         """Stop the idle workers (called when no job is ready for them) but those whose last job was
         of a target in ``keep`` (a job of it will be ready when a running job gets on): an idle
         worker's imports and heap are hundreds of MB next to a running stage's peak (Stage I's mesh,
         Stage IV's fit), while a fresh worker costs seconds of start-up (spawn, imports, caches) on
         the run's critical path when the job it waits for is the next step of the chain (Stage
-        III's refinement after its registration, waiting for Stage I's mesh)."""
-        for w in [w for w in self.workers if w.job is None and w.last not in keep]:
+        III's refinement after its registration, waiting for Stage I's mesh). Of a target's idle
+        workers only the one that ran its latest job is kept, and none while another runs a later
+        one; a worker started ahead for a job kind (:meth:`ahead`) is kept while a job of a kind
+        in ``keep_kinds`` is left."""
+        busy = {w.last: w.started for w in self.workers if w.job is not None}
+        latest = {}  # the idle worker of each target that started a job last
+        for w in self.workers:
+            if w.job is None and w.last and w.started >= latest.get(w.last, (None, -1.0))[1]:
+                latest[w.last] = (w, w.started)
+
+        def stop(w: _Worker) -> bool:
+            if not w.proc.is_alive():
+                return True
+            if w.ahead_for:
+                return w.ahead_for not in keep_kinds
+            if w.last not in keep or latest.get(w.last, (None,))[0] is not w:
+                return True
+            return busy.get(w.last, -1.0) > w.started  # the target's chain went on in another worker
+
+        for w in [w for w in self.workers if w.job is None and stop(w)]:
             try:
                 w.conn.send(None)
             except (OSError, BrokenPipeError):
@@ -436,6 +548,9 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
             say(f"sequence {q}: skipped because its scene {failed.name} failed")
             record(f"sequence {q}", "all", "failed", 0.0, f"its scene {failed.name} failed")
 
+    for kind, modules in AHEAD.items():
+        if workers > 1 and any(j.kind == kind for j in jobs):
+            pool.ahead(kind, modules)
     bug = ""
 
     def handle(msg: tuple) -> None:
@@ -478,7 +593,8 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
                 break
             # Kept: a worker of a target whose next job waits only on running ones (see stop_idle).
             pool.stop_idle({j.name for j in jobs if state[j.key] == "pending" and all(
-                met(n) or state[n.split("#")[0]] == "running" for n in j.needs)})
+                met(n) or state[n.split("#")[0]] == "running" for n in j.needs)},
+                {j.kind for j in jobs if state[j.key] == "pending"})
             for msg in pool.messages(0.5):
                 handle(msg)
             if any(s == "interrupted" for s in state.values()):

@@ -23,7 +23,6 @@ the resolved config, the package version, timings and the quality figures of eac
 from __future__ import annotations
 
 import contextvars
-import errno
 import functools
 import hashlib
 import json
@@ -74,7 +73,7 @@ def remember_digests(digests: dict[tuple, str]) -> None:
     _DIGESTS.update(digests)
 
 
-def file_digest(path: str | Path, stat_result: os.stat_result | None = None) -> str:
+def file_digest(path: str | Path) -> str:
     """A content fingerprint of one file (hex, 32 characters).
 
     Files up to :data:`SMALL_FILE_BYTES` (8 MiB: keypoint JSON, PNG frames, CSV, npz outputs) are
@@ -82,11 +81,14 @@ def file_digest(path: str | Path, stat_result: os.stat_result | None = None) -> 
     the first and the last MiB and 16 evenly spread 64 KiB blocks: about 3 MiB read whatever the
     size, and any rewrite that changes the size, either end or one of the blocks is seen. Never the
     modification time, so faithful copies fingerprint the same. SQLite files (COLMAP's database)
-    leave out the header's change counters, which every open bumps. ``stat_result``: the file's
-    ``os.stat`` when the caller has it (a folder walk), saving a second call.
+    leave out the header's change counters, which every open bumps.
     """
     p = os.path.abspath(path)
-    st = os.stat(p) if stat_result is None else stat_result
+    return _digest(p, os.stat(p))
+
+
+def _digest(p: str, st: os.stat_result) -> str:
+    """:func:`file_digest` of the file at absolute path ``p`` whose ``os.stat`` is ``st``."""
     key = (p, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
     hit = _DIGESTS.get(key)
     if hit is not None:
@@ -138,29 +140,33 @@ def path_fingerprint(path: str | Path) -> list:
     if p.is_file():
         return [p.name, p.stat().st_size, file_digest(p)]
     if p.is_dir():
-        # Plain strings and one stat per file: a capture folder holds thousands of frame files, and
-        # Path objects cost more than the hashing of those already hashed by this process.
-        out = []
-        root = os.path.abspath(p)
-        for dirpath, dirnames, filenames in os.walk(root):
-            dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-            rel = os.path.relpath(dirpath, root)
-            prefix = "" if rel == os.curdir else rel.replace(os.sep, "/") + "/"
-            for name in sorted(filenames):
-                if name.startswith("."):
-                    continue
-                f = os.path.join(dirpath, name)
-                try:
-                    st = os.stat(f)
-                except OSError as err:  # as Path.is_file: a dangling link or a vanished file is no file
-                    if err.errno in (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP):
-                        continue
-                    raise
-                if stat.S_ISREG(st.st_mode):
-                    out.append([prefix + name, st.st_size, file_digest(f, st)])
+        out: list = []
+        _folder_fingerprint(os.path.abspath(p), "", out)
         out.sort()
         return out
     return [p.name, None]
+
+
+def _folder_fingerprint(folder: str, rel: str, out: list) -> None:
+    """Append ``[relative path, size, digest]`` of every file below ``folder`` (absolute; ``rel``:
+    its path below the fingerprinted folder, ``""`` or ending in ``/``) to ``out``, as
+    :func:`path_fingerprint` lists them: hidden names left out, links to files followed, links to
+    folders not entered (as ``os.walk`` does). One ``stat`` per file (``os.scandir``): a capture's
+    thousands of frame files are checked at every stage's start (issue 30)."""
+    with os.scandir(folder) as it:
+        entries = list(it)
+    for e in entries:
+        if e.name.startswith("."):
+            continue
+        try:
+            if e.is_dir(follow_symlinks=False):
+                _folder_fingerprint(e.path, f"{rel}{e.name}/", out)
+                continue
+            st = e.stat()  # follows a link, as Path.is_file does
+        except OSError:  # vanished, or a dangling link: not a file
+            continue
+        if stat.S_ISREG(st.st_mode):
+            out.append([f"{rel}{e.name}", st.st_size, _digest(e.path, st)])
 
 
 def fingerprint(*parts: Any) -> str:

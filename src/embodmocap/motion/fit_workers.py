@@ -12,7 +12,9 @@ fork-safe either. It works from ``embodmocap run``'s daemonic stage processes (w
 ``multiprocessing`` may not start children) and on every platform.
 
 A worker is started early (:func:`start_workers`: it imports torch and the fit while this process
-still fits the shape, so the import costs the idle core's time) and then waits for one job: a
+still fits the shape, so the import costs the idle core's time; or before the stage, by
+:func:`prestarted`: ``embodmocap run``'s scheduler starts it as Stage IV begins, so that the import
+overlaps the triangulation too) and then waits for one job: a
 module-level function and its arguments, pickled to a file in a private temporary folder; the result
 (or the worker's traceback) comes back the same way. A worker logs nothing; the parent kills and
 reaps every worker before it returns or raises, and a worker whose parent died before sending a job
@@ -23,6 +25,7 @@ window's arithmetic is the same whether it is fitted alone or in a batch with ot
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import pickle
@@ -44,9 +47,37 @@ class Workers:
     Use as a context manager (or call :meth:`close`): workers that got no job, or whose job is
     still running when the parent fails, are killed and reaped."""
 
-    def __init__(self, procs: list[subprocess.Popen], folder: tempfile.TemporaryDirectory) -> None:
+    def __init__(self, procs: list[subprocess.Popen], folder: tempfile.TemporaryDirectory,
+                 errs: list[str] | None = None) -> None:
         self.procs = procs
         self.folder = folder
+        #: Each worker's stderr file (what a worker that failed to start said).
+        self.errs = errs if errs is not None else [os.path.join(folder.name, f"worker{k}.err") for k in range(len(procs))]
+
+    def _spawn(self, preload: Sequence[str], threads: int) -> None:
+        """Start one more worker (see :func:`start_workers`)."""
+        import embodmocap
+
+        env = dict(os.environ)
+        root = str(Path(embodmocap.__file__).resolve().parents[1])  # the folder that holds the package
+        env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        if threads > 0:
+            for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+                env[k] = str(threads)
+        path = os.path.join(self.folder.name, f"worker{len(self.errs)}.err")
+        # stderr to a file, not a pipe: a worker that warns a lot must not block on a full pipe.
+        with open(path, "wb") as err:
+            self.procs.append(subprocess.Popen([sys.executable, "-c", _BOOT, *preload], stdin=subprocess.PIPE,
+                                               stdout=subprocess.DEVNULL, stderr=err, env=env, close_fds=True))
+        self.errs.append(path)
+
+    def _drop(self, keep) -> None:
+        """Kill and reap the workers for which ``keep(index, process)`` is false."""
+        kept = [(p, e) for k, (p, e) in enumerate(zip(self.procs, self.errs)) if keep(k, p)]
+        for p in self.procs:
+            if all(p is not q for q, _ in kept):
+                _end(p)
+        self.procs, self.errs = [p for p, _ in kept], [e for _, e in kept]
 
     def __len__(self) -> int:
         return len(self.procs)
@@ -59,40 +90,66 @@ class Workers:
 
     def close(self) -> None:
         for p in self.procs:
-            if p.poll() is None:
-                p.kill()
-            p.wait()
-            if p.stdin is not None:
-                p.stdin.close()
-        self.procs = []
+            _end(p)
+        self.procs, self.errs = [], []
         self.folder.cleanup()
+
+
+def _end(p: subprocess.Popen) -> None:
+    """Kill (if still running) and reap one worker."""
+    if p.poll() is None:
+        p.kill()
+    p.wait()
+    if p.stdin is not None:
+        p.stdin.close()
+
+
+#: Workers started ahead of the stage (:func:`prestarted`): (preload, threads) and the pool, which
+#: the next :func:`start_workers` asking for the same modules and threads takes.
+_AHEAD: list[tuple[tuple[tuple[str, ...], int], Workers]] = []
 
 
 def start_workers(n: int, preload: Sequence[str] = (), threads: int = 1) -> Workers:
     """Start ``n`` worker processes (0 = none) that import the modules ``preload`` now and wait.
 
     ``threads`` > 0: the workers' OpenMP / BLAS thread count (``OMP_NUM_THREADS``, ...) from the
-    start, so that they never spin up a pool of one thread per core."""
-    import embodmocap
-
-    env = dict(os.environ)
-    root = str(Path(embodmocap.__file__).resolve().parents[1])  # the folder that holds the package
-    env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
-    if threads > 0:
-        for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-            env[k] = str(threads)
-    folder = tempfile.TemporaryDirectory(prefix="embodmocap-fit-")
-    procs = []
+    start, so that they never spin up a pool of one thread per core. Workers :func:`prestarted`
+    with the same ``preload`` and ``threads`` are taken first (those beyond ``n`` are stopped)."""
+    n = max(int(n), 0)
+    key = (tuple(preload), int(threads))
+    pool = next((w for k, w in _AHEAD if k == key), None)
+    if pool is not None:
+        _AHEAD[:] = [(k, w) for k, w in _AHEAD if w is not pool]
+        pool._drop(lambda k, p: k < n and p.poll() is None)  # one that died starting is replaced below
+    else:
+        pool = Workers([], tempfile.TemporaryDirectory(prefix="embodmocap-fit-"))
     try:
-        for k in range(max(int(n), 0)):
-            # stderr to a file, not a pipe: a worker that warns a lot must not block on a full pipe.
-            with open(os.path.join(folder.name, f"worker{k}.err"), "wb") as err:
-                procs.append(subprocess.Popen([sys.executable, "-c", _BOOT, *preload], stdin=subprocess.PIPE,
-                                              stdout=subprocess.DEVNULL, stderr=err, env=env, close_fds=True))
+        while len(pool.procs) < n:
+            pool._spawn(preload, threads)
     except BaseException:
-        Workers(procs, folder).close()
+        pool.close()
         raise
-    return Workers(procs, folder)
+    return pool
+
+
+@contextlib.contextmanager
+def prestarted(n: int, preload: Sequence[str] = (), threads: int = 1):
+    """Context manager: ``n`` workers started now, as :func:`start_workers` would start them, for
+    the first :func:`start_workers` inside that asks for the same ``preload`` and ``threads``
+    (their imports then overlap what this process does before it); those not taken by then are
+    stopped at the end. ``embodmocap run``'s scheduler starts Stage IV's fit worker so as the
+    stage begins (:mod:`embodmocap.schedule`)."""
+    key = (tuple(preload), int(threads))
+    pool = Workers([], tempfile.TemporaryDirectory(prefix="embodmocap-fit-"))
+    try:
+        for _ in range(max(int(n), 0)):
+            pool._spawn(preload, threads)
+        _AHEAD.append((key, pool))
+        yield
+    finally:
+        if any(w is pool for _, w in _AHEAD):
+            _AHEAD[:] = [(k, w) for k, w in _AHEAD if w is not pool]
+            pool.close()
 
 
 def run_pieces(fn: Callable[..., Any], args: Sequence[tuple], workers: int | Workers) -> list:
@@ -131,7 +188,7 @@ def run_pieces(fn: Callable[..., Any], args: Sequence[tuple], workers: int | Wor
         for k, (i, p, dst) in enumerate(sent):
             status = p.wait()
             if not os.path.exists(dst):
-                with open(os.path.join(pool.folder.name, f"worker{k}.err"), "rb") as f:
+                with open(pool.errs[k], "rb") as f:
                     err = f.read().decode(errors="replace")
                 raise RuntimeError(f"Stage IV fit worker {i} ended without a result (exit status {status}: "
                                    f"killed, or out of memory?){': ' + err[-2000:] if err else ''}")
