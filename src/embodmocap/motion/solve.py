@@ -301,21 +301,19 @@ def quality_threads(cfg: MotionConfig) -> int:
 
 
 def map_threads(fn, items: Sequence, threads: int) -> list:
-    """``[fn(x) for x in items]`` on up to ``threads`` threads (in order; here alone for 1). Only
-    for work whose bits do not depend on the thread that does it (no shared state)."""
+    """``[fn(x) for x in items]`` on up to ``threads`` threads (in order; here alone for 1), each
+    with one torch thread: the pieces are the parallelism (torch's own pool would spin beside them).
+    Only for work whose bits do not depend on the thread that does it (no shared state)."""
     import torch
 
-    n = min(int(threads), len(items))
-    if n <= 1:
-        return [fn(x) for x in items]
-    from concurrent.futures import ThreadPoolExecutor
+    from embodmocap.parallel import map_in_threads
 
-    # One torch thread each: the pieces are the parallelism (torch's own pool would spin beside them).
+    if min(int(threads), len(items)) <= 1:
+        return [fn(x) for x in items]
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        with ThreadPoolExecutor(n, thread_name_prefix="motion-frames") as pool:
-            return list(pool.map(fn, items))
+        return map_in_threads(fn, items, threads)
     finally:
         torch.set_num_threads(before)
 
