@@ -21,13 +21,14 @@ class RegisterConfig:
     """Settings of view-frame registration. Defaults register 2 x 200 frames at 640x480 in about a
     minute on 2 CPU cores."""
 
-    num_frames: int = 40
+    num_frames: int = 24
     """Frames sampled per view by :func:`select_frames`: spread over time and over viewpoints
     (the VIO path and turn), the steadiest frame of each stretch (least blur). A 6 s view has
     about 175 frames, a 60 s one 1,800. The offset has 4 parameters and the per-view error is
     dominated by a bias common to the view's frames, not by their number (the VIO chain ties the
-    frames between): beyond ~40 well spread frames more only cost time (SIFT and matching are most
-    of Stage III's time; 80 until issue 30, same accuracy within the benchmark's spread)."""
+    frames between): beyond ~24 well spread frames more only cost time (SIFT and matching are most
+    of Stage III's time; 80 until issue 30, 40 until session 14: camera centres on the 10 hard
+    studio seeds median 0.92 / p95 1.61 cm with 24 against 0.93 / 1.58 with 40)."""
     workers: int = 0
     """Threads registering frames in parallel (0 = one per CPU core). OpenCV and pycolmap release
     the GIL; each frame's result does not depend on the thread count or order."""

@@ -146,13 +146,14 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     stack = contextlib.ExitStack()
     reader = pool = None
     frames = {}
-    if todo:
-        stack.enter_context(one_library_thread())
-        pool = stack.enter_context(ThreadPoolExecutor(max(1, cfg.register.workers or os.cpu_count() or 1),
-                                                      thread_name_prefix="register"))
-        reader = stack.enter_context(ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames"))
-        frames = {v: solve.registration_features(cfg, views[v], pool, reader) for v in todo}
     try:
+        if todo:
+            stack.enter_context(one_library_thread())
+            pool = stack.enter_context(ThreadPoolExecutor(max(1, cfg.register.workers or os.cpu_count() or 1),
+                                                          thread_name_prefix="register"))
+            reader = stack.enter_context(ThreadPoolExecutor(len(todo), thread_name_prefix="register-frames"))
+            for v in todo:
+                frames[v] = solve.registration_features(cfg, views[v], pool, reader)
         for v in names:
             vl = out.view(v)
             with sm.step(f"register_{v}", fp_reg[v], force=force, label=label) as step:
@@ -175,8 +176,9 @@ def run(cfg: CalibrateConfig, session: str | Path, seq: str | None = None, *, fo
     finally:
         for f in frames.values():  # a view left after an error: its frames are not wanted
             f.cancel()
-        if pool is not None:
+        if reader is not None:
             reader.shutdown(wait=True)  # (its frames' tasks are all on the pool then)
+        if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
         stack.close()
     if only_register:
