@@ -163,39 +163,3 @@ def test_a_worker_does_not_import_the_cli_again(monkeypatch):
     with _main_module_not_rerun():
         assert not {k for k in spawn.get_preparation_data("w") if k.startswith("init_main")}
     assert sys.modules["__main__"] is main
-
-
-def test_a_worker_started_ahead_takes_the_first_job_of_its_kind_and_no_other(tmp_path):
-    """``schedule.AHEAD``: a worker started as the run begins imports a job kind's modules and waits
-    for the first job of that kind; other jobs go to other workers; once the target's next job runs
-    there, the target's older idle worker is stopped (here on a folder that is no session: every
-    job fails, each in the worker the pool chose)."""
-    from embodmocap.pipeline import PipelineConfig
-    from embodmocap.schedule import Job, WorkerPool
-
-    def wait_done(pool):
-        done = []
-        deadline = time.time() + 120
-        while not done and time.time() < deadline:
-            done = [m for m in pool.messages(0.5) if m[0] == "done"]
-        assert done and done[0][2] == "failed", done
-        return done[0]
-
-    pool = WorkerPool(2, PipelineConfig(), tmp_path, False)
-    try:
-        pool.ahead("register", ("json",))
-        early = pool.workers[0]
-        pool.start(Job("sequence", "q"), {})
-        seq = [w for w in pool.workers if w.job is not None]
-        assert len(pool.workers) == 2 and seq[0] is not early and early.job is None
-        wait_done(pool)
-        pool.stop_idle({"q"}, {"register"})  # both kept: q's next job is ready, and the register kind is left
-        assert len(pool.workers) == 2
-        pool.start(Job("register", "q"), {})
-        assert early.job is not None and seq[0].job is None
-        pool.stop_idle({"q"}, set())  # q's chain went on in the early worker: the older one stops
-        assert pool.workers == [early]
-        wait_done(pool)
-        assert early.proc.is_alive()
-    finally:
-        pool.close()

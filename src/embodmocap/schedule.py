@@ -52,7 +52,6 @@ are the sequential run's and a rerun resumes.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import logging
 import multiprocessing as mp
 import os
@@ -89,14 +88,6 @@ CALIBRATE_AFTER = "mesh"
 #: whose answer does not depend on the split over the idle cores (:func:`embodmocap.parallel.lent_cores`:
 #: Stage IV's fit windows in two processes, :mod:`embodmocap.motion.smplify`).
 LEND_IDLE_CORES = True
-#: Job kinds for which ``embodmocap run`` (with two workers or more) starts a worker as the run
-#: begins, which imports these modules at once and then waits for the first job of that kind: the
-#: registration's modules import torch (1.3 s of CPU on a quiet core, 3 s on the loaded 2-core
-#: box), which Stage II, whose worker would run the registration next, does not; in a worker of
-#: its own the import costs the start of the run (where the stages' own start-up leaves a core
-#: idle), not the registration's start on the run's critical path. (Importing it on a thread of
-#: Stage II's worker raced Stage II's own imports.) The worker holds ~0.3 GB meanwhile.
-AHEAD = {"register": ("embodmocap.calibrate.stage",)}
 #: The module Stage IV's fit workers preload (what :mod:`embodmocap.motion.smplify` passes to
 #: :func:`embodmocap.motion.fit_workers.start_workers`). A Stage IV job starts them as it begins
 #: (:func:`embodmocap.motion.fit_workers.prestarted`), so that their imports (torch, the body model
@@ -282,17 +273,7 @@ def _worker_main(conn: Connection, log_level: int, quiet: bool) -> None:
 
     stage_manifest.STEP_LISTENERS.append(step_done)
     errors.interrupt_once()  # the first Ctrl-C interrupts the stage; the one forwarded after it must not
-    for msg in _received(conn):
-        if msg[0] == "import":  # a worker started ahead for a job kind: its imports now (see WorkerPool.ahead)
-            try:
-                for name in msg[1]:
-                    importlib.import_module(name)
-            except KeyboardInterrupt:
-                return
-            except Exception as err:  # noqa: BLE001 (the job that needs it imports it again and fails there)
-                log.debug("import ahead failed: %s", err)
-            continue
-        job, cfg, session, force, digests, cores = msg
+    for job, cfg, session, force, digests, cores in _received(conn):
         current[0] = job.key
         stage_manifest.remember_digests(digests)
         t0 = time.perf_counter()
@@ -354,7 +335,6 @@ class _Worker:
     job: Job | None = None
     started: float = 0.0
     last: str = ""  # the scene or sequence of the last job it ran
-    ahead_for: str = ""  # the job kind it was started ahead for (WorkerPool.ahead), until it runs one
 
 
 class WorkerPool:
@@ -374,32 +354,21 @@ class WorkerPool:
         sequence (its imports and caches are that target's), else start a worker. ``cores``: what
         the job may use (:func:`embodmocap.parallel.lent_cores` in the worker)."""
         idle = [w for w in self.workers if w.job is None and w.proc.is_alive()]
-        w = next((w for w in idle if w.ahead_for == job.kind), None) or next(
-            (w for w in idle if w.last == job.name and not w.ahead_for), None) or next(
-            (w for w in idle if not w.ahead_for), None) or self._spawn()
-        w.job, w.started, w.last, w.ahead_for = job, time.perf_counter(), job.name, ""
+        w = next((w for w in idle if w.last == job.name), idle[0] if idle else None)
+        if w is None:
+            parent, child = self._ctx.Pipe()
+            pkg = logging.getLogger("embodmocap")
+            from embodmocap.progress import is_quiet
+
+            proc = self._ctx.Process(target=_worker_main, args=(child, pkg.getEffectiveLevel(), is_quiet()),
+                                     daemon=True, name="embodmocap-run-worker")
+            with _main_module_not_rerun():
+                proc.start()
+            child.close()
+            w = _Worker(proc, parent)
+            self.workers.append(w)
+        w.job, w.started, w.last = job, time.perf_counter(), job.name
         w.conn.send((job, self.cfg, str(self.session), self.force, digests, cores))
-
-    def ahead(self, kind: str, modules: tuple[str, ...]) -> None:
-        """Start a worker now that imports ``modules`` and then waits, idle, for the first job of
-        ``kind``, which it takes before any other worker (see :data:`AHEAD`)."""
-        w = self._spawn()
-        w.ahead_for = kind
-        w.conn.send(("import", tuple(modules)))
-
-    def _spawn(self) -> _Worker:
-        parent, child = self._ctx.Pipe()
-        pkg = logging.getLogger("embodmocap")
-        from embodmocap.progress import is_quiet
-
-        proc = self._ctx.Process(target=_worker_main, args=(child, pkg.getEffectiveLevel(), is_quiet()),
-                                 daemon=True, name="embodmocap-run-worker")
-        with _main_module_not_rerun():
-            proc.start()
-        child.close()
-        w = _Worker(proc, parent)
-        self.workers.append(w)
-        return w
 
     def messages(self, timeout: float) -> list[tuple]:
         """What the busy workers sent within ``timeout`` s; a worker that died gives its job
@@ -449,32 +418,14 @@ class WorkerPool:
             except KeyboardInterrupt:  # a second Ctrl-C: stop waiting
                 break
 
-    def stop_idle(self, keep: set[str] = frozenset(), keep_kinds: set[str] = frozenset()) -> None:
+    def stop_idle(self, keep: set[str] = frozenset()) -> None:
         """Stop the idle workers (called when no job is ready for them) but those whose last job was
         of a target in ``keep`` (a job of it will be ready when a running job gets on): an idle
         worker's imports and heap are hundreds of MB next to a running stage's peak (Stage I's mesh,
         Stage IV's fit), while a fresh worker costs seconds of start-up (spawn, imports, caches) on
         the run's critical path when the job it waits for is the next step of the chain (Stage
-        III's refinement after its registration, waiting for Stage I's mesh). Of a target's idle
-        workers only the one that ran its latest job is kept, and none while another runs a later
-        one; a worker started ahead for a job kind (:meth:`ahead`) is kept while a job of a kind
-        in ``keep_kinds`` is left."""
-        busy = {w.last: w.started for w in self.workers if w.job is not None}
-        latest = {}  # the idle worker of each target that started a job last
-        for w in self.workers:
-            if w.job is None and w.last and w.started >= latest.get(w.last, (None, -1.0))[1]:
-                latest[w.last] = (w, w.started)
-
-        def stop(w: _Worker) -> bool:
-            if not w.proc.is_alive():
-                return True
-            if w.ahead_for:
-                return w.ahead_for not in keep_kinds
-            if w.last not in keep or latest.get(w.last, (None,))[0] is not w:
-                return True
-            return busy.get(w.last, -1.0) > w.started  # the target's chain went on in another worker
-
-        for w in [w for w in self.workers if w.job is None and stop(w)]:
+        III's refinement after its registration, waiting for Stage I's mesh)."""
+        for w in [w for w in self.workers if w.job is None and w.last not in keep]:
             try:
                 w.conn.send(None)
             except (OSError, BrokenPipeError):
@@ -548,9 +499,6 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
             say(f"sequence {q}: skipped because its scene {failed.name} failed")
             record(f"sequence {q}", "all", "failed", 0.0, f"its scene {failed.name} failed")
 
-    for kind, modules in AHEAD.items():
-        if workers > 1 and any(j.kind == kind for j in jobs):
-            pool.ahead(kind, modules)
     bug = ""
 
     def handle(msg: tuple) -> None:
@@ -593,8 +541,7 @@ def run_jobs(cfg, session: Path, jobs: list[Job], workers: int, force: bool, say
                 break
             # Kept: a worker of a target whose next job waits only on running ones (see stop_idle).
             pool.stop_idle({j.name for j in jobs if state[j.key] == "pending" and all(
-                met(n) or state[n.split("#")[0]] == "running" for n in j.needs)},
-                {j.kind for j in jobs if state[j.key] == "pending"})
+                met(n) or state[n.split("#")[0]] == "running" for n in j.needs)})
             for msg in pool.messages(0.5):
                 handle(msg)
             if any(s == "interrupted" for s in state.values()):
