@@ -468,7 +468,7 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
             J = _jacobian(resid, x)
             H, g = J.T @ J, J.T @ r
         else:
-            H, g = _knot_normal_equations(prob, x, nbrs, irls)
+            H, g = _knot_normal_system(prob, x, nbrs, irls)
         # a tiny ridge keeps unobserved directions (e.g. the height with tracks only) solvable
         ridge = 1e-12 * max(float(H.diagonal().max()), 1e-12)
         accepted = False
@@ -485,7 +485,7 @@ def _lm(prob: _Problem, cfg: RefineConfig) -> SolverRun:
     return SolverRun("lm", f, it, time.perf_counter() - t0, x.numpy())
 
 
-def _knot_normal_equations(prob: _Problem, x: torch.Tensor, nbrs, irls, step: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+def _knot_normal_system(prob: _Problem, x: torch.Tensor, nbrs, irls, step: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
     """``(J^T J, J^T r)`` of the whitened residuals ``r`` over the drift knots, with ``J`` their
     Jacobian (a sparse matrix: a row depends on at most two knots of each view it observes) in 8 V
     evaluations instead of two per knot parameter.
