@@ -57,6 +57,14 @@ def lent_cores() -> int:
     return _LENT
 
 
+def cores_to_use(requested: int) -> int:
+    """Cores a stage's independent pieces may take: ``requested`` (a setting such as
+    ``smplify.workers``) or the cores :func:`lent_cores` lends the job, whichever is more, at most
+    the :func:`usable_cores`, at least 1. Stage IV's fit windows, its per-frame quality and the
+    scheduler's count of the fit's helper processes all use this one rule."""
+    return max(1, min(max(int(requested), lent_cores()), usable_cores()))
+
+
 @contextlib.contextmanager
 def lend_cores(n: int):
     """Context manager: :func:`lent_cores` is ``n`` (at least 1) inside, restored after."""

@@ -196,7 +196,7 @@ def fit_helpers(motion_cfg) -> int:
     :mod:`embodmocap.motion.smplify` counts them for a sequence of more than one window."""
     from embodmocap.device import resolve_device
     from embodmocap.errors import InputError
-    from embodmocap.parallel import lent_cores, usable_cores
+    from embodmocap.parallel import cores_to_use
 
     sm = motion_cfg.smplify
     try:
@@ -204,7 +204,7 @@ def fit_helpers(motion_cfg) -> int:
             return 0
     except InputError:  # the stage says so itself
         return 0
-    return max(min(max(sm.workers, lent_cores()), usable_cores()) - 1, 0)
+    return cores_to_use(sm.workers) - 1
 
 
 class _LogToPipe(logging.Handler):

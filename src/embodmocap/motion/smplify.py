@@ -67,7 +67,7 @@ from embodmocap.motion.config import SmplifyConfig  # noqa: F401 (defined with t
 from embodmocap.motion.fit_workers import run_pieces, start_workers
 from embodmocap.motion.floor import floor_term
 from embodmocap.motion.windows import blend_states as _blend, blend_weights as _blend_weights, window_ranges  # noqa: F401
-from embodmocap.parallel import lent_cores, usable_cores
+from embodmocap.parallel import cores_to_use
 from embodmocap.progress import progress
 from embodmocap.types import SmplParams
 
@@ -686,8 +686,7 @@ def _fit_windows(model: BodyModel, body: KeypointBody, data: _Data, start: _Stat
     # At most one process per usable core: on one core a second process only adds its imports.
     # `embodmocap run` lends the fit its idle second worker's core when nothing else is left to run
     # (parallel.lent_cores): the windows then take two processes whatever cfg.workers says.
-    n_proc = max(min(max(cfg.workers, lent_cores()) if start.go.device.type == "cpu" else 1, len(ranges),
-                     usable_cores()), 1)
+    n_proc = max(min(cores_to_use(cfg.workers) if start.go.device.type == "cpu" else 1, len(ranges)), 1)
     with start_workers(n_proc - 1, (__name__,), cfg.threads) as pool:
         sub = np.unique(np.round(np.linspace(0, T - 1, min(cfg.shape_frames, T))).astype(np.int64))
         sub = torch.as_tensor(sub, device=start.go.device)

@@ -295,9 +295,9 @@ def frame_pieces(T: int, frames: int = QUALITY_PIECE_FRAMES) -> list[slice]:
 def quality_threads(cfg: MotionConfig) -> int:
     """Threads :func:`fit_quality` runs its pieces on: the cores the fit's windows may use
     (``smplify.workers``, or the cores ``embodmocap run`` lent the stage), at most the usable ones."""
-    from embodmocap.parallel import lent_cores, usable_cores
+    from embodmocap.parallel import cores_to_use
 
-    return max(1, min(max(cfg.smplify.workers, lent_cores()), usable_cores()))
+    return cores_to_use(cfg.smplify.workers)
 
 
 def map_threads(fn, items: Sequence, threads: int) -> list:
