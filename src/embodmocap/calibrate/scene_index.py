@@ -111,7 +111,7 @@ def _save_index(path: Path, key: str, index: SceneIndex) -> None:
               counts=np.array([len(d) for d in index.descriptors], dtype=np.int64),
               descriptors=np.concatenate(index.descriptors), point3D_ids=np.concatenate(index.point3D_ids),
               xyz_ids=ids, xyz=np.stack([index.xyz_by_id[int(i)] for i in ids]),
-                 vocabulary=index.vocabulary, idf=index.idf, bow=index.bow)
+              vocabulary=index.vocabulary, idf=index.idf, bow=index.bow)
 
 
 def _index_from_arrays(sfm_dir: Path, z) -> SceneIndex:
